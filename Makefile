@@ -1,0 +1,62 @@
+# ParaDrive builder — one target per stage. Every target takes SCENE=, PROFILE=, DATA=, BUILD=.
+SHELL := /bin/bash
+PY ?= .venv/bin/python
+PARADRIVE ?= .venv/bin/paradrive
+SCENE ?= synthetic:demo?seed=7
+PROFILE ?=
+DATA ?= data
+MANIFESTS ?= manifests
+BUILD ?= default
+PYTEST_ARGS ?=
+
+profile_flag = $(if $(PROFILE),--profile $(PROFILE),)
+build_args = --scene '$(SCENE)' $(profile_flag) --data $(DATA) --manifests $(MANIFESTS) --build $(BUILD)
+
+.PHONY: setup setup-test ingest fit render clip manifest build demo inspect eval status test bench clean
+
+.venv/.installed: pyproject.toml scripts/setup.sh
+	scripts/setup.sh
+	touch $@
+
+.venv/.installed-test: pyproject.toml scripts/setup.sh
+	scripts/setup.sh test
+	touch $@ .venv/.installed
+
+setup: .venv/.installed
+setup-test: .venv/.installed-test
+
+ingest: setup
+	$(PARADRIVE) build $(build_args) --stages ingest
+fit: setup
+	$(PARADRIVE) build $(build_args) --stages ingest,fit
+render: setup
+	$(PARADRIVE) build $(build_args) --stages ingest,fit,render
+clip: setup
+	$(PARADRIVE) build $(build_args) --stages ingest,fit,render,clip
+manifest: setup
+	$(PARADRIVE) build $(build_args)
+build: setup
+	$(PARADRIVE) build $(build_args)
+
+# The embedded default: the synthetic street through every stage on a laptop, then a look at the result.
+demo: PROFILE = demo
+demo: setup
+	$(PARADRIVE) build $(build_args)
+	$(PARADRIVE) inspect $(MANIFESTS)/$(BUILD) --verify --sheet $(MANIFESTS)/$(BUILD)/contact_sheet.png
+
+inspect: setup
+	$(PARADRIVE) inspect $(MANIFESTS)/$(BUILD)
+eval: setup
+	$(PARADRIVE) eval --scene '$(SCENE)' $(profile_flag) --data $(DATA)
+status: setup
+	$(PARADRIVE) status $(MANIFESTS)/$(BUILD)
+
+test: setup-test
+	$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)
+
+bench: setup-test
+	@mkdir -p bench/results
+	for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b | tee bench/results/$$(basename $$b .py).json || exit 1; done
+
+clean:
+	rm -rf $(DATA) $(MANIFESTS)/*/ .pytest_cache

@@ -1,0 +1,86 @@
+"""``synthetic:<name>?seed=…&frames=…`` scenes: render the procedural street into a canonical scene."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from paradrive.errors import SceneError
+from paradrive.ingest import select_cameras
+from paradrive.scene import Camera, Frame, FrameCamera, Scene, write_image
+from paradrive.uri import SceneURI
+
+# URI query keys and their types; the stage's synthetic_* params are the defaults.
+QUERY_KEYS = {"seed": int, "frames": int, "width": int, "height": int, "curvature": float,
+              "speed": float, "cameras": str}
+
+
+def street_from_uri(uri: SceneURI, params: dict | None = None):
+    """The SyntheticStreet a URI names, with the ingest parameters as defaults."""
+    from paradrive.synthetic import SyntheticStreet
+
+    params = params or {}
+    query = {}
+    for key, value in uri.query.items():
+        if key not in QUERY_KEYS:
+            raise SceneError(f"unknown synthetic option {key!r} in {uri.text!r}",
+                             scene_id=uri.scene_id, fix=f"use one of {', '.join(QUERY_KEYS)}")
+        try:
+            query[key] = QUERY_KEYS[key](value)
+        except ValueError as exc:
+            raise SceneError(f"synthetic option {key}={value!r} is not a {QUERY_KEYS[key].__name__}",
+                             scene_id=uri.scene_id, fix="fix the scene URI") from exc
+    kwargs = dict(
+        name=uri.path, seed=query.get("seed", 7),
+        frames=query.get("frames", params.get("synthetic_frames", 200)),
+        width=query.get("width", params.get("synthetic_width", 832)),
+        height=query.get("height", params.get("synthetic_height", 480)),
+        curvature=query.get("curvature", params.get("synthetic_curvature", 0.0)),
+        lidar=bool(params.get("lidar", True)),
+    )
+    if "speed" in query:
+        kwargs["speed_mps"] = query["speed"]
+    rig = query["cameras"].split(",") if "cameras" in query else list(params.get("cameras") or ["front"])
+    kwargs["cameras"] = tuple(rig)
+    return SyntheticStreet(**kwargs)
+
+
+def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
+    street = street_from_uri(uri, params)
+    cam_names = select_cameras(list(street.cameras), params.get("cameras"), scene_id=scene_id,
+                               where=uri.text)
+    ext = params.get("image_ext", "jpg")
+    quality = int(params.get("jpeg_quality", 95))
+    n = street.frames if params.get("max_frames") is None else min(street.frames, params["max_frames"])
+    ego = street.ego2world()[:n]
+    stamps = street.timestamps_us()[:n]
+    cameras = {}
+    frames = [Frame(index=i, timestamp_us=int(stamps[i]), ego2world=ego[i], cameras={})
+              for i in range(n)]
+    for name in cam_names:
+        spec = street.cameras[name]
+        cameras[name] = Camera(name=name, width=spec.width, height=spec.height, fx=spec.fx,
+                               fy=spec.fy, cx=spec.cx, cy=spec.cy, cam2ego=spec.cam2ego)
+        c2w = street.c2w(name)[:n]
+        batch = 8
+        for start in range(0, n, batch):
+            views = street.render(c2w[start:start + batch], spec.K(), spec.width, spec.height)
+            for j in range(len(views["rgb"])):
+                i = start + j
+                rel = f"images/{name}/{i:06d}.{ext}"
+                write_image(out_dir / rel, views["rgb"][j], quality=quality)
+                if params.get("sky_masks", True):
+                    mask = (views["sky"][j].astype(np.uint8) * 255)
+                    write_image(out_dir / "masks" / "sky" / name / f"{i:06d}.png", mask)
+                frames[i].cameras[name] = FrameCamera(image=rel, c2w=c2w[i])
+    if params.get("lidar", True):
+        for i in range(n):
+            pts = street.lidar_points(i).astype(np.float32)
+            path = out_dir / "lidar" / f"{i:06d}.npy"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.save(path, pts)
+    return Scene(scene_id=scene_id, dataset="synthetic", source=uri.text, fps=float(street.fps),
+                 cameras=cameras, frames=frames,
+                 extra={"synthetic": {"name": street.name, "seed": street.seed,
+                                      "frames": street.frames, "curvature": street.curvature}})

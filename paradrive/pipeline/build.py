@@ -1,0 +1,135 @@
+"""A build: scene stages for many scenes through an executor, then the build-scoped stages.
+
+Exit codes of a build (also the CLI's): 0 every scene finished every asked stage; 3 partial (some
+scenes failed, the others landed); 1 nothing succeeded; 2 a usage or configuration error.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
+from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
+from paradrive.pipeline.runner import (
+    BuildContext, StageResult, fingerprint, load_entry, read_marker, scene_dir_for,
+)
+from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.uri import parse_uri
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+
+
+@dataclass
+class BuildReport:
+    results: list[StageResult] = field(default_factory=list)
+
+    def scenes(self) -> dict[str, str]:
+        """scene_id -> 'done' | 'failed' (a scene fails if any of its stages failed)."""
+        state: dict[str, str] = {}
+        for r in self.results:
+            if r.scene_id.startswith("build:"):
+                continue
+            if r.status in ("failed", "blocked"):
+                state[r.scene_id] = "failed"
+            else:
+                state.setdefault(r.scene_id, "done")
+        return state
+
+    def failures(self) -> list[StageResult]:
+        return [r for r in self.results if r.status == "failed"]
+
+    @property
+    def exit_code(self) -> int:
+        if not self.results:
+            return EXIT_OK
+        if not self.failures():
+            return EXIT_OK
+        ok = [r for r in self.results if r.status in ("done", "skipped")]
+        return EXIT_PARTIAL if ok else EXIT_FAILED
+
+
+def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list[str], list[str]]:
+    registry = config.registry()
+    ordered = registry.order(stages)
+    scene_stages = [s for s in ordered if registry.specs[s].scope == "scene"]
+    build_stages = [s for s in ordered if registry.specs[s].scope == "build"]
+    return scene_stages, build_stages
+
+
+def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str], data_dir: Path,
+                    manifests_dir: Path, build: str, *, force: bool = False) -> StageResult:
+    """Run a build-scoped stage over the scenes whose needed stages completed."""
+    spec = config.registry().specs[stage]
+    t0 = time.time()
+    scenes, inputs = [], {}
+    for uri in scene_uris:
+        sid = parse_uri(uri).scene_id
+        sdir = scene_dir_for(data_dir, sid)
+        markers = [read_marker(sdir, need) for need in spec.needs]
+        if all(markers):
+            scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir)})
+            inputs[sid] = ",".join(m["fingerprint"] for m in markers)
+    label = f"build:{build}"
+    if not scenes:
+        return StageResult(label, stage, "failed",
+                           error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
+                                 f"nothing to write")
+    fp = fingerprint(stage, config.params[stage], inputs)
+    build_dir = Path(manifests_dir) / build
+    index = build_dir / "index.json"
+    if not force and index.is_file():
+        try:
+            if json.loads(index.read_text()).get("config_fingerprint") == fp:
+                return StageResult(label, stage, "skipped", fingerprint=fp)
+        except json.JSONDecodeError:
+            pass
+    log = logging.getLogger(f"paradrive.build.{build}")
+    try:
+        func = load_entry(spec)
+        ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=Path(data_dir),
+                           scenes=scenes, params=dict(config.params[stage]), log=log, fingerprint=fp)
+        summary = func(ctx) or {}
+        return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
+                           summary=summary)
+    except (ParaDriveError, OSError, ValueError) as exc:
+        return StageResult(label, stage, "failed", seconds=time.time() - t0, error=str(exc))
+
+
+def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path, *,
+              stages: list[str] | None = None, executor: Executor | None = None,
+              manifests_dir: str | Path = "manifests", build: str = "default",
+              force: bool = False,
+              on_start: Callable[[str, str], None] | None = None,
+              on_result: Callable[[StageResult], None] | None = None) -> BuildReport:
+    data_dir = Path(data_dir)
+    scene_stages, build_stages = split_stages(config, stages)
+    seen, uris = set(), []
+    for uri in scene_uris:
+        parse_uri(uri)  # a malformed URI is a usage error for the whole build
+        if uri not in seen:
+            seen.add(uri)
+            uris.append(uri)
+    executor = executor or LocalExecutor()
+    report = BuildReport()
+    if scene_stages:
+        tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
+        report.results.extend(executor.run(config, tasks, data_dir, force=force,
+                                           on_start=on_start, on_result=on_result))
+    for stage in build_stages:
+        if on_start:
+            on_start(f"build:{build}", stage)
+        result = run_build_stage(config, stage, uris, data_dir, Path(manifests_dir), build,
+                                 force=force)
+        report.results.append(result)
+        if on_result:
+            on_result(result)
+    return report
+
+
+__all__ = ["BuildReport", "run_build", "run_build_stage", "split_stages", "EXIT_OK",
+           "EXIT_FAILED", "EXIT_USAGE", "EXIT_PARTIAL", "ConfigError", "StageNotImplemented"]

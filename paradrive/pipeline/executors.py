@@ -1,0 +1,72 @@
+"""Executors decide where (scene, stage) tasks run; stages never know.
+
+``LocalExecutor`` runs every task in this process, scene after scene. Each scene's stages run
+in dependency order and stop at the scene's first failure; other scenes go on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Protocol
+
+from paradrive.pipeline.runner import StageResult, run_scene_stage
+from paradrive.pipeline.specs import ResolvedConfig
+
+ResultCallback = Callable[[StageResult], None]
+StartCallback = Callable[[str, str], None]
+
+
+@dataclass(frozen=True)
+class SceneTask:
+    scene_uri: str
+    stages: tuple[str, ...]
+
+
+class Executor(Protocol):
+    name: str
+
+    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: Path, *,
+            force: bool = False, on_start: StartCallback | None = None,
+            on_result: ResultCallback | None = None) -> list[StageResult]:
+        ...
+
+
+def blocked_result(result: StageResult, stage: str) -> StageResult:
+    """The result recorded for a stage that cannot run because an earlier one failed."""
+    return StageResult(result.scene_id, stage, "blocked",
+                       error=f"not run: {result.stage} failed")
+
+
+class LocalExecutor:
+    name = "local"
+
+    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: Path, *,
+            force: bool = False, on_start: StartCallback | None = None,
+            on_result: ResultCallback | None = None) -> list[StageResult]:
+        results: list[StageResult] = []
+        for task in tasks:
+            failed: StageResult | None = None
+            for stage in task.stages:
+                if failed is not None:
+                    result = blocked_result(failed, stage)
+                else:
+                    if on_start:
+                        on_start(task.scene_uri, stage)
+                    result = run_scene_stage(config, stage, task.scene_uri, data_dir, force=force)
+                    if result.status == "failed":
+                        failed = result
+                results.append(result)
+                if on_result:
+                    on_result(result)
+        return results
+
+
+def make_executor(name: str, **options) -> Executor:
+    if name == "local":
+        return LocalExecutor()
+    if name == "ray":
+        from paradrive.pipeline.ray_executor import RayExecutor
+
+        return RayExecutor(**options)
+    raise ValueError(f"unknown executor {name!r}; use 'local' or 'ray'")

@@ -1,0 +1,234 @@
+"""Run one (scene, stage): fingerprint, skip-if-done, call the stage, record completion.
+
+A stage knows only its work (``run_stage(ctx)``); where it runs is an executor's business. A
+completed stage leaves a marker ``<scene_dir>/.paradrive/<stage>.json`` holding the fingerprint
+of its parameters, its inputs' fingerprints and the package version; a re-run whose fingerprint
+matches (and whose declared outputs exist) is skipped.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import importlib
+import itertools
+import json
+import logging
+import resource
+import re
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import paradrive
+from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
+from paradrive.io import remove_stale_temporaries, write_json
+from paradrive.pipeline.specs import ResolvedConfig, StageSpec
+from paradrive.uri import parse_uri
+
+MARKER_DIR = ".paradrive"
+
+
+@dataclass
+class StageContext:
+    """What a scene-scoped stage gets: where the scene lives and the parameters it runs with."""
+
+    stage: str
+    scene_uri: str
+    scene_id: str
+    scene_dir: Path
+    data_dir: Path
+    params: dict[str, Any]
+    log: logging.Logger
+    progress: Callable[[int, int], None] = lambda done, total: None
+    upstream: dict[str, dict] = field(default_factory=dict)  # markers of the stages it needs
+
+
+@dataclass
+class BuildContext:
+    """What a build-scoped stage (manifest) gets: every scene that finished its needs."""
+
+    stage: str
+    build: str
+    build_dir: Path              # <manifests>/<build>
+    data_dir: Path
+    scenes: list[dict]           # [{"scene_id", "scene_uri", "scene_dir"}]
+    params: dict[str, Any]
+    log: logging.Logger
+    fingerprint: str = ""
+    progress: Callable[[int, int], None] = lambda done, total: None
+
+
+@dataclass
+class StageResult:
+    scene_id: str
+    stage: str
+    status: str                  # done | skipped | failed
+    seconds: float = 0.0
+    error: str = ""
+    fingerprint: str = ""
+    peak_rss_mb: float = 0.0
+    summary: dict = field(default_factory=dict)
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def fingerprint(stage: str, params: dict, inputs: dict[str, str], extra: str = "") -> str:
+    """sha256 of the stage name, its parameters, its inputs' fingerprints and the version."""
+    doc = {"stage": stage, "params": params, "inputs": inputs, "extra": extra,
+           "version": paradrive.__version__}
+    return hashlib.sha256(_canonical(doc).encode()).hexdigest()[:20]
+
+
+def marker_path(scene_dir: Path, stage: str) -> Path:
+    return Path(scene_dir) / MARKER_DIR / f"{stage}.json"
+
+
+def read_marker(scene_dir: Path, stage: str) -> dict | None:
+    path = marker_path(scene_dir, stage)
+    try:
+        return json.loads(path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def expand_outputs(patterns: list[str], params: dict) -> list[str]:
+    """Declared outputs with ``{param[:fmt]}`` placeholders expanded (list params expand to many)."""
+    out: list[str] = []
+    for pattern in patterns:
+        names = re.findall(r"{(\w+)(?::[^}]*)?}", pattern)
+        values = []
+        for name in names:
+            v = params.get(name)
+            values.append(v if isinstance(v, (list, tuple)) else [v])
+        for combo in itertools.product(*values):
+            out.append(pattern.format(**dict(zip(names, combo))))
+    return out
+
+
+def outputs_present(scene_dir: Path, spec: StageSpec, params: dict) -> list[str]:
+    """Declared outputs that are missing (empty list = all there)."""
+    missing = []
+    for rel in expand_outputs(spec.outputs, params):
+        if not glob.glob(str(Path(scene_dir) / rel)):
+            missing.append(rel)
+    return missing
+
+
+def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
+    return Path(data_dir) / "scenes" / scene_id
+
+
+def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path) -> tuple[str, dict]:
+    """Fingerprint of (scene, stage) and the markers of the stages it needs.
+
+    Raises ConfigError when a needed stage has not completed for this scene.
+    """
+    spec = config.registry().specs[stage]
+    upstream: dict[str, dict] = {}
+    inputs: dict[str, str] = {}
+    for need in spec.needs:
+        marker = read_marker(scene_dir, need)
+        if marker is None:
+            raise ConfigError(f"stage '{stage}' needs '{need}', which has not completed for "
+                              f"{scene_dir.name}; add '{need}' to --stages")
+        upstream[need] = marker
+        inputs[need] = marker["fingerprint"]
+    extra = scene_uri if spec.needs == [] else ""
+    return fingerprint(stage, config.params[stage], inputs, extra), upstream
+
+
+def load_entry(spec: StageSpec) -> Callable:
+    module_name, _, func_name = spec.entry.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name and module_name.startswith(exc.name):
+            raise StageNotImplemented(
+                f"stage '{spec.name}' is declared in {spec.file} but its implementation "
+                f"{spec.entry} is not available (module {exc.name} missing)") from exc
+        raise
+    func = getattr(module, func_name, None)
+    if func is None:
+        raise StageNotImplemented(f"stage '{spec.name}' is declared in {spec.file} but "
+                                  f"{module_name} has no function {func_name}")
+    return func
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def scene_logger(scene_id: str, log_file: Path | None = None) -> logging.Logger:
+    log = logging.getLogger(f"paradrive.scene.{scene_id}")
+    if log_file is not None and not any(
+            isinstance(h, logging.FileHandler) and h.baseFilename == str(log_file) for h in log.handlers):
+        log_file.parent.mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(log_file)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+    return log
+
+
+def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: str | Path,
+                    *, force: bool = False,
+                    progress: Callable[[int, int], None] | None = None) -> StageResult:
+    """Run (or skip) one stage of one scene. Never raises for bad input: the result says failed."""
+    data_dir = Path(data_dir)
+    spec = config.registry().specs[stage]
+    try:
+        scene_id = parse_uri(scene_uri).scene_id
+    except ParaDriveError as exc:
+        return StageResult(scene_id=scene_uri, stage=stage, status="failed", error=str(exc))
+    scene_dir = scene_dir_for(data_dir, scene_id)
+    log = scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log")
+    params = config.params[stage]
+    t0 = time.time()
+    try:
+        fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
+        marker = read_marker(scene_dir, stage)
+        if (not force and marker and marker.get("fingerprint") == fp
+                and not outputs_present(scene_dir, spec, params)):
+            log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
+            return StageResult(scene_id, stage, "skipped", fingerprint=fp,
+                               summary=marker.get("summary", {}))
+        func = load_entry(spec)
+        scene_dir.mkdir(parents=True, exist_ok=True)
+        marker_path(scene_dir, stage).unlink(missing_ok=True)
+        remove_stale_temporaries(scene_dir)
+        log.info("%s: started (fingerprint %s)", stage, fp)
+        ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
+                           scene_dir=scene_dir, data_dir=data_dir, params=dict(params), log=log,
+                           progress=progress or (lambda done, total: None), upstream=upstream)
+        summary = func(ctx) or {}
+        missing = outputs_present(scene_dir, spec, params)
+        if missing:
+            raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
+                                      f"outputs: {', '.join(missing[:5])}")
+        seconds = time.time() - t0
+        write_json(marker_path(scene_dir, stage),
+                   {"stage": stage, "scene_id": scene_id, "scene_uri": scene_uri, "fingerprint": fp,
+                    "params": params, "inputs": {k: v["fingerprint"] for k, v in upstream.items()},
+                    "version": paradrive.__version__, "seconds": round(seconds, 3),
+                    "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
+        log.info("%s: done in %.1f s", stage, seconds)
+        return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
+                           peak_rss_mb=_peak_rss_mb(), summary=summary)
+    except (SceneError, ConfigError, StageNotImplemented, OSError, ValueError) as exc:
+        message = str(exc)
+        if not isinstance(exc, ParaDriveError):
+            message = f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
+        log.error("%s: failed: %s", stage, message)
+        return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
+                           peak_rss_mb=_peak_rss_mb())
+    except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
+        log.error("%s: crashed:\n%s", stage, traceback.format_exc())
+        return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
+                           error=f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: {exc} "
+                                 f"(traceback in {data_dir / 'logs' / (scene_id + '.log')})",
+                           peak_rss_mb=_peak_rss_mb())

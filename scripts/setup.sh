@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Installs ParaDrive builder into ./.venv: system libraries first, then torch pinned to the
+# CPU build that lies on disk here, then the package with the requested extras.
+# Usage: scripts/setup.sh [extras]   e.g. scripts/setup.sh test
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras="${1:-}"
+PY="${PYTHON:-python3}"
+
+need_apt=()
+# open3d links libusb-1.0; pyvista/vtk offscreen needs GL/EGL and X render libraries.
+for pkg in libusb-1.0-0 libgl1 libegl1 libxrender1 libosmesa6; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
+done
+if [ "${#need_apt[@]}" -gt 0 ]; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
+    else
+        echo "setup: please install ${need_apt[*]} with your system package manager" >&2
+    fi
+fi
+
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+# torch first and pinned: an unpinned torch pulls a CUDA build of several GB.
+.venv/bin/python -m pip install -q "torch==2.13.0"
+if [ -n "$extras" ]; then
+    .venv/bin/python -m pip install -q -e ".[$extras]"
+else
+    .venv/bin/python -m pip install -q -e .
+fi
+echo "setup: ready (.venv, extras: ${extras:-none})"

@@ -1,0 +1,55 @@
+"""Shared fixtures: smoke-profile builds of synthetic scenes, made once per test session.
+
+Building a scene end to end takes seconds to tens of seconds on 2 cores, so every test that needs
+a built scene or a manifest shares these (read-only: copy before mutating).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+
+SMOKE_SCENES = ("synthetic:demo?seed=7", "synthetic:demo?seed=11")
+
+
+def _build(root: Path, uris, stages=None, profile="smoke", build="smoke"):
+    from paradrive.pipeline import StageRegistry, run_build
+
+    config = StageRegistry().resolve(profile)
+    report = run_build(config, list(uris), root / "data", stages=stages,
+                       manifests_dir=root / "manifests", build=build)
+    failures = [f"{r.scene_id}/{r.stage}: {r.error}" for r in report.failures()]
+    assert not failures, "smoke build failed:\n" + "\n".join(failures)
+    return {"root": root, "data_dir": root / "data", "manifests_dir": root / "manifests",
+            "build_dir": root / "manifests" / build, "scene_uris": list(uris), "report": report}
+
+
+@pytest.fixture(scope="session")
+def smoke_scene(tmp_path_factory):
+    """One synthetic scene (seed 7) ingested and fitted with the smoke profile."""
+    root = tmp_path_factory.mktemp("smoke_scene")
+    return _build(root, SMOKE_SCENES[:1], stages=["ingest", "fit"])
+
+
+@pytest.fixture(scope="session")
+def smoke_build(tmp_path_factory):
+    """Two synthetic scenes (seeds 7 and 11) through every stage, manifest included."""
+    root = tmp_path_factory.mktemp("smoke_build")
+    return _build(root, SMOKE_SCENES)
+
+
+@pytest.fixture
+def copy_tree(tmp_path):
+    """Copy a built tree into this test's own folder before changing anything in it."""
+
+    def _copy(src: Path, name: str = "copy") -> Path:
+        dst = tmp_path / name
+        shutil.copytree(src, dst, symlinks=True)
+        return dst
+
+    return _copy
