@@ -1,0 +1,189 @@
+"""Adaptive density control of the 3DGS paper (the semantics of gsplat's ``DefaultStrategy``).
+
+Every ``refine_every`` steps in (``refine_start_iter``, ``refine_stop_iter``): Gaussians whose
+average view-space positional gradient exceeds ``grow_grad2d`` are duplicated (small ones) or
+split in two, sampled from the Gaussian itself (large ones); Gaussians with opacity below
+``prune_opa`` (and, after the first reset, too large ones) are removed. Every ``reset_every``
+steps opacities are clamped to ``2 * prune_opa``. ``max_gaussians`` bounds the count: when the
+candidates would exceed it, the ones with the largest gradients win.
+
+Sky-dome Gaussians (``state["is_sky"]``) are left alone: never grown, pruned or reset.
+
+The mutable state is an explicit dict of tensors, saved with the fit for exact resumption.
+Every topology change is expressed as an index map (new Gaussian i comes from old ``index[i]``)
+applied alike to parameters, optimizer moments (zeroed for new Gaussians) and per-Gaussian state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict
+
+import torch
+
+from .model import logit
+
+__all__ = ["DensifyStrategy"]
+
+
+def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    q = torch.nn.functional.normalize(q, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
+
+
+@torch.no_grad()
+def remap(params: Dict[str, torch.nn.Parameter], optimizers: Dict[str, torch.optim.Optimizer],
+          state: Dict[str, Any], index: torch.Tensor, is_new: torch.Tensor,
+          values: Dict[str, torch.Tensor] | None = None) -> None:
+    """Re-index every per-Gaussian tensor in place of the dicts.
+
+    index: (M,) source Gaussian of each new one; is_new: (M,) bool, True where Adam moments start
+    at zero; values: replacement parameter data for some keys (already re-indexed, (M, ...)).
+    """
+    values = values or {}
+    n_old = params["means"].shape[0]
+    for key in list(params.keys()):
+        old = params[key]
+        data = values[key] if key in values else old.data[index]
+        new = torch.nn.Parameter(data.contiguous(), requires_grad=old.requires_grad)
+        opt = optimizers[key]
+        st = opt.state.pop(old, None)
+        if st is not None:
+            for name in ("exp_avg", "exp_avg_sq"):
+                if name in st:
+                    m = st[name][index]
+                    m[is_new] = 0.0
+                    st[name] = m.contiguous()
+            opt.state[new] = st
+        opt.param_groups[0]["params"] = [new]
+        params[key] = new
+    for key, v in list(state.items()):
+        if isinstance(v, torch.Tensor) and v.dim() >= 1 and v.shape[0] == n_old:
+            state[key] = v[index].contiguous()
+
+
+@dataclass
+class DensifyStrategy:
+    """3DGS densification knobs (defaults: the 3DGS paper / gsplat DefaultStrategy)."""
+
+    prune_opa: float = 0.005
+    grow_grad2d: float = 0.0002
+    grow_scale3d: float = 0.01
+    prune_scale3d: float = 0.1
+    refine_start_iter: int = 500
+    refine_stop_iter: int = 15_000
+    reset_every: int = 3000
+    refine_every: int = 100
+    max_gaussians: int = 0  # 0: no cap
+
+    def initialize_state(self, n: int, scene_scale: float, is_sky: torch.Tensor | None = None) -> Dict[str, Any]:
+        return {
+            "grad2d": torch.zeros(n),
+            "count": torch.zeros(n),
+            "is_sky": torch.zeros(n, dtype=torch.bool) if is_sky is None else is_sky.clone(),
+            "scene_scale": float(scene_scale),
+        }
+
+    @torch.no_grad()
+    def update_state(self, state: Dict[str, Any], info: Dict[str, Any]) -> None:
+        """Accumulate the view-space gradient norms of ``info['means2d']`` (C, N, 2)."""
+        m2d = info["means2d"]
+        if m2d.grad is None:
+            return
+        grads = m2d.grad.detach().clone()
+        c = info["n_cameras"]
+        grads[..., 0] *= info["width"] / 2.0 * c
+        grads[..., 1] *= info["height"] / 2.0 * c
+        radii = info["radii"]
+        visible = radii > 0 if radii.dim() == 2 else (radii > 0).all(-1)   # (C, N)
+        norms = torch.where(visible, grads.norm(dim=-1), torch.zeros_like(grads[..., 0]))
+        state["grad2d"] += norms.sum(0)
+        state["count"] += visible.float().sum(0)
+
+    @torch.no_grad()
+    def step_post_backward(self, params, optimizers, state: Dict[str, Any], step: int,
+                           info: Dict[str, Any], generator: torch.Generator) -> Dict[str, int]:
+        """Call after ``loss.backward()`` and the optimizer step of 0-based iteration ``step``.
+
+        Returns counts of what changed this step (duplicated, split, pruned, reset).
+        """
+        out = {"duplicated": 0, "split": 0, "pruned": 0, "reset": 0}
+        if step >= self.refine_stop_iter:
+            return out
+        self.update_state(state, info)
+        if step > self.refine_start_iter and step % self.refine_every == 0:
+            out["duplicated"], out["split"] = self._grow(params, optimizers, state, generator)
+            out["pruned"] = self._prune(params, optimizers, state, step)
+            state["grad2d"].zero_()
+            state["count"].zero_()
+        if step > 0 and step % self.reset_every == 0:
+            self._reset_opacity(params, optimizers, state)
+            out["reset"] = 1
+        return out
+
+    def _grow(self, params, optimizers, state, generator) -> tuple[int, int]:
+        n = params["means"].shape[0]
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        high = (grads > self.grow_grad2d) & ~state["is_sky"]
+        if self.max_gaussians > 0:
+            budget = max(0, self.max_gaussians - n)
+            if int(high.sum()) > budget:
+                ranked = torch.argsort(torch.where(high, grads, torch.full_like(grads, -1.0)),
+                                       descending=True, stable=True)
+                keep = torch.zeros_like(high)
+                keep[ranked[:budget]] = True
+                high &= keep
+        small = torch.exp(params["scales"]).max(-1).values <= self.grow_scale3d * state["scene_scale"]
+        dup = high & small
+        spl = high & ~small
+        n_dup, n_split = int(dup.sum()), int(spl.sum())
+        if n_dup:
+            sel = torch.nonzero(dup).squeeze(1)
+            index = torch.cat([torch.arange(n), sel])
+            is_new = torch.cat([torch.zeros(n, dtype=torch.bool), torch.ones(n_dup, dtype=torch.bool)])
+            remap(params, optimizers, state, index, is_new)
+            spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
+        if n_split:
+            n = params["means"].shape[0]
+            rest = torch.nonzero(~spl).squeeze(1)
+            sel = torch.nonzero(spl).squeeze(1)
+            index = torch.cat([rest, sel, sel])
+            is_new = torch.cat([torch.zeros(len(rest), dtype=torch.bool),
+                                torch.ones(2 * n_split, dtype=torch.bool)])
+            scales = torch.exp(params["scales"].data[sel])                     # (S, 3)
+            rot = _quat_to_rotmat(params["quats"].data[sel])                    # (S, 3, 3)
+            noise = torch.randn(2, n_split, 3, generator=generator) * scales    # (2, S, 3)
+            offsets = torch.einsum("sij,bsj->bsi", rot, noise).reshape(-1, 3)
+            means = torch.cat([params["means"].data[rest],
+                               params["means"].data[sel].repeat(2, 1) + offsets])
+            new_scales = torch.cat([params["scales"].data[rest],
+                                    torch.log(scales / 1.6).repeat(2, 1)])
+            remap(params, optimizers, state, index, is_new, {"means": means, "scales": new_scales})
+        return n_dup, n_split
+
+    def _prune(self, params, optimizers, state, step) -> int:
+        prune = torch.sigmoid(params["opacities"].data) < self.prune_opa
+        if step > self.reset_every:
+            big = torch.exp(params["scales"].data).max(-1).values > self.prune_scale3d * state["scene_scale"]
+            prune |= big
+        prune &= ~state["is_sky"]
+        n_prune = int(prune.sum())
+        if n_prune:
+            keep = torch.nonzero(~prune).squeeze(1)
+            remap(params, optimizers, state, keep, torch.zeros(len(keep), dtype=torch.bool))
+        return n_prune
+
+    def _reset_opacity(self, params, optimizers, state) -> None:
+        p = params["opacities"]
+        cap = float(logit(2.0 * self.prune_opa))
+        reset = ~state["is_sky"]
+        p.data[reset] = p.data[reset].clamp_max(cap)
+        st = optimizers["opacities"].state.get(p)
+        if st:
+            for name in ("exp_avg", "exp_avg_sq"):
+                if name in st:
+                    st[name][reset] = 0.0
