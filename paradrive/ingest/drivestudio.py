@@ -1,0 +1,241 @@
+"""``drivestudio:<folder>``: one scene as DriveStudio's preprocessors leave it (``processed/training/023``).
+
+Waymo flavour (``ego_pose/`` present)::
+
+    images/<t:03d>_<cam>.jpg       raw (distorted) camera images, cam = CameraName - 1
+    ego_pose/<t:03d>.txt           4x4 vehicle -> global
+    extrinsics/<cam>.txt           4x4 camera (x forward, y left, z up) -> vehicle
+    intrinsics/<cam>.txt           f_u f_v c_u c_v k1 k2 p1 p2 k3
+    sky_masks/<t:03d>_<cam>.png    255 = sky (optional)
+    lidar/<t:03d>.bin              float32 rows: origin(3), point(3) in the vehicle frame, ...
+
+    c2w = inv(ego_0) · ego_t · extrinsic · OPENCV_TO_FLU, images undistorted here.
+
+nuScenes flavour (``extrinsics/<t:03d>_<cam>.txt``)::
+
+    extrinsics/<t:03d>_<cam>.txt   4x4 camera (OpenCV) -> global, per frame
+    intrinsics/<cam>.txt           fx fy cx cy 0 0 0 0 0
+    lidar/<t:03d>.bin + lidar_pose/<t:03d>.txt   float32 (N, 4) in the LiDAR frame; LiDAR -> global
+
+It stores no ego pose: the ego frame is taken as the front camera's pose with vehicle axes
+(x forward, y left, z up), so the world is the first front-camera pose, levelled to those axes.
+Neither flavour stores timestamps: frames are ``1e6 / fps`` us apart, fps from ``?fps=``, else
+10 (Waymo) or the ``processed_<N>Hz`` folder name (nuScenes, 2 Hz keyframes by default).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from paradrive import geometry
+from paradrive.errors import SceneError
+from paradrive.ingest import select_cameras
+from paradrive.ingest.common import (
+    OPENCV_TO_FLU, check_size, checked_pose, decode_jpeg, max_frames, save_points, store_image,
+    transform_points,
+)
+from paradrive.ingest.undistort import distortion_is_zero, undistort_image
+from paradrive.scene import Camera, Frame, FrameCamera, Scene, read_image, write_image
+from paradrive.uri import SceneURI
+
+WAYMO_CAMERAS = {0: "front", 1: "front_left", 2: "front_right", 3: "side_left", 4: "side_right"}
+NUSCENES_CAMERAS = {0: "front", 1: "front_left", 2: "front_right", 3: "back_left",
+                    4: "back_right", 5: "back"}
+
+
+def flavour_of(folder: Path, uri: SceneURI, scene_id: str) -> str:
+    if uri.query.get("flavour") in ("waymo", "nuscenes"):
+        return uri.query["flavour"]
+    if (folder / "ego_pose").is_dir():
+        return "waymo"
+    if any(re.fullmatch(r"\d+_\d+\.txt", p.name) for p in (folder / "extrinsics").glob("*.txt")):
+        return "nuscenes"
+    raise SceneError("not a DriveStudio scene folder (no ego_pose/ and no per-frame extrinsics/)",
+                     scene_id=scene_id, path=folder,
+                     fix="point the URI at one processed scene, e.g. .../processed/training/023")
+
+
+def load_matrix(path: Path, shape, *, scene_id: str, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise SceneError(f"{what} file is missing", scene_id=scene_id, path=path,
+                         fix="re-run DriveStudio's preprocessing for this scene")
+    try:
+        values = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise SceneError(f"{what} file is not numbers ({exc})", scene_id=scene_id, path=path,
+                         fix="re-run DriveStudio's preprocessing for this scene") from exc
+    if values.size != int(np.prod(shape)):
+        raise SceneError(f"{what} file holds {values.size} numbers, expected {int(np.prod(shape))}",
+                         scene_id=scene_id, path=path,
+                         fix="re-run DriveStudio's preprocessing for this scene")
+    return values.reshape(shape)
+
+
+def _fps(folder: Path, uri: SceneURI, flavour: str, scene_id: str) -> float:
+    if "fps" in uri.query:
+        try:
+            fps = float(uri.query["fps"])
+        except ValueError:
+            fps = -1.0
+        if not fps > 0:
+            raise SceneError(f"fps={uri.query['fps']!r} is not a positive number",
+                             scene_id=scene_id, fix="fix the scene URI")
+        return fps
+    if flavour == "waymo":
+        return 10.0
+    m = re.search(r"processed_(\d+)Hz", str(folder.resolve()))
+    return float(m.group(1)) if m else 2.0
+
+
+def _frame_numbers(folder: Path, sub: str, pattern: str) -> list[int]:
+    found = set()
+    for p in (folder / sub).glob("*"):
+        m = re.fullmatch(pattern, p.name)
+        if m:
+            found.add(int(m.group(1)))
+    return sorted(found)
+
+
+def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
+    folder = Path(uri.path).expanduser()
+    if not folder.is_dir():
+        raise SceneError("DriveStudio scene folder does not exist", scene_id=scene_id, path=folder,
+                         fix="check the path in the scene URI")
+    flavour = flavour_of(folder, uri, scene_id)
+    fps = _fps(folder, uri, flavour, scene_id)
+    ids = WAYMO_CAMERAS if flavour == "waymo" else NUSCENES_CAMERAS
+    if flavour == "waymo":
+        available = [name for cid, name in ids.items()
+                     if (folder / "extrinsics" / f"{cid}.txt").is_file()]
+        numbers = _frame_numbers(folder, "ego_pose", r"(\d+)\.txt")
+    else:
+        available = [name for cid, name in ids.items()
+                     if (folder / "extrinsics" / f"000_{cid}.txt").is_file()]
+        numbers = _frame_numbers(folder, "extrinsics", r"(\d+)_0\.txt")
+    chosen = select_cameras(available, params.get("cameras"), scene_id=scene_id,
+                            where=folder / "extrinsics")
+    if not numbers:
+        raise SceneError("scene folder has no frames", scene_id=scene_id, path=folder,
+                         fix="re-run DriveStudio's preprocessing for this scene")
+    if numbers != list(range(len(numbers))):
+        gap = next(i for i, n in enumerate(numbers) if n != i)
+        raise SceneError(f"frame {gap:03d} is missing (frames must be numbered 000, 001, ...)",
+                         scene_id=scene_id, path=folder,
+                         fix="re-run DriveStudio's preprocessing for this scene")
+    limit = max_frames(params)
+    if limit is not None:
+        numbers = numbers[:limit]
+    cam_id = {name: cid for cid, name in ids.items()}
+    intr = {cam: load_matrix(folder / "intrinsics" / f"{cam_id[cam]}.txt", (9,), scene_id=scene_id,
+                             what=f"camera {cam} intrinsics") for cam in chosen}
+
+    # poses in the global frame
+    if flavour == "waymo":
+        ego_global = [checked_pose(load_matrix(folder / "ego_pose" / f"{t:03d}.txt", (4, 4),
+                                               scene_id=scene_id, what=f"frame {t} ego pose"),
+                                   scene_id=scene_id, where=folder / "ego_pose" / f"{t:03d}.txt",
+                                   what=f"frame {t} ego pose") for t in numbers]
+        cam2ego = {}
+        for cam in chosen:
+            path = folder / "extrinsics" / f"{cam_id[cam]}.txt"
+            ext = checked_pose(load_matrix(path, (4, 4), scene_id=scene_id,
+                                           what=f"camera {cam} extrinsics"),
+                               scene_id=scene_id, where=path, what=f"camera {cam} extrinsic")
+            cam2ego[cam] = ext @ OPENCV_TO_FLU
+        c2w_global = {cam: [e @ cam2ego[cam] for e in ego_global] for cam in chosen}
+    else:
+        c2w_global = {}
+        for cam in chosen + (["front"] if "front" not in chosen else []):
+            poses = []
+            for t in numbers:
+                path = folder / "extrinsics" / f"{t:03d}_{cam_id[cam]}.txt"
+                poses.append(checked_pose(load_matrix(path, (4, 4), scene_id=scene_id,
+                                                      what=f"frame {t} camera {cam} pose"),
+                                          scene_id=scene_id, where=path,
+                                          what=f"frame {t} camera {cam} pose"))
+            c2w_global[cam] = poses
+        # no ego pose in this flavour: the front camera with vehicle axes stands in for it
+        flu = geometry.invert(OPENCV_TO_FLU)
+        ego_global = [c @ flu for c in c2w_global["front"]]
+        cam2ego = {cam: geometry.invert(ego_global[0]) @ c2w_global[cam][0] for cam in chosen}
+    world_from_global = geometry.invert(ego_global[0])
+
+    ext_out = params.get("image_ext", "jpg")
+    quality = int(params.get("jpeg_quality", 95))
+    want_sky = bool(params.get("sky_masks", True))
+    cameras: dict[str, Camera] = {}
+    frames = [Frame(index=i, timestamp_us=int(round(i * 1e6 / fps)),
+                    ego2world=world_from_global @ ego_global[i], cameras={})
+              for i in range(len(numbers))]
+    for cam in chosen:
+        fx, fy, cx, cy = (float(v) for v in intr[cam][:4])
+        dist = intr[cam][4:9]
+        for i, t in enumerate(numbers):
+            path = folder / "images" / f"{t:03d}_{cam_id[cam]}.jpg"
+            if not path.is_file():
+                raise SceneError(f"frame {t} camera {cam} image is missing", scene_id=scene_id,
+                                 path=path, fix="re-run DriveStudio's preprocessing, or drop the "
+                                                "camera with ingest.cameras")
+            data = path.read_bytes()
+            pixels = decode_jpeg(data, scene_id=scene_id, where=path)
+            if cam not in cameras:
+                cameras[cam] = Camera(name=cam, width=pixels.shape[1], height=pixels.shape[0],
+                                      fx=fx, fy=fy, cx=cx, cy=cy, cam2ego=cam2ego[cam])
+            check_size(pixels, cameras[cam].width, cameras[cam].height, scene_id=scene_id,
+                       where=path, what=f"camera {cam} image")
+            K = cameras[cam].K()
+            rel = f"images/{cam}/{i:06d}.{ext_out}"
+            store_image(out_dir, rel, pixels, K=K, dist=dist, quality=quality, original=data)
+            frames[i].cameras[cam] = FrameCamera(image=rel,
+                                                 c2w=world_from_global @ c2w_global[cam][i])
+            sky_path = folder / "sky_masks" / f"{t:03d}_{cam_id[cam]}.png"
+            if want_sky and sky_path.is_file():
+                mask = read_image(sky_path, scene_id=scene_id)[..., :1]
+                if not distortion_is_zero(dist):
+                    mask = undistort_image(mask, K, dist)
+                mask = np.where(mask[..., 0] > 127, 255, 0).astype(np.uint8)
+                write_image(out_dir / "masks" / "sky" / cam / f"{i:06d}.png", mask)
+    if params.get("lidar", True) and (folder / "lidar").is_dir():
+        for i, t in enumerate(numbers):
+            path = folder / "lidar" / f"{t:03d}.bin"
+            if not path.is_file():
+                continue
+            raw = np.fromfile(path, dtype=np.float32)
+            if flavour == "waymo":
+                pts = _waymo_lidar_points(raw, scene_id=scene_id, path=path)
+                pose = world_from_global @ ego_global[i]
+            else:
+                if raw.size % 4:
+                    raise SceneError(f"LiDAR file holds {raw.size} floats, not rows of 4",
+                                     scene_id=scene_id, path=path,
+                                     fix="re-run preprocessing or ingest with lidar off")
+                pts = raw.reshape(-1, 4)[:, :3]
+                pose_path = folder / "lidar_pose" / f"{t:03d}.txt"
+                pose = world_from_global @ checked_pose(
+                    load_matrix(pose_path, (4, 4), scene_id=scene_id, what=f"frame {t} LiDAR pose"),
+                    scene_id=scene_id, where=pose_path, what=f"frame {t} LiDAR pose")
+            save_points(out_dir, i, transform_points(pose, pts.astype(np.float64)))
+    return Scene(scene_id=scene_id, dataset="drivestudio", source=uri.text, fps=fps,
+                 cameras=cameras, frames=frames,
+                 extra={"drivestudio": {"flavour": flavour, "folder": folder.name,
+                                        "ego": "vehicle pose" if flavour == "waymo" else
+                                        "front camera with vehicle axes (no ego pose stored)"}})
+
+
+def _waymo_lidar_points(raw: np.ndarray, *, scene_id: str, path: Path) -> np.ndarray:
+    """Points (vehicle frame) of a Waymo-flavour lidar .bin: 14 columns (with flow) or 10."""
+    for cols in (14, 10):
+        if raw.size % cols:
+            continue
+        rows = raw.reshape(-1, cols)
+        origins, laser = rows[:, 0:3], rows[:, -1]
+        plausible = (np.abs(origins).max(initial=0.0) < 10.0
+                     and np.all((laser >= 0) & (laser <= 4) & (laser == np.round(laser))))
+        if plausible:
+            return rows[:, 3:6]
+    raise SceneError(f"LiDAR file of {raw.size} floats is neither 14 nor 10 columns per point",
+                     scene_id=scene_id, path=path,
+                     fix="re-run preprocessing or ingest with lidar off")

@@ -1,0 +1,452 @@
+"""Write a scene with known answers in the real log formats, so every ingest path is tested end to end.
+
+Sources: a ``SyntheticStreet`` (rendered here, exact) or a canonical ``Scene`` (its images read
+back). Writers:
+
+- ``export_waymo``: one Waymo perception segment (TFRecord of ``Frame`` protos), JPEG images,
+  optional lens distortion and a TOP LiDAR range image (zlib MatrixFloat + per-pixel poses);
+- ``export_nuscenes``: nuScenes v1.0 tables (scene, sample, sample_data, ego_pose,
+  calibrated_sensor, sensor, log, ...) with keyframes and sweeps, images, LIDAR_TOP .pcd.bin;
+- ``export_drivestudio``: a DriveStudio processed scene folder, Waymo or nuScenes flavour.
+
+Poses are written in a "global" frame ``GLOBAL @ scene world`` (far from the origin and rotated)
+so that a reader that forgets to re-anchor the world at the first ego pose fails the tests.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import shutil
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from paradrive import geometry
+from paradrive.ingest import waymo_proto as wp
+from paradrive.ingest.common import OPENCV_TO_FLU, encode_jpeg, transform_points
+from paradrive.ingest.protowire import encode
+from paradrive.ingest.tfrecord import write_records
+from paradrive.ingest.undistort import distort_image, distortion_is_zero
+from paradrive.io import atomic_path, write_bytes
+from paradrive.scene import Camera, Scene, write_image
+
+# global-from-world of exported logs: 30 deg yaw, a small roll, km-scale offsets
+GLOBAL = geometry.make_pose(
+    geometry.rotation_about("z", 0.5236) @ geometry.rotation_about("x", 0.01),
+    [1234.5, -678.25, 12.75])
+
+NUSCENES_CHANNELS = {"front": "CAM_FRONT", "front_left": "CAM_FRONT_LEFT",
+                     "front_right": "CAM_FRONT_RIGHT", "back": "CAM_BACK",
+                     "back_left": "CAM_BACK_LEFT", "back_right": "CAM_BACK_RIGHT"}
+# DriveStudio camera ids per flavour
+DRIVESTUDIO_WAYMO_IDS = {"front": 0, "front_left": 1, "front_right": 2, "side_left": 3,
+                         "side_right": 4}
+DRIVESTUDIO_NUSCENES_IDS = {"front": 0, "front_left": 1, "front_right": 2, "back_left": 3,
+                            "back_right": 4, "back": 5}
+
+
+# --------------------------------------------------------------------------- sources
+
+@dataclass
+class LogSource:
+    """What a log holds, in the scene world: the truth exporters write and tests compare with."""
+
+    name: str
+    fps: float
+    cameras: dict[str, Camera]
+    ego2world: np.ndarray                 # (F, 4, 4)
+    timestamps_us: np.ndarray             # (F,)
+    c2w: dict[str, np.ndarray]            # camera -> (F, 4, 4), OpenCV
+    image: Callable[[int, str], np.ndarray]
+    sky: Callable[[int, str], np.ndarray | None] = lambda i, cam: None
+    lidar: Callable[[int], np.ndarray | None] = lambda i: None
+    lidar_origin: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.95]))
+
+    @property
+    def frames(self) -> int:
+        return len(self.ego2world)
+
+
+def source_from_street(street, cameras=None, frames: int | None = None) -> LogSource:
+    """A LogSource that renders ``street`` (all frames of a camera at its first use)."""
+    names = list(cameras or street.cameras)
+    n = street.frames if frames is None else min(frames, street.frames)
+    cams = {c: Camera(name=c, width=s.width, height=s.height, fx=s.fx, fy=s.fy, cx=s.cx, cy=s.cy,
+                      cam2ego=np.asarray(s.cam2ego, dtype=np.float64))
+            for c, s in street.cameras.items() if c in names}
+    c2w = {c: street.c2w(c)[:n] for c in names}
+    cache: dict[str, dict] = {}
+
+    def views(cam):
+        if cam not in cache:
+            spec = street.cameras[cam]
+            cache[cam] = street.render(c2w[cam], spec.K(), spec.width, spec.height)
+        return cache[cam]
+
+    origin = np.array([0.0, 0.0, 1.95])
+    try:
+        from paradrive.synthetic import street as street_module
+
+        origin = np.array([0.0, 0.0, float(street_module.LIDAR_HEIGHT)])
+    except (ImportError, AttributeError):
+        pass
+    return LogSource(
+        name=f"{street.name}-s{street.seed}", fps=float(street.fps), cameras=cams,
+        ego2world=street.ego2world()[:n], timestamps_us=street.timestamps_us()[:n], c2w=c2w,
+        image=lambda i, cam: views(cam)["rgb"][i],
+        sky=lambda i, cam: views(cam)["sky"][i],
+        lidar=functools.lru_cache(maxsize=None)(
+            lambda i: np.asarray(street.lidar_points(i), dtype=np.float64)),
+        lidar_origin=origin)
+
+
+def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> LogSource:
+    """A LogSource reading a canonical scene's files."""
+    names = list(cameras or scene.cameras)
+    n = len(scene.frames) if frames is None else min(frames, len(scene.frames))
+    root = scene._require_root()
+
+    def lidar(i):
+        path = root / "lidar" / f"{scene.frames[i].index:06d}.npy"
+        return np.load(path).astype(np.float64) if path.is_file() else None
+
+    return LogSource(
+        name=scene.scene_id, fps=scene.fps, cameras={c: scene.cameras[c] for c in names},
+        ego2world=scene.ego2world()[:n], timestamps_us=scene.timestamps_us()[:n],
+        c2w={c: scene.c2w(c)[:n] for c in names},
+        image=lambda i, cam: scene.load_image(i, cam),
+        sky=lambda i, cam: scene.sky_mask(i, cam), lidar=lidar)
+
+
+def as_source(street_or_scene, cameras=None, frames=None) -> LogSource:
+    if isinstance(street_or_scene, LogSource):
+        return street_or_scene
+    if isinstance(street_or_scene, Scene):
+        return source_from_scene(street_or_scene, cameras, frames)
+    return source_from_street(street_or_scene, cameras, frames)
+
+
+def _dist_for(distortion, cam: str):
+    if distortion is None:
+        return (0.0,) * 5
+    if isinstance(distortion, dict):
+        return tuple(float(d) for d in distortion.get(cam, (0.0,) * 5))
+    return tuple(float(d) for d in distortion)
+
+
+def _token(*parts) -> str:
+    return hashlib.md5("/".join(map(str, parts)).encode()).hexdigest()
+
+
+def _flat(m) -> list[float]:
+    return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(-1)]
+
+
+# --------------------------------------------------------------------------- Waymo
+
+def rotation_to_euler(rot: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    yaw = np.arctan2(rot[1, 0], rot[0, 0])
+    pitch = -np.arcsin(np.clip(rot[2, 0], -1.0, 1.0))
+    roll = np.arctan2(rot[2, 1], rot[2, 2])
+    return float(roll), float(pitch), float(yaw)
+
+
+def _matrix_float(values: np.ndarray) -> bytes:
+    values = np.asarray(values, dtype=np.float32)
+    payload = encode(wp.MatrixFloat, {"data": values.reshape(-1).tolist(),
+                                      "shape": {"dims": list(values.shape)}})
+    return zlib.compress(payload)
+
+
+def build_range_image(points_vehicle: np.ndarray, extrinsic: np.ndarray, height: int, width: int,
+                      incl_min: float, incl_max: float) -> np.ndarray:
+    """Bin vehicle-frame points into a Waymo-layout range image (H, W, 4), nearest return wins.
+
+    Row 0 is the highest inclination (uniform between min and max); column azimuths follow
+    Waymo's convention (see waymo.range_image_points).
+    """
+    sensor = transform_points(geometry.invert(extrinsic), points_vehicle)
+    rng = np.linalg.norm(sensor, axis=1)
+    ok = rng > 1e-6
+    sensor, rng = sensor[ok], rng[ok]
+    incl = np.arcsin(np.clip(sensor[:, 2] / rng, -1, 1))
+    az = np.arctan2(sensor[:, 1], sensor[:, 0])
+    az_correction = np.arctan2(extrinsic[1, 0], extrinsic[0, 0])
+    # azimuth = (ratio * 2 - 1) * pi - az_correction, ratio = (W - col - 0.5) / W
+    ratio = ((az + az_correction) / np.pi + 1.0) / 2.0
+    col = np.mod(np.rint(width - 0.5 - ratio * width), width).astype(np.int64)
+    step = (incl_max - incl_min) / height
+    row_from_bottom = np.floor((incl - incl_min) / step).astype(np.int64)
+    keep = (row_from_bottom >= 0) & (row_from_bottom < height)
+    row = height - 1 - row_from_bottom[keep]
+    col, rng = col[keep], rng[keep]
+    image = np.zeros((height, width, 4), dtype=np.float32)
+    image[..., 0] = -1.0
+    order = np.argsort(-rng)  # farthest first, so the nearest return is written last
+    image[row[order], col[order], 0] = rng[order]
+    image[..., 3] = -1.0
+    return image
+
+
+def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int | None = None,
+                 segment: str | None = None, distortion=None, lidar: bool = True,
+                 jpeg_quality: int = 95, lidar_size: tuple[int, int] = (64, 2048),
+                 global_from_world: np.ndarray = GLOBAL) -> Path:
+    """Write a Waymo perception segment (``path``, a .tfrecord) of the source's frames.
+
+    distortion: None, (k1, k2, p1, p2, k3) for every camera, or {camera: (...)}; images are then
+    recorded through that lens. lidar: write the TOP laser (first return) as a range image with
+    per-pixel vehicle poses, when the source has LiDAR points.
+    """
+    src = as_source(street_or_scene, cameras, frames)
+    path = Path(path)
+    name = segment or path.stem
+    unknown = [c for c in src.cameras if c.upper() not in wp.CAMERA_IDS]
+    if unknown:
+        raise ValueError(f"cameras {unknown} have no Waymo CameraName; use front, front_left, "
+                         f"front_right, side_left, side_right")
+    calibs = []
+    for cam, c in src.cameras.items():
+        dist = _dist_for(distortion, cam)
+        calibs.append({"name": wp.CAMERA_IDS[cam.upper()],
+                       "intrinsic": [c.fx, c.fy, c.cx, c.cy, *dist],
+                       "extrinsic": {"transform": _flat(c.cam2ego @ geometry.invert(OPENCV_TO_FLU))},
+                       "width": c.width, "height": c.height, "rolling_shutter_direction": 2})
+    h, w = lidar_size
+    lidar_extrinsic = geometry.make_pose(geometry.rotation_about("z", 0.0123), src.lidar_origin)
+    incl_min, incl_max = np.deg2rad(-26.0), np.deg2rad(6.0)
+    has_lidar = lidar and src.lidar(0) is not None
+    context = {"name": name, "camera_calibrations": calibs,
+               "stats": {"time_of_day": "Day", "location": "location_synthetic", "weather": "sunny"}}
+    if has_lidar:
+        context["laser_calibrations"] = [{
+            "name": wp.LASER_IDS["TOP"], "beam_inclination_min": float(incl_min),
+            "beam_inclination_max": float(incl_max), "extrinsic": {"transform": _flat(lidar_extrinsic)}}]
+
+    def records():
+        for i in range(src.frames):
+            ego_global = global_from_world @ src.ego2world[i]
+            images = []
+            for cam, c in src.cameras.items():
+                dist = _dist_for(distortion, cam)
+                pixels = distort_image(src.image(i, cam), c.K(), dist)
+                image_pose = global_from_world @ src.c2w[cam][i] @ geometry.invert(c.cam2ego)
+                images.append({"name": wp.CAMERA_IDS[cam.upper()],
+                                "image": encode_jpeg(pixels, jpeg_quality),
+                                "pose": {"transform": _flat(image_pose)},
+                                "velocity": {"v_x": 0.0, "v_y": 0.0, "v_z": 0.0},
+                                "pose_timestamp": src.timestamps_us[i] / 1e6,
+                                "shutter": 0.004})
+            frame = {"context": context, "timestamp_micros": int(src.timestamps_us[i]),
+                     "pose": {"transform": _flat(ego_global)}, "images": images}
+            if has_lidar:
+                pts_vehicle = transform_points(geometry.invert(src.ego2world[i]), src.lidar(i))
+                ri = build_range_image(pts_vehicle, lidar_extrinsic, h, w, incl_min, incl_max)
+                roll, pitch, yaw = rotation_to_euler(ego_global[:3, :3])
+                pose_image = np.broadcast_to(
+                    np.array([roll, pitch, yaw, *ego_global[:3, 3]], dtype=np.float32), (h, w, 6))
+                frame["lasers"] = [{"name": wp.LASER_IDS["TOP"], "ri_return1": {
+                    "range_image_compressed": _matrix_float(ri),
+                    "range_image_pose_compressed": _matrix_float(pose_image)}}]
+            yield encode(wp.Frame, frame)
+
+    write_records(path, records())
+    return path
+
+
+# --------------------------------------------------------------------------- nuScenes
+
+def _write_json(path: Path, rows) -> None:
+    write_bytes(path, json.dumps(rows, indent=0).encode())
+
+
+def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
+                    frames: int | None = None, version: str = "v1.0-mini",
+                    scene_name: str = "scene-0001", keyframe_every: int = 6,
+                    image_format: str = "jpg", jpeg_quality: int = 95, lidar: bool = True,
+                    time_origin_us: int = 1_531_883_530_000_000,
+                    global_from_world: np.ndarray = GLOBAL) -> Path:
+    """Write nuScenes v1.0 tables under ``dataroot/version`` plus ``samples/`` and ``sweeps/``.
+
+    Every ``keyframe_every``-th camera frame is a keyframe (a sample); the others are sweeps,
+    chained by prev/next per channel. Each image has its own ego pose (from the source's c2w).
+    ``image_format`` 'png' writes lossless images (the real dataset has JPEGs).
+    """
+    src = as_source(street_or_scene, cameras, frames)
+    root = Path(dataroot)
+    unknown = [c for c in src.cameras if c not in NUSCENES_CHANNELS]
+    if unknown:
+        raise ValueError(f"cameras {unknown} have no nuScenes channel; use "
+                         f"{', '.join(NUSCENES_CHANNELS)}")
+    log_token = _token("log", scene_name)
+    scene_token = _token("scene", scene_name)
+    stamps = [int(time_origin_us + t) for t in src.timestamps_us]
+    key_idx = list(range(0, src.frames, keyframe_every))
+    sample_tokens = [_token("sample", scene_name, i) for i in key_idx]
+    samples = [{"token": tok, "timestamp": stamps[i],
+                "prev": sample_tokens[k - 1] if k else "",
+                "next": sample_tokens[k + 1] if k + 1 < len(key_idx) else "",
+                "scene_token": scene_token} for k, (i, tok) in enumerate(zip(key_idx, sample_tokens))]
+
+    def sample_of(i):  # a sweep belongs to the next keyframe (the last one at the end)
+        k = min(-(-i // keyframe_every), len(key_idx) - 1)
+        return sample_tokens[k]
+
+    sensors, calibrated, ego_poses, sample_data = [], [], [], []
+    channels = {cam: NUSCENES_CHANNELS[cam] for cam in src.cameras}
+    if lidar and src.lidar(0) is not None:
+        channels["lidar"] = "LIDAR_TOP"
+    lidar_cam2ego = geometry.make_pose(geometry.rotation_about("z", -np.pi / 2), src.lidar_origin)
+    for key, channel in channels.items():
+        sensor_token = _token("sensor", channel)
+        cs_token = _token("calibrated_sensor", scene_name, channel)
+        sensors.append({"token": sensor_token, "channel": channel,
+                        "modality": "lidar" if key == "lidar" else "camera"})
+        if key == "lidar":
+            pose, intrinsic = lidar_cam2ego, []
+        else:
+            c = src.cameras[key]
+            pose, intrinsic = c.cam2ego, c.K().tolist()
+        calibrated.append({"token": cs_token, "sensor_token": sensor_token,
+                           "translation": _flat(pose[:3, 3]),
+                           "rotation": _flat(geometry.rotation_to_quaternion(pose[:3, :3])),
+                           "camera_intrinsic": intrinsic})
+        tokens = [_token("sample_data", scene_name, channel, i) for i in range(src.frames)]
+        for i in range(src.frames):
+            keyframe = i % keyframe_every == 0
+            folder = "samples" if keyframe else "sweeps"
+            if key == "lidar":
+                ego = src.ego2world[i]
+                ext, fmt = "pcd.bin", "pcd"
+            else:
+                ego = src.c2w[key][i] @ geometry.invert(src.cameras[key].cam2ego)
+                ext, fmt = image_format, image_format
+            ego_global = global_from_world @ ego
+            ego_token = _token("ego_pose", scene_name, channel, i)
+            ego_poses.append({"token": ego_token, "timestamp": stamps[i],
+                              "rotation": _flat(geometry.rotation_to_quaternion(ego_global[:3, :3])),
+                              "translation": _flat(ego_global[:3, 3])})
+            filename = f"{folder}/{channel}/n000-{scene_name}__{channel}__{stamps[i]}.{ext}"
+            target = root / filename
+            if key == "lidar":
+                pts = transform_points(geometry.invert(ego @ lidar_cam2ego), src.lidar(i))
+                cloud = np.zeros((len(pts), 5), dtype=np.float32)
+                cloud[:, :3] = pts
+                cloud[:, 4] = 0.0
+                write_bytes(target, cloud.tobytes())
+                width = height = 0
+            else:
+                pixels = src.image(i, key)
+                if image_format == "jpg":
+                    write_bytes(target, encode_jpeg(pixels, jpeg_quality))
+                else:
+                    write_image(target, pixels)
+                width, height = src.cameras[key].width, src.cameras[key].height
+            sample_data.append({
+                "token": tokens[i], "sample_token": sample_tokens[i // keyframe_every] if keyframe
+                else sample_of(i), "ego_pose_token": ego_token, "calibrated_sensor_token": cs_token,
+                "timestamp": stamps[i], "fileformat": fmt, "is_key_frame": keyframe,
+                "height": height, "width": width, "filename": filename,
+                "prev": tokens[i - 1] if i else "", "next": tokens[i + 1] if i + 1 < src.frames else ""})
+    tables = {
+        "log": [{"token": log_token, "logfile": f"n000-{scene_name}", "vehicle": "n000",
+                 "date_captured": "2018-07-18", "location": "synthetic"}],
+        "scene": [{"token": scene_token, "log_token": log_token, "nbr_samples": len(samples),
+                   "first_sample_token": sample_tokens[0], "last_sample_token": sample_tokens[-1],
+                   "name": scene_name, "description": f"synthetic {src.name}"}],
+        "sample": samples, "sample_data": sample_data, "ego_pose": ego_poses,
+        "calibrated_sensor": calibrated, "sensor": sensors,
+        "category": [], "attribute": [], "visibility": [], "instance": [],
+        "sample_annotation": [], "map": [],
+    }
+    for table, rows in tables.items():
+        _write_json(root / version / f"{table}.json", rows)
+    return root
+
+
+# --------------------------------------------------------------------------- DriveStudio
+
+def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "waymo",
+                       cameras=None, frames: int | None = None, distortion=None,
+                       sky_masks: bool = True, lidar: bool = True, jpeg_quality: int = 95,
+                       global_from_world: np.ndarray = GLOBAL) -> Path:
+    """Write one DriveStudio processed scene folder (e.g. ``processed/training/023``).
+
+    Waymo flavour: images/<t:03d>_<cam>.jpg, ego_pose/<t:03d>.txt (vehicle -> global),
+    extrinsics/<cam>.txt (camera (x fwd, y left, z up) -> vehicle), intrinsics/<cam>.txt
+    (f_u f_v c_u c_v k1 k2 p1 p2 k3), sky_masks/<t:03d>_<cam>.png, lidar/<t:03d>.bin (N x 14
+    float32: origin, point (vehicle frame), flow, flow class, ground, intensity, elongation,
+    laser id). nuScenes flavour: extrinsics/<t:03d>_<cam>.txt (camera (OpenCV) -> global),
+    intrinsics/<cam>.txt (distortion zero), lidar/<t:03d>.bin (N x 4, LiDAR frame) and
+    lidar_pose/<t:03d>.txt.
+    """
+    src = as_source(street_or_scene, cameras, frames)
+    if flavour not in ("waymo", "nuscenes"):
+        raise ValueError(f"flavour must be 'waymo' or 'nuscenes', got {flavour!r}")
+    ids = DRIVESTUDIO_WAYMO_IDS if flavour == "waymo" else DRIVESTUDIO_NUSCENES_IDS
+    unknown = [c for c in src.cameras if c not in ids]
+    if unknown:
+        raise ValueError(f"cameras {unknown} have no DriveStudio {flavour} id; use {', '.join(ids)}")
+    folder = Path(folder)
+    with atomic_path(folder) as tmp:
+        for sub in ("images", "extrinsics", "intrinsics", "sky_masks"):
+            (tmp / sub).mkdir(parents=True)
+        for cam, c in src.cameras.items():
+            cid = ids[cam]
+            dist = _dist_for(distortion if flavour == "waymo" else None, cam)
+            np.savetxt(tmp / "intrinsics" / f"{cid}.txt", [c.fx, c.fy, c.cx, c.cy, *dist])
+            if flavour == "waymo":
+                np.savetxt(tmp / "extrinsics" / f"{cid}.txt",
+                           c.cam2ego @ geometry.invert(OPENCV_TO_FLU))
+        has_lidar = lidar and src.lidar(0) is not None
+        if has_lidar:
+            (tmp / "lidar").mkdir()
+            if flavour == "nuscenes":
+                (tmp / "lidar_pose").mkdir()
+        if flavour == "waymo":
+            (tmp / "ego_pose").mkdir()
+        lidar2ego = geometry.translation(*src.lidar_origin)
+        for i in range(src.frames):
+            t = f"{i:03d}"
+            if flavour == "waymo":
+                np.savetxt(tmp / "ego_pose" / f"{t}.txt", global_from_world @ src.ego2world[i])
+            for cam, c in src.cameras.items():
+                cid = ids[cam]
+                dist = _dist_for(distortion if flavour == "waymo" else None, cam)
+                pixels = distort_image(src.image(i, cam), c.K(), dist)
+                (tmp / "images" / f"{t}_{cid}.jpg").write_bytes(encode_jpeg(pixels, jpeg_quality))
+                if flavour == "nuscenes":
+                    np.savetxt(tmp / "extrinsics" / f"{t}_{cid}.txt",
+                               global_from_world @ src.c2w[cam][i])
+                sky = src.sky(i, cam) if sky_masks else None
+                if sky is not None:
+                    mask = (np.asarray(sky, dtype=bool).astype(np.uint8) * 255)
+                    if not distortion_is_zero(dist):
+                        mask = distort_image(mask[..., None], c.K(), dist)[..., 0]
+                        mask = np.where(mask > 127, 255, 0).astype(np.uint8)
+                    write_image(tmp / "sky_masks" / f"{t}_{cid}.png", mask)
+            if has_lidar:
+                pts_world = src.lidar(i)
+                if flavour == "waymo":
+                    pts = transform_points(geometry.invert(src.ego2world[i]), pts_world)
+                    rows = np.zeros((len(pts), 14), dtype=np.float32)
+                    rows[:, 0:3] = src.lidar_origin
+                    rows[:, 3:6] = pts
+                    rows[:, 9] = -1.0
+                    rows[:, 13] = 0.0  # TOP
+                else:
+                    lidar2world = src.ego2world[i] @ lidar2ego
+                    pts = transform_points(geometry.invert(lidar2world), pts_world)
+                    rows = np.zeros((len(pts), 4), dtype=np.float32)
+                    rows[:, :3] = pts
+                    np.savetxt(tmp / "lidar_pose" / f"{t}.txt", global_from_world @ lidar2world)
+                rows.tofile(tmp / "lidar" / f"{t}.bin")
+        if not sky_masks:
+            shutil.rmtree(tmp / "sky_masks")
+    return folder
