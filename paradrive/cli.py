@@ -62,106 +62,137 @@ def collect_scene_uris(scene: list[str], scenes: list[str]) -> list[str]:
 @app.command()
 def build(
     scene: List[str] = typer.Option([], "--scene", help="Scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
-    scenes: List[str] = typer.Option([], "--scenes", help="A scene list file, a folder of logs, or URIs. Repeatable."),
+    scenes: List[str] = typer.Option([], "--scenes", help="A scene list file (one URI or path a line, '#' comments), a folder of logs (*.tfrecord, a nuScenes dataroot, DriveStudio folders), or URIs. Repeatable."),
     profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Parameter profile (stages/profiles/NAME.yaml); default: the paper's."),
     stages: Optional[str] = typer.Option(None, "--stages", help="Comma-separated stages to run (default: all)."),
-    data: Path = typer.Option(DEFAULT_DATA, "--data", help="Where scenes are written (<data>/scenes/<scene_id>)."),
+    data: Path = typer.Option(DEFAULT_DATA, "--data", help="Where scenes are written (<data>/scenes/<scene_id>); with --executor ray every node must see it at this path."),
     manifests: Path = typer.Option(DEFAULT_MANIFESTS, "--manifests", help="Where builds (pair manifests) are written."),
-    build_name: str = typer.Option("default", "--build", help="Build name: manifests go to <manifests>/<build>."),
-    executor: str = typer.Option("local", "--executor", help="local or ray."),
-    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: start a local one)."),
+    build_name: str = typer.Option("default", "--build", help="Build name: manifests and the status ledger go to <manifests>/<build>."),
+    executor: str = typer.Option("local", "--executor", help="local (this process) or ray (each scene stage a Ray task)."),
+    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address, e.g. 'auto' or 'head:6379' (default: start a local Ray)."),
+    gpu_policy: str = typer.Option("auto", "--gpu-policy", help="ray: auto (GPU stages run on CPU when the cluster has no GPU, with a warning), require (refuse), cpu (never ask for GPUs)."),
     set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
-    retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed."),
+    retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
 ) -> None:
-    """Run the pipeline on one or many scenes; stages that are up to date are skipped."""
+    """Run the pipeline on one or many scenes; stages that are up to date are skipped.
+
+    A scene that fails never stops the others: it is recorded in the build's ledger with its
+    reason (see 'paradrive status BUILD'). Exit code 0: all done; 3: partial (some scenes failed,
+    the rest landed); 1: nothing succeeded; 2: usage error.
+    """
     from paradrive.pipeline import StageRegistry, parse_overrides
-    from paradrive.pipeline.build import run_build
     from paradrive.pipeline.executors import make_executor
 
+    build_uris: list[str] | None = None
     try:
-        uris = collect_scene_uris(scene, scenes) or ([] if retry_failed else [DEFAULT_SCENE])
         config = StageRegistry().resolve(profile, parse_overrides(set_))
         stage_list = _split_csv(stages)
         config.registry().order(stage_list)  # unknown stage names fail here
         ledger = _open_ledger(manifests, build_name)
         if retry_failed:
-            uris = ledger.failed_scene_uris() if ledger else []
+            if scene or scenes:
+                fail("--retry-failed takes the scenes from the ledger; leave out --scene/--scenes")
+            uris = ledger.failed_scene_uris()
             if not uris:
-                out.print("nothing to retry: the ledger records no failed scene")
+                out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene")
                 raise typer.Exit(0)
-        options = {"address": address} if executor == "ray" else {}
+            build_uris = ledger.scene_uris()
+        else:
+            uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
+            if not uris:
+                fail(f"--scenes {' '.join(scenes)}: no scenes found")
+        options = {"address": address, "gpu_policy": gpu_policy} if executor == "ray" else {}
         runner = make_executor(executor, **options)
     except (ConfigError, ParaDriveError, ValueError) as exc:
         fail(str(exc))
 
-    report = _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name,
-                                force, ledger)
-    _print_report(report)
+    try:
+        report = _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name,
+                                    force, ledger, build_uris=build_uris,
+                                    replace=not retry_failed)
+    except (ConfigError, ParaDriveError) as exc:
+        ledger.end_run(2)
+        fail(str(exc))
+    ledger.end_run(report.exit_code)
+    _print_report(report, ledger)
     raise typer.Exit(report.exit_code)
 
 
 def _open_ledger(manifests: Path, build_name: str):
-    try:
-        from paradrive.pipeline.ledger import Ledger
-    except ModuleNotFoundError:
-        return None
+    from paradrive.pipeline.ledger import Ledger
+
     return Ledger.for_build(manifests, build_name)
 
 
-def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name, force, ledger):
+def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name, force, ledger,
+                       *, build_uris=None, replace=True):
+    """Run the build with a progress bar over scenes (done / failed, ETA) and the ledger updated."""
     from paradrive.pipeline.build import run_build, split_stages
+    from paradrive.uri import parse_uri
 
     scene_stages, build_stages = split_stages(config, stage_list)
-    total = len(uris) * len(scene_stages) + len(build_stages)
+    last_stage = scene_stages[-1] if scene_stages else None
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                        TimeElapsedColumn(), TimeRemainingColumn(), console=console,
-                        transient=False, disable=not console.is_terminal)
-    failed = 0
+                        TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
+                        console=console, transient=False, disable=not console.is_terminal)
+    counts = {"done": 0, "failed": 0}
+    ids = {uri: parse_uri(uri).scene_id for uri in uris}
 
-    def on_start(scene_id: str, stage: str) -> None:
-        progress.update(task, description=f"{stage:<8} {scene_id}")
-        if ledger:
-            ledger.start(scene_id, stage)
+    def describe(activity: str) -> str:
+        failed = f", [red]{counts['failed']} failed[/]" if counts["failed"] else ""
+        return f"{counts['done']} done{failed} | {activity}"
+
+    def on_start(scene: str, stage: str) -> None:
+        progress.update(task, description=describe(f"{stage} {ids.get(scene, scene)}"))
+        ledger.start(scene, stage)
 
     def on_result(result) -> None:
-        nonlocal failed
-        failed += result.status in ("failed", "blocked")
-        progress.advance(task)
-        progress.update(task, description=f"{result.stage:<8} {result.scene_id} {result.status}"
-                                          + (f" ({failed} failed)" if failed else ""))
-        if ledger:
-            ledger.record(result)
+        ledger.record(result)
+        is_scene = not result.scene_id.startswith("build:")
+        if is_scene and result.status == "failed":
+            counts["failed"] += 1
+            progress.advance(task)
+        elif is_scene and result.stage == last_stage and result.status in ("done", "skipped"):
+            counts["done"] += 1
+            progress.advance(task)
+        progress.update(task, description=describe(f"{result.stage} {result.scene_id} {result.status}"))
         style = {"done": "green", "skipped": "dim", "failed": "red", "blocked": "yellow"}[result.status]
         console.print(f"[{style}]{result.status:>7}[/] {result.stage:<8} {result.scene_id}"
                       + (f" — {result.error}" if result.error else f" ({result.seconds:.1f} s)"))
 
+    ledger.register(uris, scene_stages, build_stages, replace=replace)
+    ledger.begin_run(getattr(runner, "name", ""), len(uris))
     with progress:
-        task = progress.add_task("starting", total=total)
-        if ledger:
-            ledger.register(uris, scene_stages)
+        task = progress.add_task(describe("starting"), total=len(uris) if scene_stages else None)
         return run_build(config, uris, data, stages=stage_list, executor=runner,
                          manifests_dir=manifests, build=build_name, force=force,
-                         on_start=on_start, on_result=on_result)
+                         build_scene_uris=build_uris, on_start=on_start, on_result=on_result)
 
 
-def _print_report(report) -> None:
+def _print_report(report, ledger=None, max_rows: int = 20) -> None:
+    """Summary: every scene when there are few, else the failures only; the build stages."""
     scenes = report.scenes()
     done = sum(1 for s in scenes.values() if s == "done")
+    reasons: dict[str, str] = {}
+    for r in report.failures():
+        reasons.setdefault(r.scene_id, f"{r.stage}: {r.error}")
+    shown = scenes if len(scenes) <= max_rows else {k: v for k, v in scenes.items() if v != "done"}
     table = Table(title="build summary", show_lines=False)
     table.add_column("scene")
     table.add_column("status")
     table.add_column("reason", overflow="fold")
-    reasons = {r.scene_id: r.error for r in report.failures()}
-    for sid, state in scenes.items():
+    for sid, state in list(shown.items())[:200]:
         table.add_row(sid, "[green]done" if state == "done" else "[red]failed", reasons.get(sid, ""))
     for r in report.results:
         if r.scene_id.startswith("build:"):
             table.add_row(r.scene_id, r.status, r.error)
     out.print(table)
+    more = f" (status of all: paradrive status {ledger.build} --manifests {ledger.path.parent.parent})" \
+        if ledger is not None else ""
     out.print(f"{done} of {len(scenes)} scenes done"
               + ("" if report.exit_code == 0 else f"; exit code {report.exit_code} "
-                 f"({'partial build' if report.exit_code == 3 else 'failed'})"))
+                 f"({'partial build' if report.exit_code == 3 else 'failed'})") + more)
 
 
 @app.command("stages")

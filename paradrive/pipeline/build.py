@@ -103,10 +103,17 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str], d
 def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path, *,
               stages: list[str] | None = None, executor: Executor | None = None,
               manifests_dir: str | Path = "manifests", build: str = "default",
-              force: bool = False,
+              force: bool = False, build_scene_uris: list[str] | None = None,
               on_start: Callable[[str, str], None] | None = None,
               on_result: Callable[[StageResult], None] | None = None) -> BuildReport:
-    data_dir = Path(data_dir)
+    """Scene stages of ``scene_uris`` through ``executor``, then the build stages (manifest).
+
+    The build stages read every scene of ``build_scene_uris`` (default: ``scene_uris``) that
+    finished their needs, so a run over a subset (``--retry-failed``) still publishes the whole
+    build. ``on_start(scene_uri or 'build:<name>', stage)`` and ``on_result(StageResult)`` are
+    called on this process as tasks start and finish, whatever the executor.
+    """
+    data_dir = Path(data_dir).resolve()  # the same folder for workers with another working dir
     scene_stages, build_stages = split_stages(config, stages)
     seen, uris = set(), []
     for uri in scene_uris:
@@ -114,6 +121,13 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
         if uri not in seen:
             seen.add(uri)
             uris.append(uri)
+    build_uris: list[str] = []
+    in_build: set[str] = set()
+    for uri in list(build_scene_uris or []) + uris:  # the whole build's order comes first
+        if uri not in in_build:
+            parse_uri(uri)
+            in_build.add(uri)
+            build_uris.append(uri)
     executor = executor or LocalExecutor()
     report = BuildReport()
     if scene_stages:
@@ -123,7 +137,7 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     for stage in build_stages:
         if on_start:
             on_start(f"build:{build}", stage)
-        result = run_build_stage(config, stage, uris, data_dir, Path(manifests_dir), build,
+        result = run_build_stage(config, stage, build_uris, data_dir, Path(manifests_dir), build,
                                  force=force)
         report.results.append(result)
         if on_result:

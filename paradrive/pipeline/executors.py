@@ -1,7 +1,13 @@
 """Executors decide where (scene, stage) tasks run; stages never know.
 
 ``LocalExecutor`` runs every task in this process, scene after scene. Each scene's stages run
-in dependency order and stop at the scene's first failure; other scenes go on.
+in dependency order and stop at the scene's first failure (the rest are recorded ``blocked``);
+other scenes go on. ``RayExecutor`` (``paradrive.pipeline.ray_executor``) runs each (scene, stage)
+as a Ray task with the stage's declared resources.
+
+The contract every executor keeps: ``on_start(scene_uri, stage)`` when a stage is handed to a
+worker and ``on_result(StageResult)`` when it comes back, both called on the driver (so the
+ledger and the progress bar live in one process), and one result per (scene, stage) asked.
 """
 
 from __future__ import annotations

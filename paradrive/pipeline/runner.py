@@ -8,19 +8,21 @@ matches (and whose declared outputs exist) is skipped.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import hashlib
 import importlib
 import itertools
 import json
 import logging
+import os
 import resource
 import re
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
@@ -163,16 +165,23 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def scene_logger(scene_id: str, log_file: Path | None = None) -> logging.Logger:
+@contextlib.contextmanager
+def scene_logger(scene_id: str, log_file: Path | None = None) -> Iterator[logging.Logger]:
+    """The scene's logger, appending to ``log_file`` while the stage runs (then closed)."""
     log = logging.getLogger(f"paradrive.scene.{scene_id}")
-    if log_file is not None and not any(
-            isinstance(h, logging.FileHandler) and h.baseFilename == str(log_file) for h in log.handlers):
+    log.setLevel(logging.INFO)
+    handler = None
+    if log_file is not None:
         log_file.parent.mkdir(parents=True, exist_ok=True)
-        handler = logging.FileHandler(log_file)
+        handler = logging.FileHandler(os.path.abspath(log_file))
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)
-        log.setLevel(logging.INFO)
-    return log
+    try:
+        yield log
+    finally:
+        if handler is not None:
+            log.removeHandler(handler)
+            handler.close()
 
 
 def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: str | Path,
@@ -186,49 +195,49 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir
     except ParaDriveError as exc:
         return StageResult(scene_id=scene_uri, stage=stage, status="failed", error=str(exc))
     scene_dir = scene_dir_for(data_dir, scene_id)
-    log = scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log")
-    params = config.params[stage]
-    t0 = time.time()
-    try:
-        fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
-        marker = read_marker(scene_dir, stage)
-        if (not force and marker and marker.get("fingerprint") == fp
-                and not outputs_present(scene_dir, spec, params)):
-            log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
-            return StageResult(scene_id, stage, "skipped", fingerprint=fp,
-                               summary=marker.get("summary", {}))
-        func = load_entry(spec)
-        scene_dir.mkdir(parents=True, exist_ok=True)
-        marker_path(scene_dir, stage).unlink(missing_ok=True)
-        remove_stale_temporaries(scene_dir)
-        log.info("%s: started (fingerprint %s)", stage, fp)
-        ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
-                           scene_dir=scene_dir, data_dir=data_dir, params=dict(params), log=log,
-                           progress=progress or (lambda done, total: None), upstream=upstream)
-        summary = func(ctx) or {}
-        missing = outputs_present(scene_dir, spec, params)
-        if missing:
-            raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
-                                      f"outputs: {', '.join(missing[:5])}")
-        seconds = time.time() - t0
-        write_json(marker_path(scene_dir, stage),
-                   {"stage": stage, "scene_id": scene_id, "scene_uri": scene_uri, "fingerprint": fp,
-                    "params": params, "inputs": {k: v["fingerprint"] for k, v in upstream.items()},
-                    "version": paradrive.__version__, "seconds": round(seconds, 3),
-                    "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
-        log.info("%s: done in %.1f s", stage, seconds)
-        return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
-                           peak_rss_mb=_peak_rss_mb(), summary=summary)
-    except (SceneError, ConfigError, StageNotImplemented, OSError, ValueError) as exc:
-        message = str(exc)
-        if not isinstance(exc, ParaDriveError):
-            message = f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
-        log.error("%s: failed: %s", stage, message)
-        return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
-                           peak_rss_mb=_peak_rss_mb())
-    except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
-        log.error("%s: crashed:\n%s", stage, traceback.format_exc())
-        return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
-                           error=f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: {exc} "
-                                 f"(traceback in {data_dir / 'logs' / (scene_id + '.log')})",
-                           peak_rss_mb=_peak_rss_mb())
+    with scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log") as log:
+        params = config.params[stage]
+        t0 = time.time()
+        try:
+            fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
+            marker = read_marker(scene_dir, stage)
+            if (not force and marker and marker.get("fingerprint") == fp
+                    and not outputs_present(scene_dir, spec, params)):
+                log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
+                return StageResult(scene_id, stage, "skipped", fingerprint=fp,
+                                   summary=marker.get("summary", {}))
+            func = load_entry(spec)
+            scene_dir.mkdir(parents=True, exist_ok=True)
+            marker_path(scene_dir, stage).unlink(missing_ok=True)
+            remove_stale_temporaries(scene_dir)
+            log.info("%s: started (fingerprint %s)", stage, fp)
+            ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
+                               scene_dir=scene_dir, data_dir=data_dir, params=dict(params), log=log,
+                               progress=progress or (lambda done, total: None), upstream=upstream)
+            summary = func(ctx) or {}
+            missing = outputs_present(scene_dir, spec, params)
+            if missing:
+                raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
+                                          f"outputs: {', '.join(missing[:5])}")
+            seconds = time.time() - t0
+            write_json(marker_path(scene_dir, stage),
+                       {"stage": stage, "scene_id": scene_id, "scene_uri": scene_uri, "fingerprint": fp,
+                        "params": params, "inputs": {k: v["fingerprint"] for k, v in upstream.items()},
+                        "version": paradrive.__version__, "seconds": round(seconds, 3),
+                        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
+            log.info("%s: done in %.1f s", stage, seconds)
+            return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
+                               peak_rss_mb=_peak_rss_mb(), summary=summary)
+        except (SceneError, ConfigError, StageNotImplemented, OSError, ValueError) as exc:
+            message = str(exc)
+            if not isinstance(exc, ParaDriveError):
+                message = f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
+            log.error("%s: failed: %s", stage, message)
+            return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
+                               peak_rss_mb=_peak_rss_mb())
+        except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
+            log.error("%s: crashed:\n%s", stage, traceback.format_exc())
+            return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
+                               error=f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: {exc} "
+                                     f"(traceback in {data_dir / 'logs' / (scene_id + '.log')})",
+                               peak_rss_mb=_peak_rss_mb())

@@ -1,0 +1,396 @@
+"""The status ledger of a build: what every (scene, stage) did, in ``<manifests>/<build>/ledger.sqlite``.
+
+One SQLite file in WAL mode, so the driver and any number of worker processes may write it at the
+same time (each write is one short ``BEGIN IMMEDIATE`` transaction; a writer waits up to
+``timeout`` seconds for the lock). Tables (``SCHEMA_VERSION`` = 1)::
+
+    meta(key PRIMARY KEY, value)                 schema_version, build, created_at
+    scenes(scene_id PRIMARY KEY, scene_uri, position, active, registered_at)
+        active = 1: the scene belongs to the build as last registered (a run over a
+        different scene list retires the others; --retry-failed keeps the list)
+    tasks(scene_id, stage, PRIMARY KEY (scene_id, stage),
+          scene_uri, position, state, attempts, started_at, finished_at, seconds,
+          peak_rss_mb, error, fingerprint, updated_at)
+        state: pending | running | done | skipped | failed | blocked
+        attempts: times a build ran the stage (a skip because it was up to date is no attempt;
+                  Ray's own retries after a worker died count within one attempt)
+        seconds / peak_rss_mb: of the run that produced the outputs (a later skip keeps them)
+    events(id PRIMARY KEY, run_id, scene_id, stage, state, at, seconds, error)
+        every transition, for the history of a scene
+    runs(run_id PRIMARY KEY, started_at, finished_at, executor, scenes, command, exit_code)
+
+Build-scoped stages (the manifest) are rows with ``scene_id = scene_uri = 'build:<name>'``.
+Times are Unix seconds (float).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterable, Iterator
+
+from paradrive.errors import ConfigError
+from paradrive.uri import parse_uri
+
+SCHEMA_VERSION = 1
+LEDGER_FILE = "ledger.sqlite"
+STATES = ("pending", "running", "done", "skipped", "failed", "blocked")
+FINISHED = ("done", "skipped")
+BROKEN = ("failed", "blocked")
+
+_SCHEMA = f"""
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS scenes (
+    scene_id TEXT PRIMARY KEY,
+    scene_uri TEXT NOT NULL,
+    position INTEGER NOT NULL,
+    active INTEGER NOT NULL DEFAULT 1,
+    registered_at REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS tasks (
+    scene_id TEXT NOT NULL,
+    stage TEXT NOT NULL,
+    scene_uri TEXT NOT NULL,
+    position INTEGER NOT NULL DEFAULT 0,
+    state TEXT NOT NULL CHECK (state IN ({", ".join(repr(s) for s in STATES)})),
+    attempts INTEGER NOT NULL DEFAULT 0,
+    started_at REAL,
+    finished_at REAL,
+    seconds REAL,
+    peak_rss_mb REAL,
+    error TEXT NOT NULL DEFAULT '',
+    fingerprint TEXT NOT NULL DEFAULT '',
+    updated_at REAL NOT NULL,
+    PRIMARY KEY (scene_id, stage));
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    run_id INTEGER,
+    scene_id TEXT NOT NULL,
+    stage TEXT NOT NULL,
+    state TEXT NOT NULL,
+    at REAL NOT NULL,
+    seconds REAL,
+    error TEXT NOT NULL DEFAULT '');
+CREATE TABLE IF NOT EXISTS runs (
+    run_id INTEGER PRIMARY KEY AUTOINCREMENT,
+    started_at REAL NOT NULL,
+    finished_at REAL,
+    executor TEXT NOT NULL DEFAULT '',
+    scenes INTEGER NOT NULL DEFAULT 0,
+    command TEXT NOT NULL DEFAULT '',
+    exit_code INTEGER);
+CREATE INDEX IF NOT EXISTS tasks_state ON tasks (state);
+CREATE INDEX IF NOT EXISTS events_scene ON events (scene_id, stage);
+"""
+
+
+def build_label(build: str) -> str:
+    return f"build:{build}"
+
+
+class Ledger:
+    """The ledger of one build. Cheap to create; picklable (each process opens its own connection)."""
+
+    def __init__(self, path: str | Path, build: str | None = None, *, timeout: float = 60.0):
+        self.path = Path(path)
+        self.build = build or self.path.parent.name
+        self.timeout = timeout
+        self.run_id: int | None = None
+        self._conn: sqlite3.Connection | None = None
+        self._pid: int | None = None
+        self._ids: dict[str, str] = {}
+        self._init_schema()
+
+    @classmethod
+    def for_build(cls, manifests_dir: str | Path, build: str) -> "Ledger":
+        return cls(Path(manifests_dir) / build / LEDGER_FILE, build)
+
+    @classmethod
+    def open_existing(cls, manifests_dir: str | Path, build: str) -> "Ledger":
+        """The ledger of a build that ran before; ConfigError when there is none."""
+        path = Path(manifests_dir) / build / LEDGER_FILE
+        if not path.is_file():
+            builds = sorted(p.parent.name for p in Path(manifests_dir).glob(f"*/{LEDGER_FILE}"))
+            raise ConfigError(f"no ledger for build '{build}' at {path}; builds with a ledger "
+                              f"under {manifests_dir}: {', '.join(builds) or 'none'}")
+        return cls(path, build)
+
+    # -- connection -------------------------------------------------------------------------
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_conn"] = None
+        state["_pid"] = None
+        return state
+
+    def _connection(self) -> sqlite3.Connection:
+        # A connection never crosses a fork: a child (or a Ray worker) opens its own.
+        if self._conn is None or self._pid != os.getpid():
+            conn = sqlite3.connect(self.path, timeout=self.timeout, isolation_level=None)
+            conn.row_factory = sqlite3.Row
+            conn.execute(f"PRAGMA busy_timeout = {int(self.timeout * 1000)}")
+            conn.execute("PRAGMA synchronous = NORMAL")
+            self._conn, self._pid = conn, os.getpid()
+        return self._conn
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        conn = self._connection()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            yield conn
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        conn.execute("COMMIT")
+
+    def close(self) -> None:
+        if self._conn is not None and self._pid == os.getpid():
+            self._conn.close()
+        self._conn = None
+
+    def _init_schema(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        conn = self._connection()
+        mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        if mode.lower() != "wal":  # e.g. a file system without shared memory (some NFS)
+            conn.execute("PRAGMA journal_mode = DELETE")
+        with self._write() as c:
+            for statement in _SCHEMA.split(";"):
+                if statement.strip():
+                    c.execute(statement)
+            c.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+            c.execute("INSERT OR IGNORE INTO meta VALUES ('build', ?)", (self.build,))
+            c.execute("INSERT OR IGNORE INTO meta VALUES ('created_at', ?)", (str(time.time()),))
+        found = self.meta().get("schema_version")
+        if found != str(SCHEMA_VERSION):
+            raise ConfigError(f"{self.path}: ledger schema_version {found} is not {SCHEMA_VERSION}; "
+                              f"move the old ledger aside and re-run the build (outputs are kept)")
+
+    # -- writing ----------------------------------------------------------------------------
+
+    def _scene_id(self, scene: str) -> str:
+        """A scene id from a scene URI, a scene id or a build label."""
+        if scene not in self._ids:
+            sid = scene
+            if not scene.startswith("build:"):
+                try:
+                    sid = parse_uri(scene).scene_id
+                except ConfigError:
+                    sid = scene
+            self._ids[scene] = sid
+        return self._ids[scene]
+
+    def begin_run(self, executor: str = "", scenes: int = 0, command: str | None = None) -> int:
+        command = " ".join(sys.argv) if command is None else command
+        with self._write() as c:
+            cur = c.execute("INSERT INTO runs (started_at, executor, scenes, command) VALUES (?, ?, ?, ?)",
+                            (time.time(), executor, scenes, command))
+            self.run_id = int(cur.lastrowid)
+        return self.run_id
+
+    def end_run(self, exit_code: int) -> None:
+        if self.run_id is None:
+            return
+        with self._write() as c:
+            c.execute("UPDATE runs SET finished_at = ?, exit_code = ? WHERE run_id = ?",
+                      (time.time(), exit_code, self.run_id))
+
+    def register(self, scene_uris: Iterable[str], scene_stages: Iterable[str],
+                 build_stages: Iterable[str] = (), *, replace: bool = True) -> None:
+        """Mark every (scene, stage) of this run pending.
+
+        ``replace``: these scenes are the whole build (others are retired from the status view);
+        False for a run over a subset (``--retry-failed``). Rows left 'running' by a run that
+        was killed become pending like the rest.
+        """
+        now = time.time()
+        uris = list(scene_uris)
+        scene_stages, build_stages = list(scene_stages), list(build_stages)
+        with self._write() as c:
+            if replace:
+                c.execute("UPDATE scenes SET active = 0")
+            start = c.execute("SELECT COALESCE(MAX(position) + 1, 0) FROM scenes").fetchone()[0]
+            for i, uri in enumerate(uris):
+                sid = self._scene_id(uri)
+                c.execute("INSERT INTO scenes (scene_id, scene_uri, position, active, registered_at) "
+                          "VALUES (?, ?, ?, 1, ?) ON CONFLICT (scene_id) DO UPDATE SET "
+                          "scene_uri = excluded.scene_uri, active = 1"
+                          + (", position = excluded.position" if replace else ""),
+                          (sid, uri, i if replace else start + i, now))
+                for pos, stage in enumerate(scene_stages):
+                    self._upsert_pending(c, sid, stage, uri, pos, now)
+            label = build_label(self.build)
+            for pos, stage in enumerate(build_stages):
+                self._upsert_pending(c, label, stage, label, len(scene_stages) + pos, now)
+
+    @staticmethod
+    def _upsert_pending(c, sid: str, stage: str, uri: str, pos: int, now: float) -> None:
+        c.execute("INSERT INTO tasks (scene_id, stage, scene_uri, position, state, updated_at) "
+                  "VALUES (?, ?, ?, ?, 'pending', ?) ON CONFLICT (scene_id, stage) DO UPDATE SET "
+                  "state = 'pending', scene_uri = excluded.scene_uri, "
+                  "position = excluded.position, updated_at = excluded.updated_at",
+                  (sid, stage, uri, pos, now))
+
+    def start(self, scene: str, stage: str) -> None:
+        """A stage of a scene (URI or id, or 'build:<name>') was handed to a worker."""
+        sid, now = self._scene_id(scene), time.time()
+        uri = scene
+        with self._write() as c:
+            c.execute("INSERT INTO tasks (scene_id, stage, scene_uri, state, attempts, started_at, "
+                      "updated_at) VALUES (?, ?, ?, 'running', 1, ?, ?) "
+                      "ON CONFLICT (scene_id, stage) DO UPDATE SET state = 'running', "
+                      "attempts = attempts + 1, started_at = excluded.started_at, "
+                      "updated_at = excluded.updated_at",
+                      (sid, stage, uri, now, now))
+            self._event(c, sid, stage, "running", now)
+
+    def record(self, result) -> None:
+        """A :class:`~paradrive.pipeline.runner.StageResult` came back."""
+        sid, stage, state, now = result.scene_id, result.stage, result.status, time.time()
+        if state not in STATES:
+            raise ValueError(f"ledger: unknown state {state!r} for {sid}/{stage}")
+        with self._write() as c:
+            row = c.execute("SELECT state FROM tasks WHERE scene_id = ? AND stage = ?",
+                            (sid, stage)).fetchone()
+            if row is None:
+                c.execute("INSERT INTO tasks (scene_id, stage, scene_uri, state, updated_at) "
+                          "VALUES (?, ?, ?, 'pending', ?)", (sid, stage, sid, now))
+            if state == "skipped":
+                # Up to date: no attempt; keep the time and memory of the run that made the outputs.
+                c.execute("UPDATE tasks SET state = 'skipped', error = '', fingerprint = ?, "
+                          "attempts = MAX(attempts - ?, 0), finished_at = ?, updated_at = ? "
+                          "WHERE scene_id = ? AND stage = ?",
+                          (result.fingerprint, int(row is not None and row["state"] == "running"),
+                           now, now, sid, stage))
+            elif state == "blocked":
+                c.execute("UPDATE tasks SET state = 'blocked', error = ?, updated_at = ? "
+                          "WHERE scene_id = ? AND stage = ?", (result.error, now, sid, stage))
+            else:
+                seconds = float(result.seconds or 0.0)
+                c.execute("UPDATE tasks SET state = ?, error = ?, fingerprint = ?, seconds = ?, "
+                          "peak_rss_mb = ?, started_at = ?, finished_at = ?, updated_at = ?, "
+                          "attempts = MAX(attempts, 1) WHERE scene_id = ? AND stage = ?",
+                          (state, result.error or "", result.fingerprint or "", seconds,
+                           float(result.peak_rss_mb or 0.0), now - seconds, now, now, sid, stage))
+            self._event(c, sid, stage, state, now, result.seconds, result.error or "")
+
+    def _event(self, c, sid: str, stage: str, state: str, at: float, seconds: float | None = None,
+               error: str = "") -> None:
+        c.execute("INSERT INTO events (run_id, scene_id, stage, state, at, seconds, error) "
+                  "VALUES (?, ?, ?, ?, ?, ?, ?)", (self.run_id, sid, stage, state, at, seconds, error))
+
+    # -- reading ----------------------------------------------------------------------------
+
+    def meta(self) -> dict[str, str]:
+        return {r["key"]: r["value"] for r in self._connection().execute("SELECT * FROM meta")}
+
+    def tasks(self, *, active_only: bool = True) -> list[dict]:
+        """Every (scene, stage) row, in build order (scenes, then stages in pipeline order)."""
+        sql = ("SELECT t.*, COALESCE(s.position, 1e12) AS scene_position FROM tasks t "
+               "LEFT JOIN scenes s ON s.scene_id = t.scene_id")
+        if active_only:
+            sql += " WHERE s.active = 1 OR t.scene_id LIKE 'build:%'"
+        sql += " ORDER BY scene_position, t.scene_id, t.position, t.stage"
+        return [dict(r) for r in self._connection().execute(sql)]
+
+    def task(self, scene_id: str, stage: str) -> dict | None:
+        row = self._connection().execute("SELECT * FROM tasks WHERE scene_id = ? AND stage = ?",
+                                         (scene_id, stage)).fetchone()
+        return dict(row) if row else None
+
+    def events(self, scene_id: str | None = None) -> list[dict]:
+        if scene_id is None:
+            rows = self._connection().execute("SELECT * FROM events ORDER BY id")
+        else:
+            rows = self._connection().execute("SELECT * FROM events WHERE scene_id = ? ORDER BY id",
+                                              (scene_id,))
+        return [dict(r) for r in rows]
+
+    def runs(self) -> list[dict]:
+        return [dict(r) for r in self._connection().execute("SELECT * FROM runs ORDER BY run_id")]
+
+    def scene_uris(self, *, active_only: bool = True) -> list[str]:
+        sql = "SELECT scene_uri FROM scenes" + (" WHERE active = 1" if active_only else "")
+        return [r[0] for r in self._connection().execute(sql + " ORDER BY position, scene_id")]
+
+    def scene_states(self) -> dict[str, str]:
+        """scene_id -> done | failed | running | pending, over the active scenes."""
+        states: dict[str, list[str]] = {}
+        for row in self.tasks():
+            if not row["scene_id"].startswith("build:"):
+                states.setdefault(row["scene_id"], []).append(row["state"])
+        return {sid: scene_state(s) for sid, s in states.items()}
+
+    def failed_scene_uris(self) -> list[str]:
+        """URIs of the active scenes with a failed (or blocked) stage, in build order."""
+        seen, uris = set(), []
+        for row in self.tasks():
+            if (row["state"] in BROKEN and not row["scene_id"].startswith("build:")
+                    and row["scene_id"] not in seen):
+                seen.add(row["scene_id"])
+                uris.append(row["scene_uri"])
+        return uris
+
+    def summary(self) -> dict:
+        """What ``paradrive status`` shows, as plain data (also its ``--json``)."""
+        rows = self.tasks()
+        scene_rows = [r for r in rows if not r["scene_id"].startswith("build:")]
+        states = self.scene_states()
+        counts = {s: 0 for s in ("done", "failed", "running", "pending")}
+        for s in states.values():
+            counts[s] += 1
+        stages: dict[str, dict] = {}
+        for r in rows:
+            st = stages.setdefault(r["stage"], {"stage": r["stage"], "position": r["position"],
+                                                **{s: 0 for s in STATES}, "seconds_total": 0.0,
+                                                "seconds_max": 0.0, "runs": 0,
+                                                "peak_rss_mb_max": 0.0})
+            st[r["state"]] += 1
+            if r["state"] in FINISHED and r["seconds"]:
+                st["seconds_total"] += r["seconds"]
+                st["seconds_max"] = max(st["seconds_max"], r["seconds"])
+                st["runs"] += 1
+            st["peak_rss_mb_max"] = max(st["peak_rss_mb_max"], r["peak_rss_mb"] or 0.0)
+        for st in stages.values():
+            st["seconds_mean"] = st["seconds_total"] / st["runs"] if st["runs"] else 0.0
+        per_scene: dict[str, dict] = {}
+        for r in scene_rows:
+            sc = per_scene.setdefault(r["scene_id"], {"scene_id": r["scene_id"],
+                                                      "scene_uri": r["scene_uri"],
+                                                      "state": states[r["scene_id"]],
+                                                      "seconds": 0.0, "stages": {}})
+            sc["seconds"] += (r["seconds"] or 0.0) if r["state"] in FINISHED else 0.0
+            sc["stages"][r["stage"]] = r["state"]
+        slowest = sorted(per_scene.values(), key=lambda s: -s["seconds"])[:10]
+        failures = [{"scene_id": r["scene_id"], "scene_uri": r["scene_uri"], "stage": r["stage"],
+                     "attempts": r["attempts"], "error": r["error"]}
+                    for r in rows if r["state"] == "failed"]
+        build_rows = [{"stage": r["stage"], "state": r["state"], "seconds": r["seconds"],
+                       "error": r["error"]} for r in rows if r["scene_id"].startswith("build:")]
+        runs = self.runs()
+        return {"build": self.build, "ledger": str(self.path), "scenes": len(states),
+                "counts": counts, "stages": sorted(stages.values(), key=lambda s: s["position"]),
+                "slowest": [{"scene_id": s["scene_id"], "seconds": round(s["seconds"], 3),
+                             "state": s["state"]} for s in slowest],
+                "failures": failures, "build_stages": build_rows,
+                "scene_table": list(per_scene.values()),
+                "last_run": runs[-1] if runs else None}
+
+
+def scene_state(stage_states: list[str]) -> str:
+    if any(s in BROKEN for s in stage_states):
+        return "failed"
+    if all(s in FINISHED for s in stage_states):
+        return "done"
+    if any(s == "running" for s in stage_states):
+        return "running"
+    return "pending"
+
+
+def dumps(summary: dict) -> str:
+    return json.dumps(summary, indent=2, default=str)

@@ -1,0 +1,280 @@
+"""Run (scene, stage) tasks on a Ray cluster: an existing one (``address``) or a local one.
+
+Each (scene, stage) is one Ray task that calls :func:`~paradrive.pipeline.runner.run_scene_stage`
+(stages never import Ray). A scene's stages are chained: the driver submits stage k+1 of a scene
+when stage k comes back, so stages run in order and scenes in parallel. Results stream back to
+the driver through ``ray.wait`` and are handed to ``on_result`` (the ledger, the progress bar) as
+each task finishes. Continuing a started scene goes before starting a new one, and at most
+``max_in_flight`` tasks are submitted at once, so a build of thousands of scenes finishes scenes
+early and keeps the driver's bookkeeping small.
+
+Resources. A task asks for the stage's declared ``resources`` (``cpu`` -> ``num_cpus``,
+``gpu`` -> ``num_gpus``, ``memory_gb`` -> ``memory``), capped to the largest node of the cluster,
+so a stage never waits for a node that does not exist (a 2-CPU test cluster still runs a stage
+declaring ``cpu: 4``). GPUs follow ``gpu_policy``:
+
+- ``auto`` (default): ask for the declared GPUs; on a cluster without any GPU ask for none, with
+  a warning (the stages fall back to CPU: their ``device: auto`` sees no CUDA device);
+- ``require``: refuse to start when a stage declares a GPU and the cluster has none;
+- ``cpu``: never ask for GPUs (every stage runs on CPU, GPUs stay free for others).
+
+Failures. A stage that fails returns a failed result (the runner never raises for bad input);
+the scene's later stages are recorded ``blocked``. A worker that dies mid-task (killed, out of
+memory) is retried by Ray up to ``max_retries`` times (stages write atomically and are
+idempotent, so a retry starts clean); after that the stage is recorded failed with Ray's reason,
+and a re-run of the build finishes only what is missing.
+
+Outputs go to ``data_dir``, which every node must see at the same path (a shared file system).
+Workers must import the same ``paradrive`` as the driver: installed on every node, or, for a
+local cluster started here, the driver's checkout (put on the workers' ``PYTHONPATH``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from paradrive.errors import ConfigError
+from paradrive.pipeline.executors import (
+    ResultCallback, SceneTask, StartCallback, blocked_result,
+)
+from paradrive.pipeline.runner import StageResult, run_scene_stage
+from paradrive.pipeline.specs import ResolvedConfig, Resources
+from paradrive.uri import parse_uri
+
+log = logging.getLogger("paradrive.ray")
+
+GPU_POLICIES = ("auto", "require", "cpu")
+GIB = 1024 ** 3
+
+
+@dataclass(frozen=True)
+class Capacity:
+    """What the largest node of a cluster offers (a task must fit on one node)."""
+
+    cpu: float
+    gpu: float
+    memory_bytes: float
+
+    @classmethod
+    def of_nodes(cls, nodes: list[dict]) -> "Capacity":
+        alive = [n.get("Resources", {}) for n in nodes if n.get("Alive", True)]
+        return cls(cpu=max((r.get("CPU", 0.0) for r in alive), default=0.0),
+                   gpu=max((r.get("GPU", 0.0) for r in alive), default=0.0),
+                   memory_bytes=max((r.get("memory", 0.0) for r in alive), default=0.0))
+
+
+def task_resources(stage: str, declared: Resources, capacity: Capacity,
+                   gpu_policy: str = "auto") -> tuple[dict[str, Any], list[str]]:
+    """Ray task options for a stage's declared resources, and the warnings the caps raise.
+
+    Returns ``({"num_cpus", "num_gpus", "memory"}, warnings)``; raises ConfigError when
+    ``gpu_policy='require'`` and the cluster has no GPU.
+    """
+    if gpu_policy not in GPU_POLICIES:
+        raise ConfigError(f"gpu policy {gpu_policy!r}: use one of {', '.join(GPU_POLICIES)}")
+    warnings: list[str] = []
+    cpu = float(declared.cpu)
+    if capacity.cpu and cpu > capacity.cpu:
+        warnings.append(f"stage '{stage}' declares cpu: {cpu:g}; the largest node has "
+                        f"{capacity.cpu:g}, asking for {capacity.cpu:g}")
+        cpu = capacity.cpu
+    gpu = float(declared.gpu)
+    if gpu > 0:
+        if gpu_policy == "cpu":
+            gpu = 0.0
+        elif capacity.gpu <= 0:
+            if gpu_policy == "require":
+                raise ConfigError(f"stage '{stage}' declares gpu: {gpu:g} but the Ray cluster has "
+                                  f"no GPU; add GPU nodes or use --gpu-policy auto (run on CPU)")
+            warnings.append(f"stage '{stage}' declares gpu: {gpu:g} but the cluster has no GPU; "
+                            f"running it on CPU (--gpu-policy require refuses instead)")
+            gpu = 0.0
+        elif gpu > capacity.gpu:
+            warnings.append(f"stage '{stage}' declares gpu: {gpu:g}; the largest node has "
+                            f"{capacity.gpu:g}, asking for {capacity.gpu:g}")
+            gpu = capacity.gpu
+    memory = float(declared.memory_gb) * GIB
+    if capacity.memory_bytes and memory > capacity.memory_bytes:
+        warnings.append(f"stage '{stage}' declares memory_gb: {declared.memory_gb:g}; the largest "
+                        f"node offers {capacity.memory_bytes / GIB:.1f} GB to tasks, asking for that")
+        memory = capacity.memory_bytes
+    return {"num_cpus": cpu, "num_gpus": gpu, "memory": int(memory)}, warnings
+
+
+def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: str,
+              force: bool) -> tuple[StageResult, dict]:
+    """The body of one Ray task (runs on a worker)."""
+    started = time.time()
+    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force)
+    return result, {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
+
+
+def _checkout_root() -> str:
+    import paradrive
+
+    return str(Path(paradrive.__file__).resolve().parents[1])
+
+
+class RayExecutor:
+    name = "ray"
+
+    def __init__(self, address: str | None = None, *, gpu_policy: str = "auto",
+                 max_in_flight: int | None = None, max_retries: int = 2,
+                 num_cpus: int | None = None, num_gpus: int | None = None,
+                 init_options: dict | None = None):
+        if gpu_policy not in GPU_POLICIES:
+            raise ConfigError(f"--gpu-policy {gpu_policy!r}: use one of {', '.join(GPU_POLICIES)}")
+        self.address = address
+        self.gpu_policy = gpu_policy
+        self.max_in_flight = max_in_flight
+        self.max_retries = max_retries
+        self.num_cpus = num_cpus
+        self.num_gpus = num_gpus
+        self.init_options = dict(init_options or {})
+        self.warnings: list[str] = []
+        self.placements: dict[tuple[str, str], dict] = {}  # (scene_id, stage) -> host, pid, start
+
+    # -- cluster ------------------------------------------------------------------------------
+
+    def _connect(self):
+        """Connect to (or start) Ray; returns (ray, whether this call started it)."""
+        try:
+            import ray
+        except ModuleNotFoundError as exc:
+            raise ConfigError("the ray executor needs Ray: pip install 'ray[default]'") from exc
+        if ray.is_initialized():
+            return ray, False
+        options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
+                                   **self.init_options}
+        if self.address:
+            options["address"] = self.address
+        else:
+            # A local cluster: workers import this checkout even when it is not installed.
+            root = _checkout_root()
+            path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
+            env = {"PYTHONPATH": path}
+            if os.environ.get("PARADRIVE_STAGES"):
+                env["PARADRIVE_STAGES"] = os.environ["PARADRIVE_STAGES"]
+            options.setdefault("runtime_env", {"env_vars": env})
+            if self.num_cpus is not None:
+                options["num_cpus"] = self.num_cpus
+            if self.num_gpus is not None:
+                options["num_gpus"] = self.num_gpus
+        try:
+            ray.init(**options)
+        except ConnectionError as exc:
+            raise ConfigError(f"cannot reach the Ray cluster at {self.address}: {exc}; start it "
+                              f"with 'ray start --head' or leave out --address for a local one") from exc
+        return ray, True
+
+    def plan(self, config: ResolvedConfig, stages: list[str], capacity: Capacity) -> dict[str, dict]:
+        """Ray options per stage (see the module doc for the policy); warnings go to the log."""
+        registry = config.registry()
+        options: dict[str, dict] = {}
+        for stage in stages:
+            opts, warnings = task_resources(stage, registry.specs[stage].resources, capacity,
+                                            self.gpu_policy)
+            options[stage] = opts
+            for w in warnings:
+                if w not in self.warnings:
+                    self.warnings.append(w)
+                    log.warning(w)
+        return options
+
+    # -- running ------------------------------------------------------------------------------
+
+    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: Path, *,
+            force: bool = False, on_start: StartCallback | None = None,
+            on_result: ResultCallback | None = None) -> list[StageResult]:
+        if not tasks:
+            return []
+        ray, started_here = self._connect()
+        try:
+            return self._run(ray, config, tasks, Path(data_dir), force, on_start, on_result)
+        finally:
+            if started_here:
+                ray.shutdown()
+
+    def _run(self, ray, config, tasks, data_dir, force, on_start, on_result) -> list[StageResult]:
+        capacity = Capacity.of_nodes(ray.nodes())
+        all_stages = sorted({s for t in tasks for s in t.stages})
+        options = self.plan(config, all_stages, capacity)
+        remote = ray.remote(_run_task)
+        config_ref = ray.put(config)
+        data = str(Path(data_dir).resolve())
+        total = ray.cluster_resources()  # the whole cluster: enough queued to keep every node busy
+        window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
+
+        results: list[StageResult] = []
+        queue = deque(t for t in tasks if t.stages)
+        in_flight: dict[Any, tuple[SceneTask, int]] = {}
+
+        def emit(result: StageResult) -> None:
+            results.append(result)
+            if on_result:
+                on_result(result)
+
+        def submit(task: SceneTask, index: int) -> None:
+            stage = task.stages[index]
+            if on_start:
+                on_start(task.scene_uri, stage)
+            ref = remote.options(**options[stage], max_retries=self.max_retries,
+                                 retry_exceptions=False,
+                                 name=f"{stage}:{_scene_id(task.scene_uri)}").remote(
+                config_ref, stage, task.scene_uri, data, force)
+            in_flight[ref] = (task, index)
+
+        try:
+            while queue or in_flight:
+                while queue and len(in_flight) < window:
+                    submit(queue.popleft(), 0)
+                ready, _ = ray.wait(list(in_flight), num_returns=1)
+                for ref in ready:
+                    task, index = in_flight.pop(ref)
+                    stage = task.stages[index]
+                    try:
+                        result, where = ray.get(ref)
+                        self.placements[(result.scene_id, stage)] = where
+                    except Exception as exc:  # the task was lost: worker died, node gone, ...
+                        result = lost_result(task.scene_uri, stage, exc, self.max_retries)
+                    emit(result)
+                    if result.status == "failed":
+                        for later in task.stages[index + 1:]:
+                            emit(blocked_result(result, later))
+                    elif index + 1 < len(task.stages):
+                        submit(task, index + 1)  # a started scene goes before a new one
+        except BaseException:
+            # The driver stops (Ctrl-C, an error in a callback): withdraw what it submitted, so
+            # a shared cluster does not go on working for nobody. Atomic writes keep outputs whole.
+            for ref in in_flight:
+                try:
+                    ray.cancel(ref)
+                except Exception:
+                    pass
+            raise
+        return results
+
+
+def _scene_id(scene_uri: str) -> str:
+    try:
+        return parse_uri(scene_uri).scene_id
+    except ConfigError:
+        return scene_uri
+
+
+def lost_result(scene_uri: str, stage: str, exc: BaseException, retries: int) -> StageResult:
+    """The failed result of a task Ray could not complete (its worker died every time)."""
+    text = str(exc).strip().splitlines()
+    reason = text[0] if text else ""
+    sid = _scene_id(scene_uri)
+    return StageResult(sid, stage, "failed",
+                       error=f"scene {sid}: {stage} lost on the Ray cluster after "
+                             f"{retries + 1} attempt(s): {type(exc).__name__}: {reason}; "
+                             f"re-run the build to finish it (outputs are written atomically)")

@@ -1,0 +1,289 @@
+"""The Ray executor: (scene, stage) tasks with declared resources, chained per scene, streamed back.
+
+One local Ray (2 CPUs, no GPU) serves the whole module. The stand-in stages of
+``pipeline_stages`` declare ``gpu: 1`` for fit and render, so the GPU policy is exercised too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from paradrive.errors import ConfigError
+from paradrive.pipeline import StageRegistry, run_build
+from paradrive.pipeline.executors import LocalExecutor, make_executor
+from paradrive.pipeline.ledger import Ledger
+from paradrive.pipeline.ray_executor import Capacity, RayExecutor, task_resources
+from paradrive.pipeline.runner import scene_dir_for
+from paradrive.pipeline.specs import Resources
+
+import pipeline_stages
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = [f"synthetic:street?seed={s}" for s in (1, 2, 3)]
+GIB = 1024 ** 3
+
+
+# -- the resource policy (no cluster needed) ----------------------------------------------------
+
+CPU_ONLY = Capacity(cpu=2, gpu=0, memory_bytes=8 * GIB)
+WITH_GPU = Capacity(cpu=16, gpu=1, memory_bytes=64 * GIB)
+
+
+def test_declared_resources_become_task_options():
+    opts, warnings = task_resources("fit", Resources(cpu=2, gpu=1, memory_gb=16), WITH_GPU)
+    assert opts == {"num_cpus": 2, "num_gpus": 1, "memory": 16 * GIB} and warnings == []
+
+
+def test_gpu_request_becomes_zero_with_a_warning_on_a_cluster_without_gpu():
+    opts, warnings = task_resources("fit", Resources(cpu=2, gpu=1, memory_gb=4), CPU_ONLY)
+    assert opts["num_gpus"] == 0
+    assert warnings == ["stage 'fit' declares gpu: 1 but the cluster has no GPU; running it on "
+                        "CPU (--gpu-policy require refuses instead)"]
+
+
+def test_gpu_policy_require_refuses_a_cluster_without_gpu():
+    with pytest.raises(ConfigError, match="declares gpu: 1 but the Ray cluster has no GPU"):
+        task_resources("fit", Resources(gpu=1), CPU_ONLY, "require")
+    opts, _ = task_resources("fit", Resources(gpu=1), WITH_GPU, "require")
+    assert opts["num_gpus"] == 1
+
+
+def test_gpu_policy_cpu_never_asks_for_gpus():
+    opts, warnings = task_resources("fit", Resources(gpu=1), WITH_GPU, "cpu")
+    assert opts["num_gpus"] == 0 and warnings == []
+
+
+def test_requests_are_capped_to_the_largest_node():
+    opts, warnings = task_resources("fit", Resources(cpu=8, gpu=0, memory_gb=16), CPU_ONLY)
+    assert opts["num_cpus"] == 2 and opts["memory"] == 8 * GIB
+    assert len(warnings) == 2 and "cpu: 8" in warnings[0] and "memory_gb: 16" in warnings[1]
+
+
+def test_capacity_is_the_largest_alive_node():
+    nodes = [{"Alive": True, "Resources": {"CPU": 4.0, "memory": 1e9}},
+             {"Alive": True, "Resources": {"CPU": 8.0, "GPU": 2.0, "memory": 5e9}},
+             {"Alive": False, "Resources": {"CPU": 64.0, "GPU": 8.0}}]
+    assert Capacity.of_nodes(nodes) == Capacity(cpu=8.0, gpu=2.0, memory_bytes=5e9)
+
+
+def test_unknown_gpu_policy_is_a_usage_error():
+    with pytest.raises(ConfigError, match="use one of auto, require, cpu"):
+        make_executor("ray", gpu_policy="sometimes")
+
+
+# -- on a local Ray cluster ---------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    ray = pytest.importorskip("ray")
+    # Workers inherit this environment: they import paradrive and the stand-in stages from here.
+    saved = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests")] +
+                                               ([saved] if saved else []))
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+        if saved is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = saved
+
+
+@pytest.fixture
+def stage_config(tmp_path):
+    def _config(overrides=None):
+        folder = pipeline_stages.write_stages(tmp_path / "stages")
+        return StageRegistry(folder).resolve(None, overrides or {})
+    return _config
+
+
+def build_with(executor, config, root: Path, scenes=SCENES, ledger=True):
+    led = Ledger.for_build(root / "manifests", "b") if ledger else None
+    if led:
+        registry = config.registry()
+        led.register(scenes, [s for s in registry.order() if registry.specs[s].scope == "scene"],
+                     ["manifest"])
+    seen = []
+
+    def on_result(result):
+        seen.append(result)
+        if led:
+            led.record(result)
+
+    report = run_build(config, scenes, root / "data", executor=executor,
+                       manifests_dir=root / "manifests", build="b",
+                       on_start=led.start if led else None, on_result=on_result)
+    return report, seen, led
+
+
+def test_ray_build_equals_local_build(ray_cluster, stage_config, tmp_path):
+    config = stage_config()
+    local, _, _ = build_with(LocalExecutor(), config, tmp_path / "local")
+    ray_executor = RayExecutor()
+    remote, streamed, ledger = build_with(ray_executor, config, tmp_path / "ray")
+    assert local.exit_code == remote.exit_code == 0
+    assert pipeline_stages.tree_digest(tmp_path / "ray") == pipeline_stages.tree_digest(tmp_path / "local")
+    assert (tmp_path / "ray/manifests/b/pairs.jsonl").read_bytes() == \
+        (tmp_path / "local/manifests/b/pairs.jsonl").read_bytes()
+    # every result reached the driver's callback, and every stage ran in a Ray worker
+    assert len(streamed) == len(remote.results) == 3 * 4 + 1
+    assert {r.status for r in remote.results} == {"done"}
+    pids = {pid for _, stage, _, pid in (line.split() for line in
+                                         (tmp_path / "ray/data/calls.log").read_text().splitlines())
+            if stage != "manifest"}  # build stages run on the driver
+    assert str(os.getpid()) not in pids
+    assert {(sid, st) for sid, st in ray_executor.placements} == {
+        (f"synthetic-street-s{s}", st) for s in (1, 2, 3) for st in ("ingest", "fit", "render", "clip")}
+    assert ledger.scene_states() == {f"synthetic-street-s{s}": "done" for s in (1, 2, 3)}
+    # the cluster has no GPU: fit and render (gpu: 1) ran on CPU, with a warning each
+    assert sorted(w.split("'")[1] for w in ray_executor.warnings) == ["fit", "render"]
+
+
+def test_stages_of_a_scene_run_in_order_and_scenes_in_parallel(ray_cluster, stage_config, tmp_path):
+    report, streamed, _ = build_with(RayExecutor(max_in_flight=3), stage_config(), tmp_path, ledger=False)
+    order = {}
+    for r in streamed:
+        order.setdefault(r.scene_id, []).append(r.stage)
+    for sid, stages in order.items():
+        if sid.startswith("synthetic"):
+            assert stages == ["ingest", "fit", "render", "clip"]
+    # results interleave across scenes: the first scene is not finished before another started
+    first_clip = next(i for i, r in enumerate(streamed) if r.stage == "clip")
+    assert len({r.scene_id for r in streamed[:first_clip]}) > 1
+
+
+def test_a_failed_scene_blocks_only_its_own_later_stages(ray_cluster, stage_config, tmp_path):
+    scenes = SCENES[:2] + ["synthetic:street?seed=9&fail=fit"]
+    report, _, ledger = build_with(RayExecutor(), stage_config(), tmp_path, scenes=scenes)
+    assert report.exit_code == 3
+    bad = "synthetic-street-s9-failfit"
+    assert ledger.scene_states() == {"synthetic-street-s1": "done", "synthetic-street-s2": "done",
+                                     bad: "failed"}
+    assert "fit cannot read this scene" in ledger.task(bad, "fit")["error"]
+    assert ledger.task(bad, "render")["state"] == ledger.task(bad, "clip")["state"] == "blocked"
+    rows = (tmp_path / "manifests/b/pairs.jsonl").read_text()
+    assert "synthetic-street-s1" in rows and bad not in rows
+
+
+def test_a_worker_that_dies_mid_task_is_retried_and_leaves_nothing_half_written(
+        ray_cluster, stage_config, tmp_path):
+    scenes = SCENES[:1] + ["synthetic:street?seed=5&crash=render"]
+    report, _, ledger = build_with(RayExecutor(max_retries=1), stage_config(), tmp_path, scenes=scenes)
+    assert report.exit_code == 0
+    crashed = "synthetic-street-s5-crashrender"
+    assert (tmp_path / "data" / f"crashed-{crashed}-render").is_file()  # it did die once
+    scene_dir = scene_dir_for(tmp_path / "data", crashed)
+    assert not list(scene_dir.rglob(".*.tmp-*")), "the retry removes what the dead worker left"
+    starts = [c for c in pipeline_stages.calls(tmp_path / "data") if c[:2] == ("start", "render")
+              and c[2] == crashed]
+    assert len(starts) == 2
+
+
+def test_a_task_lost_for_good_is_a_failure_and_the_rerun_finishes_only_it(
+        ray_cluster, stage_config, tmp_path):
+    scenes = SCENES[:2] + ["synthetic:street?seed=5&crash=fit"]
+    crashed = "synthetic-street-s5-crashfit"
+    report, _, ledger = build_with(RayExecutor(max_retries=0), stage_config(), tmp_path, scenes=scenes)
+    assert report.exit_code == 3
+    row = ledger.task(crashed, "fit")
+    assert row["state"] == "failed" and "lost on the Ray cluster" in row["error"]
+    assert ledger.failed_scene_uris() == [scenes[2]]
+    before = len(pipeline_stages.finished(tmp_path / "data"))
+    # the re-run (the crash happens only once) completes exactly the missing work
+    report, _, ledger = build_with(RayExecutor(max_retries=0), stage_config(), tmp_path, scenes=scenes)
+    assert report.exit_code == 0
+    redone = pipeline_stages.finished(tmp_path / "data")[before:]
+    assert sorted(redone) == sorted([("clip", crashed), ("fit", crashed), ("render", crashed),
+                                     ("manifest", "build")])
+
+
+def test_a_stage_that_cannot_be_imported_on_the_workers_fails_with_its_reason(
+        ray_cluster, stage_config, tmp_path):
+    config = stage_config()
+    folder = Path(config.stages_dir)
+    text = (folder / "clip.yaml").read_text().replace("pipeline_stages:run_clip",
+                                                      "pipeline_stages_missing:run_clip")
+    (folder / "clip.yaml").write_text(text)
+    config = StageRegistry(folder).resolve()
+    report, _, ledger = build_with(RayExecutor(), config, tmp_path, scenes=SCENES[:1])
+    assert report.exit_code == 3  # the scene stages before clip landed
+    assert "implementation pipeline_stages_missing:run_clip is not available" in \
+        ledger.task("synthetic-street-s1", "clip")["error"]
+
+
+# -- the real pipeline, local and Ray, through the command line ---------------------------------
+
+REAL_SCENES = [f"synthetic:demo?seed={s}" for s in (1, 2, 3)]
+CORRUPT = "synthetic:demo?seed=4&colour=red"  # an option the synthetic reader does not know
+
+
+def _normalised_index(build_dir: Path, root: Path) -> dict:
+    doc = json.loads((build_dir / "index.json").read_text().replace(str(root), "<root>"))
+    doc.pop("created_at")
+    return doc
+
+
+@pytest.mark.slow
+def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_build(
+        ray_cluster, tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+    from paradrive.manifest import read_pairs
+
+    monkeypatch.delenv("PARADRIVE_STAGES", raising=False)
+    listing = tmp_path / "scenes.txt"
+    listing.write_text("# three good scenes and a bad one\n" + "\n".join(REAL_SCENES + [CORRUPT]) + "\n")
+    sets = pipeline_stages.tiny_real_sets()
+    for executor in ("local", "ray"):
+        root = tmp_path / executor
+        res = CliRunner().invoke(app, ["build", "--scenes", str(listing), "--profile", "smoke", *sets,
+                                       "--data", str(root / "data"), "--manifests",
+                                       str(root / "manifests"), "--build", "smoke3",
+                                       "--executor", executor], env={"COLUMNS": "250"})
+        assert res.exit_code == 3, res.output  # partial: the good scenes landed, the bad one did not
+        assert "3 of 4 scenes done; exit code 3 (partial build)" in res.output
+        ledger = Ledger.for_build(root / "manifests", "smoke3")
+        states = ledger.scene_states()
+        assert states.pop("synthetic-demo-s4-colourred") == "failed"
+        assert set(states.values()) == {"done"} and len(states) == 3
+        row = ledger.task("synthetic-demo-s4-colourred", "ingest")
+        assert "unknown synthetic option 'colour'" in row["error"]
+        assert ledger.runs()[-1]["executor"] == executor
+
+    local, remote = tmp_path / "local", tmp_path / "ray"
+    rows = read_pairs(local / "manifests" / "smoke3").to_pylist()
+    assert {r["scene_id"] for r in rows} == {f"synthetic-demo-s{s}" for s in (1, 2, 3)}
+    assert read_pairs(remote / "manifests" / "smoke3").to_pylist() == rows
+    assert _normalised_index(remote / "manifests" / "smoke3", remote) == \
+        _normalised_index(local / "manifests" / "smoke3", local)
+    # every file byte for byte (checkpoints, renders, videos, shards), but for the clocks in fit.json
+    skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
+    assert pipeline_stages.tree_digest(remote, skip) == pipeline_stages.tree_digest(local, skip)
+    for s in (1, 2, 3):
+        rel = Path("data/scenes") / f"synthetic-demo-s{s}" / "gs" / "fit.json"
+        assert _without_clocks(remote / rel) == _without_clocks(local / rel)
+
+
+def _without_clocks(path: Path):
+    def strip(obj):
+        if isinstance(obj, dict):
+            return {k: strip(v) for k, v in obj.items()
+                    if k not in ("seconds", "cpu_seconds", "peak_rss_mb")}
+        if isinstance(obj, list):
+            return [strip(v) for v in obj]
+        return obj
+    return strip(json.loads(path.read_text()))
+
+
+def test_gpu_policy_require_refuses_the_cpu_only_test_cluster_before_running_anything(
+        ray_cluster, stage_config, tmp_path):
+    with pytest.raises(ConfigError, match="stage 'fit' declares gpu: 1 but the Ray cluster has no GPU"):
+        build_with(RayExecutor(gpu_policy="require"), stage_config(), tmp_path, ledger=False)
+    assert pipeline_stages.calls(tmp_path / "data") == []
