@@ -1,0 +1,512 @@
+"""The trainer's adapter: pairs of a published build as torch datasets.
+
+``PairDataset`` (map-style) and ``PairIterableDataset`` (sharded over ranks and DataLoader
+workers, deterministic shuffle, exact mid-epoch resume) read a build folder written by the
+manifest stage (``<manifests>/<build>/index.json`` + ``pairs-*.parquet`` + ``media/``).
+
+One sample (DESIGN.md, "Dataset adapter")::
+
+    source, condition, target   float32 (F, 3, H, W) in [-1, 1]
+    rel_pose                    float32 (F, 4, 4)  T_{target<-source} per frame
+    identity_pose               float32 (F, 4, 4)  identity
+    intrinsics                  float32 (4,)       fx, fy, cx, cy at the output resolution
+    offset_m                    float              lateral offset of the source (+ = left)
+    condition_iteration         int                checkpoint that rendered the condition
+    pair_id, prompt             str                prompt is '' unless given
+    camera                      float32 (ceil(F/4), 12)   only with pose_format="recammaster"
+
+Frames are decoded with PyAV: the decoder seeks to the keyframe at or before the first frame
+asked for and decodes forward, stopping after the last one, so a short window or a stride never
+decodes a whole video it does not need.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import pyarrow.parquet as pq
+import torch
+from torch.utils.data import Dataset, IterableDataset, get_worker_info
+
+from paradrive import geometry
+from paradrive.errors import ParaDriveError
+from paradrive.io import sha256_file
+from paradrive.manifest import read_index
+
+__all__ = ["PairDataset", "PairIterableDataset", "decode_frames", "each_frame", "video_info",
+           "output_geometry", "recammaster_camera"]
+
+# Columns kept in memory for every row; the per-frame poses are read one row group at a time.
+_LIGHT = ("pair_id", "dataset", "scene_id", "camera", "clip", "num_frames", "fps", "width",
+          "height", "intrinsics", "offset_m", "condition_iteration", "source_iteration",
+          "source_uri", "source_sha256", "condition_uri", "condition_sha256", "target_uri",
+          "target_sha256")
+_HEAVY = ("rel_pose", "target_c2w")
+
+
+# --------------------------------------------------------------------------- decoding
+
+def video_info(path: str | Path) -> dict:
+    """Frame count, rate, size and codec of the first video stream of ``path``."""
+    import av
+
+    with av.open(str(path)) as container:
+        s = container.streams.video[0]
+        rate = s.average_rate or s.guessed_rate or s.base_rate
+        return {"frames": int(s.frames), "fps": float(rate) if rate else None,
+                "width": s.codec_context.width, "height": s.codec_context.height,
+                "codec": s.codec_context.name}
+
+
+def _frame_index(frame, start_pts: int, time_base, rate) -> int | None:
+    if frame.pts is None or not rate:
+        return None
+    return int(round(float((frame.pts - start_pts) * time_base * rate)))
+
+
+def decode_frames(path: str | Path, indices: Sequence[int] | None = None, *,
+                  size: tuple[int, int] | None = None, seek: bool = True,
+                  threads: int = 1, stats: dict | None = None) -> np.ndarray:
+    """Frames of a video as uint8 (F, H, W, 3) RGB, in the order of ``indices``.
+
+    indices: 0-based frame numbers (repeats allowed); None = every frame.
+    size: (height, width) to resize to while converting (swscale, area filter); None = as stored.
+    seek: seek to the keyframe at or before the first index (False decodes from the start; the
+    result is the same, only slower).
+    threads: decoder threads (1 = none, the right choice inside DataLoader workers; 0 = FFmpeg
+    picks).
+    stats: if given, ``stats["decoded"]`` is set to the number of frames the decoder produced.
+    Raises ParaDriveError naming the file when it cannot be opened or is too short.
+    """
+    got: dict[int, np.ndarray] = {}
+    order: list[int] = []
+
+    def keep(idx: int, pixels: np.ndarray) -> None:
+        got[idx] = pixels
+        order.append(idx)
+
+    each_frame(path, indices, keep, size=size, seek=seek, threads=threads, stats=stats)
+    if indices is None:
+        return np.stack([got[i] for i in order])
+    return np.stack([got[int(i)] for i in indices])
+
+
+def each_frame(path: str | Path, indices: Sequence[int] | None,
+               sink: Callable[[int, np.ndarray], None], *, size: tuple[int, int] | None = None,
+               seek: bool = True, threads: int = 1, stats: dict | None = None) -> None:
+    """Decode the frames ``indices`` (None = all) of ``path`` and hand each to ``sink(index,
+    rgb_uint8_hwc)`` once, in frame order, without holding the whole clip. Arguments as in
+    ``decode_frames``."""
+    import av
+
+    path = Path(path)
+    wanted = None if indices is None else sorted(set(int(i) for i in indices))
+    if wanted is not None and (not wanted or wanted[0] < 0):
+        raise ValueError(f"frame indices must be non-negative and non-empty, got {indices!r}")
+    got: set[int] = set()
+
+    def convert(frame) -> np.ndarray:
+        if size is not None:
+            frame = frame.reformat(width=size[1], height=size[0], format="rgb24",
+                                   interpolation="AREA")
+            return frame.to_ndarray()
+        return frame.to_ndarray(format="rgb24")
+
+    def again() -> None:
+        got.clear()
+        each_frame(path, indices, sink, size=size, seek=False, threads=threads, stats=stats)
+
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as exc:
+        raise ParaDriveError(f"{path}: cannot open video ({exc}); the file is missing or "
+                             f"corrupt, run `paradrive inspect --verify` on the build") from exc
+    counter = 0
+    with container:
+        stream = container.streams.video[0]
+        if threads != 1:
+            stream.thread_type = "AUTO"
+            stream.codec_context.thread_count = max(0, int(threads))
+        rate = stream.average_rate or stream.guessed_rate
+        start = stream.start_time or 0
+        tb = stream.time_base
+        first, last = (None, None) if wanted is None else (wanted[0], wanted[-1])
+        wanted_lookup = set(wanted or ())
+        sought = False
+        if seek and first and rate and tb:
+            target = start + int(math.floor(first / float(rate) / float(tb)))
+            container.seek(target, stream=stream, backward=True, any_frame=False)
+            sought = True
+        try:
+            for frame in container.decode(stream):
+                idx = _frame_index(frame, start, tb, rate)
+                counter += 1
+                if stats is not None:
+                    stats["decoded"] = stats.get("decoded", 0) + 1
+                if sought and counter == 1 and (idx is None or idx > first):
+                    # No timestamps to place a sought frame, or the seek overshot: start over.
+                    return again()
+                if idx is None:
+                    idx = counter - 1
+                if wanted is None:
+                    sink(idx, convert(frame))
+                    got.add(idx)
+                    continue
+                if idx in got or idx < first:
+                    continue
+                if idx > last:
+                    break
+                if idx in wanted_lookup:
+                    sink(idx, convert(frame))
+                    got.add(idx)
+                if len(got) == len(wanted):
+                    break
+        except av.error.FFmpegError as exc:
+            raise ParaDriveError(f"{path}: video is corrupt ({exc}); re-run the clip stage for "
+                                 f"its scene, or `paradrive inspect --verify` the build") from exc
+    if wanted is None and not got:
+        raise ParaDriveError(f"{path}: video has no frames; re-run the clip stage")
+    missing = [i for i in (wanted or ()) if i not in got]
+    if missing:
+        raise ParaDriveError(f"{path}: frames {missing[:5]} not in the video; the manifest and "
+                             f"the video disagree, re-run the clip and manifest stages")
+
+
+# --------------------------------------------------------------------------- geometry
+
+def output_geometry(width: int, height: int, output_size: tuple[int, int] | None,
+                    resize: str = "crop") -> dict:
+    """How a (height, width) frame becomes ``output_size`` = (H, W).
+
+    ``crop``: scale uniformly so the frame covers (H, W), then cut the centre; ``stretch``: scale
+    each axis to fit. Returns the intermediate size (rh, rw), the crop origin (y0, x0) and the
+    per-axis scales (sx, sy); intrinsics follow DESIGN.md: fx, cx scale by sx, fy, cy by sy, and
+    the crop shifts cx, cy.
+    """
+    if output_size is None:
+        return {"resize": None, "crop": (0, 0), "sx": 1.0, "sy": 1.0, "size": (height, width)}
+    oh, ow = int(output_size[0]), int(output_size[1])
+    if resize == "stretch":
+        rh, rw = oh, ow
+    elif resize == "crop":
+        s = max(ow / width, oh / height)
+        rh, rw = max(oh, round(height * s)), max(ow, round(width * s))
+    else:
+        raise ValueError(f"resize must be 'crop' or 'stretch', got {resize!r}")
+    return {"resize": None if (rh, rw) == (height, width) else (rh, rw),
+            "crop": ((rh - oh) // 2, (rw - ow) // 2), "sx": rw / width, "sy": rh / height,
+            "size": (oh, ow)}
+
+
+def adjust_intrinsics(intrinsics: Sequence[float], geo: dict) -> np.ndarray:
+    fx, fy, cx, cy = geometry.scale_intrinsics(*map(float, intrinsics), geo["sx"], geo["sy"])
+    y0, x0 = geo["crop"]
+    return np.array([fx, fy, cx - x0, cy - y0], dtype=np.float32)
+
+
+def recammaster_camera(target_c2w: np.ndarray, source_c2w: np.ndarray, every: int = 4) -> np.ndarray:
+    """ReCamMaster-style camera condition: (ceil(F / every), 12).
+
+    Row k is ``(inv(source_c2w[0]) @ target_c2w[every * k])[:3, :4]`` flattened row-major: the
+    pose of the target camera at frame ``every*k`` in the coordinates of the source camera at the
+    sample's first frame (OpenCV axes, metres, no scale normalisation). ``every = 4`` gives one
+    pose per Wan latent frame (31 for 121 frames).
+    target_c2w, source_c2w: (F, 4, 4) camera-to-world of the sample's frames.
+    """
+    rel = geometry.invert(source_c2w[0]) @ geometry.as_pose(target_c2w[::every])
+    return rel[:, :3, :4].reshape(-1, 12).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- map-style
+
+class PairDataset(Dataset):
+    """Map-style dataset over a build: ``ds[i]`` is the i-th pair in pair_id order.
+
+    Args:
+        build: the build folder (``<manifests>/<build>``, holding ``index.json``).
+        num_frames: frames per sample (None = every frame of the clip from ``frame_offset``).
+        frame_stride: take every n-th frame.
+        frame_offset: first frame of the window within the clip.
+        output_size: (height, width) of the output frames (None = as stored).
+        resize: ``crop`` (uniform scale + centre crop, default) or ``stretch``.
+        pose_format: None, or ``recammaster`` to add ``camera`` (see ``recammaster_camera``).
+        prompt: the text every sample carries ('' as in the paper).
+        verify_checksums: check each video's sha256 against the manifest the first time this
+            process reads it (a mismatch raises, naming the file).
+        decode_threads: FFmpeg threads per video (1 suits DataLoader workers; 0 = FFmpeg picks).
+        dtype: float type of the frame tensors (float32; bfloat16 or float16 halve the memory of
+            a 3 x 121 x 480 x 832 sample, 1.7 GB in float32).
+    """
+
+    def __init__(self, build: str | Path, *, num_frames: int | None = None, frame_stride: int = 1,
+                 frame_offset: int = 0, output_size: tuple[int, int] | None = None,
+                 resize: str = "crop", pose_format: str | None = None, prompt: str = "",
+                 verify_checksums: bool = False, decode_threads: int = 1,
+                 dtype: torch.dtype = torch.float32):
+        self.build = Path(build)
+        self.index = read_index(self.build)
+        if frame_stride < 1 or frame_offset < 0 or (num_frames is not None and num_frames < 1):
+            raise ValueError("frame_stride must be >= 1, frame_offset >= 0 and num_frames >= 1")
+        if pose_format not in (None, "recammaster"):
+            raise ValueError(f"pose_format must be None or 'recammaster', got {pose_format!r}")
+        output_geometry(16, 16, output_size, resize)  # checks resize early
+        self.num_frames, self.frame_stride, self.frame_offset = num_frames, frame_stride, frame_offset
+        self.output_size, self.resize = output_size, resize
+        self.pose_format, self.prompt, self.verify_checksums = pose_format, prompt, verify_checksums
+        self.decode_threads = decode_threads
+        if not dtype.is_floating_point:
+            raise ValueError(f"dtype must be a float type (frames are in [-1, 1]), got {dtype}")
+        self.dtype = dtype
+        self._shards = [self.build / s["file"] for s in self.index["shards"]]
+        tables = []
+        for path, entry in zip(self._shards, self.index["shards"]):
+            if not path.is_file():
+                raise ParaDriveError(f"{path} is listed in {self.build / 'index.json'} but missing;"
+                                     f" re-run the manifest stage or re-publish the build")
+            table = pq.read_table(path, columns=list(_LIGHT))
+            if table.num_rows != entry["rows"]:
+                raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
+                                     f"{entry['rows']}; the build is inconsistent, re-run the "
+                                     f"manifest stage")
+            tables.append(table)
+        self._rows = {name: [v for t in tables for v in t.column(name).to_pylist()] for name in _LIGHT}
+        self._starts = np.cumsum([0] + [t.num_rows for t in tables])
+        self._pid = None
+        self._files: dict[int, Any] = {}
+        self._group_cache: dict[tuple[int, int], dict] = {}
+        self._verified: set[str] = set()
+
+    # ------------------------------------------------------------ rows
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    @property
+    def pair_ids(self) -> list[str]:
+        return list(self._rows["pair_id"])
+
+    def row(self, i: int) -> dict:
+        """The manifest row of pair i (light columns plus ``rel_pose`` and ``target_c2w`` (N, 4, 4))."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"pair index {i} out of range for {len(self)} pairs")
+        row = {name: self._rows[name][i] for name in _LIGHT}
+        row.update(self._poses(i))
+        return row
+
+    def _poses(self, i: int) -> dict:
+        if self._pid != os.getpid():  # after a fork (DataLoader workers) reopen the files
+            self._pid, self._files, self._group_cache = os.getpid(), {}, {}
+        shard = int(np.searchsorted(self._starts, i, side="right") - 1)
+        local = i - int(self._starts[shard])
+        f = self._files.get(shard)
+        if f is None:
+            f = self._files[shard] = pq.ParquetFile(self._shards[shard])
+        meta = f.metadata
+        group, offset = 0, local
+        while offset >= meta.row_group(group).num_rows:
+            offset -= meta.row_group(group).num_rows
+            group += 1
+        key = (shard, group)
+        cols = self._group_cache.get(key)
+        if cols is None:
+            table = f.read_row_group(group, columns=list(_HEAVY))
+            cols = {name: table.column(name) for name in _HEAVY}
+            if len(self._group_cache) >= 4:
+                self._group_cache.pop(next(iter(self._group_cache)))
+            self._group_cache[key] = cols
+        out = {}
+        for name in _HEAVY:
+            values = cols[name][offset].values.flatten().to_numpy(zero_copy_only=False)
+            out[name] = values.reshape(-1, 4, 4)
+        return out
+
+    def frame_indices(self, clip_frames: int) -> list[int]:
+        """Frames of the clip a sample uses (0-based within the clip)."""
+        n = self.num_frames
+        if n is None:
+            n = (clip_frames - 1 - self.frame_offset) // self.frame_stride + 1
+        frames = [self.frame_offset + k * self.frame_stride for k in range(n)]
+        if n < 1 or frames[-1] >= clip_frames:
+            raise ValueError(f"window of {n} frames from {self.frame_offset} every "
+                             f"{self.frame_stride} needs {frames[-1] + 1 if n > 0 else '?'} frames; "
+                             f"the clip has {clip_frames}: lower num_frames/frame_stride/frame_offset")
+        return frames
+
+    # ------------------------------------------------------------ samples
+    def _video(self, uri: str, sha: str, frames: list[int], geo: dict) -> torch.Tensor:
+        path = self.build / uri
+        if self.verify_checksums and uri not in self._verified:
+            if not path.is_file():
+                raise ParaDriveError(f"{path} is missing; restore it or re-run the manifest stage")
+            actual = sha256_file(path)
+            if actual != sha:
+                raise ParaDriveError(f"{path}: sha256 {actual[:12]}… does not match the "
+                                     f"manifest ({sha[:12]}…); the file is corrupt, re-run the "
+                                     f"manifest stage or restore it")
+            self._verified.add(uri)
+        oh, ow = geo["size"]
+        y0, x0 = geo["crop"]
+        out = torch.empty((len(frames), 3, oh, ow), dtype=self.dtype)
+        position = {f: k for k, f in enumerate(frames)}
+
+        def fill(idx: int, pixels: np.ndarray) -> None:
+            # One frame at a time, so the conversion stays in cache; transposing HWC -> CHW in
+            # uint8 first makes the float conversion a contiguous (vectorised) copy.
+            dst = out[position[idx]]
+            chw = np.ascontiguousarray(pixels[y0:y0 + oh, x0:x0 + ow].transpose(2, 0, 1))
+            dst.copy_(torch.from_numpy(chw))
+            dst.div_(127.5).sub_(1.0)
+
+        each_frame(path, frames, fill, size=geo["resize"], threads=self.decode_threads)
+        return out
+
+    def __getitem__(self, i: int) -> dict:
+        row = self.row(int(i))
+        frames = self.frame_indices(int(row["num_frames"]))
+        geo = output_geometry(int(row["width"]), int(row["height"]), self.output_size, self.resize)
+        sample = {role: self._video(row[f"{role}_uri"], row[f"{role}_sha256"], frames, geo)
+                  for role in ("source", "condition", "target")}
+        rel = row["rel_pose"][frames]
+        f = len(frames)
+        sample.update({
+            "rel_pose": torch.from_numpy(np.ascontiguousarray(rel, dtype=np.float32)),
+            "identity_pose": torch.eye(4).expand(f, 4, 4).clone(),
+            "intrinsics": torch.from_numpy(adjust_intrinsics(row["intrinsics"], geo)),
+            "offset_m": float(row["offset_m"]),
+            "condition_iteration": int(row["condition_iteration"]),
+            "pair_id": row["pair_id"],
+            "prompt": self.prompt,
+        })
+        if self.pose_format == "recammaster":
+            target_c2w = row["target_c2w"][frames]
+            source_c2w = target_c2w @ rel.astype(np.float64)
+            sample["camera"] = torch.from_numpy(recammaster_camera(target_c2w, source_c2w))
+        return sample
+
+
+# --------------------------------------------------------------------------- iterable
+
+def _dist_rank_world() -> tuple[int, int]:
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+class PairIterableDataset(IterableDataset):
+    """Pairs of a build split over distributed ranks and DataLoader workers.
+
+    Order. Epoch e visits a permutation of all pairs drawn from ``(seed, e)`` (or pair_id order
+    with ``shuffle=False``). The epoch sequence is made a multiple of ``world_size`` —
+    ``partition="pad"`` repeats its first samples, ``"drop"`` leaves out its last ones — and rank
+    r takes elements r, r + world_size, ... so every rank yields ``len(self)`` samples (DDP never
+    waits on a rank that ran out).
+
+    Workers. A rank's sequence is cut into batches of ``batch_size`` (pass the DataLoader's) and
+    worker w takes batches w, w + num_workers, ...: a DataLoader collecting from its workers in
+    turn then delivers the rank's sequence in order, so "samples consumed" is an exact position.
+
+    Resume. ``state_dict(samples_consumed)`` records the epoch and the samples of this rank's
+    epoch sequence already used; after ``load_state_dict`` the next iterator of that epoch starts
+    right after them. With ``num_workers=0`` the dataset counts by itself; with workers (whose
+    copies of the dataset the main process cannot see) the trainer counts the samples its loader
+    delivered since the iterator started (batches x batch_size) and passes that number.
+    ``set_epoch(e)`` before each epoch (as with DistributedSampler).
+
+    Args (beyond PairDataset's, which pass through): seed, shuffle, rank, world_size (default
+    from torch.distributed when initialised, else 0 and 1), batch_size, partition.
+    """
+
+    def __init__(self, build: str | Path, *, seed: int = 0, shuffle: bool = True,
+                 rank: int | None = None, world_size: int | None = None, batch_size: int = 1,
+                 partition: str = "pad", **pair_options):
+        super().__init__()
+        self.dataset = PairDataset(build, **pair_options)
+        drank, dworld = _dist_rank_world()
+        self.rank = drank if rank is None else int(rank)
+        self.world_size = dworld if world_size is None else int(world_size)
+        if not 0 <= self.rank < self.world_size:
+            raise ValueError(f"rank {self.rank} outside world_size {self.world_size}")
+        if partition not in ("pad", "drop"):
+            raise ValueError(f"partition must be 'pad' or 'drop', got {partition!r}")
+        if batch_size < 1:
+            raise ValueError("batch_size must be >= 1")
+        if partition == "drop" and len(self.dataset) < self.world_size:
+            raise ValueError(f"partition='drop' with {len(self.dataset)} pairs and "
+                             f"{self.world_size} ranks leaves nothing; use partition='pad'")
+        self.seed, self.shuffle, self.batch_size, self.partition = seed, shuffle, batch_size, partition
+        self.epoch = 0
+        self._resume: tuple[int, int] | None = None   # (epoch, samples already consumed)
+        self._yielded = 0                              # counted here when iterated in-process
+
+    # ------------------------------------------------------------ order
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+        self._yielded = 0
+
+    def __len__(self) -> int:
+        """Samples each rank yields per epoch."""
+        n, w = len(self.dataset), self.world_size
+        return math.ceil(n / w) if self.partition == "pad" else n // w
+
+    def epoch_order(self, epoch: int | None = None) -> np.ndarray:
+        """The whole epoch's sequence of pair indices (after padding or dropping)."""
+        epoch = self.epoch if epoch is None else int(epoch)
+        n = len(self.dataset)
+        order = (np.random.default_rng([int(self.seed), epoch]).permutation(n) if self.shuffle
+                 else np.arange(n))
+        return np.resize(order, len(self) * self.world_size)
+
+    def rank_order(self, epoch: int | None = None) -> np.ndarray:
+        """This rank's sequence of pair indices for the epoch."""
+        return self.epoch_order(epoch)[self.rank::self.world_size]
+
+    def _start(self) -> int:
+        if self._resume is not None and self._resume[0] == self.epoch:
+            return self._resume[1]
+        return 0
+
+    def worker_order(self, worker_id: int = 0, num_workers: int = 1,
+                     epoch: int | None = None) -> np.ndarray:
+        """Pair indices worker ``worker_id`` of ``num_workers`` yields (after any resume point)."""
+        seq = self.rank_order(epoch)[self._start():]
+        b = self.batch_size
+        batches = np.arange(len(seq)) // b
+        return seq[batches % num_workers == worker_id]
+
+    def __iter__(self):
+        info = get_worker_info()
+        wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
+        for i in self.worker_order(wid, nw):
+            sample = self.dataset[int(i)]
+            if info is None:
+                self._yielded += 1
+            yield sample
+
+    # ------------------------------------------------------------ resume
+    def state_dict(self, samples_consumed: int | None = None) -> dict:
+        """Where this rank stands: the epoch and the samples of its epoch sequence used so far.
+
+        samples_consumed: samples the loader delivered since the current iterator started
+        (needed with DataLoader workers); None = the dataset's own count (no workers).
+        """
+        used = self._yielded if samples_consumed is None else int(samples_consumed)
+        return {"epoch": self.epoch, "samples_consumed": self._start() + used,
+                "seed": self.seed, "shuffle": self.shuffle, "num_pairs": len(self.dataset),
+                "rank": self.rank, "world_size": self.world_size, "partition": self.partition}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key in ("seed", "shuffle", "num_pairs", "world_size", "partition"):
+            mine = len(self.dataset) if key == "num_pairs" else getattr(self, key)
+            if key in state and state[key] != mine:
+                raise ValueError(f"cannot resume: the state was saved with {key}={state[key]!r}, "
+                                 f"this dataset has {mine!r}; resume with the same build and "
+                                 f"settings, or start a new epoch")
+        consumed = int(state["samples_consumed"])
+        if not 0 <= consumed <= len(self):
+            raise ValueError(f"cannot resume: samples_consumed={consumed} outside 0..{len(self)}")
+        self.epoch = int(state["epoch"])
+        self._resume = (self.epoch, consumed)
+        self._yielded = 0

@@ -1,0 +1,337 @@
+"""Ground-truth evaluation of a fitted synthetic scene: ``paradrive eval``.
+
+Only a synthetic scene knows what a laterally shifted camera really sees: the procedural street
+renders any pose exactly. For one scene this measures
+
+* **shifted**: the source (final) checkpoint rendered on the recorded trajectory shifted by each
+  offset, against the street's true view from the same shifted poses (PSNR, SSIM, and the median
+  relative error of the rendered z-depth on non-sky pixels);
+* **recorded**: the source checkpoint on the recorded trajectory against the recorded frames
+  (offset 0, the fit's own quality on the clip frames);
+* **conditions**: each under-fitted checkpoint on the recorded trajectory against the recorded
+  frames, as the condition streams are made.
+
+Frames and intrinsics are those of the render stage (its clip windows, output size and crop),
+read from ``renders/renders.json`` when the scene was rendered, else computed the same way from
+the render parameters; ``max_frames`` evenly spaced frames of them are used. Renders are made
+afresh from the checkpoints with the render stage's own functions (identical to its PNGs).
+
+Writes ``eval/eval.json`` and ``eval/eval.png`` (or into ``out_dir``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+from paradrive import geometry
+from paradrive.clips import clip_windows, condition_stream, frames_needed, source_stream
+from paradrive.errors import ConfigError, SceneError
+from paradrive.io import atomic_path, write_json
+
+__all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "plot_eval", "register"]
+
+EVAL_SCHEMA_VERSION = 1
+log_default = logging.getLogger("paradrive.eval")
+
+
+# --------------------------------------------------------------------------- metrics
+
+def image_quality(pred: np.ndarray, truth: np.ndarray) -> dict:
+    """Mean PSNR (dB) and SSIM over frames of uint8 (N, H, W, 3) arrays (paradrive.metrics)."""
+    import torch
+
+    from paradrive.metrics import psnr, ssim
+
+    a = torch.from_numpy(np.ascontiguousarray(pred)).float() / 255.0
+    b = torch.from_numpy(np.ascontiguousarray(truth)).float() / 255.0
+    return {"psnr": float(psnr(a, b).mean()), "ssim": float(ssim(a, b).mean())}
+
+
+def depth_abs_rel(pred: np.ndarray, truth: np.ndarray) -> float | None:
+    """Median of |pred - truth| / truth over pixels where the truth is finite (not sky).
+
+    A predicted +inf (sky) on such a pixel is an infinite error.
+
+    pred, truth: float (N, H, W) z-depth in metres. None when no pixel has a finite truth.
+    """
+    valid = np.isfinite(truth) & (truth > 0)
+    if not valid.any():
+        return None
+    # a surface rendered as sky (+inf) counts as an infinite error, not as a missing pixel
+    return float(np.median(np.abs(pred[valid] - truth[valid]) / truth[valid]))
+
+
+# --------------------------------------------------------------------------- evaluation
+
+def _ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
+    """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
+    from paradrive.pipeline.runner import read_marker
+
+    marker = read_marker(scene_dir, "ingest")
+    if marker and isinstance(marker.get("params"), dict):
+        return marker["params"]
+    return dict(fallback or {})
+
+
+def _subsample(frames: list[int], max_frames: int | None) -> list[int]:
+    if not max_frames or len(frames) <= max_frames:
+        return list(frames)
+    pick = np.linspace(0, len(frames) - 1, int(max_frames)).round().astype(int)
+    return [frames[i] for i in sorted(set(pick.tolist()))]
+
+
+def _plan_camera(scene, cam_name: str, render_params: dict, renders: dict | None):
+    """(frames, OutputCamera) for a camera: from renders.json when present, else from params."""
+    from paradrive.render import OutputCamera, output_camera
+
+    cam = scene.cameras[cam_name]
+    if renders and cam_name in renders.get("cameras", {}) and renders["cameras"][cam_name]["frames"]:
+        rc = renders["cameras"][cam_name]
+        fx, fy, cx, cy = rc["intrinsics"]
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        out = OutputCamera(width=int(renders["width"]), height=int(renders["height"]),
+                           crop=tuple(rc["crop"]), K=K)
+        return list(rc["frames"]), out
+    windows, _ = clip_windows(len(scene.frames), int(render_params["clip_frames"]),
+                              render_params["clips"])
+    frames = frames_needed(windows) or list(range(len(scene.frames)))
+    out = output_camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                        int(render_params["width"]), int(render_params["height"]))
+    return frames, out
+
+
+def _render(params, c2w, out, *, depth: bool, batch: int, device: str, sky=None):
+    from paradrive.render import render_views
+
+    rgb, dep = [], []
+    for r in render_views(params, c2w, out.K, out.width, out.height, depth=depth,
+                          batch_frames=batch, sky=sky, device=device):
+        rgb.append(r["rgb"])
+        if depth:
+            dep.append(r["depth"])
+    return np.concatenate(rgb), (np.concatenate(dep) if depth else None)
+
+
+def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
+                   ingest_params: dict | None = None, cameras: Optional[list[str]] = None,
+                   max_frames: int | None = 16, out_dir: str | os.PathLike | None = None,
+                   log: logging.Logger | None = None) -> dict:
+    """Evaluate a fitted synthetic scene against its ground truth; returns eval.json's dict.
+
+    render_params: the resolved ``render`` stage parameters (checkpoints, offsets, size, clips).
+    ingest_params: used to rebuild the street when the scene has no ingest marker.
+    cameras: default ``render_params["cameras"]``. Writes ``<out_dir or scene/eval>/eval.json``
+    and ``eval.png``.
+    """
+    from paradrive.ingest.synthetic import street_from_uri
+    from paradrive.render import checkpoint_file, crop_resize, load_checkpoint, sky_dome_of
+    from paradrive.scene import load_scene
+    from paradrive.uri import parse_uri
+
+    log = log or log_default
+    scene_dir = Path(scene_dir)
+    scene = load_scene(scene_dir)
+    sid = scene.scene_id
+    if scene.dataset != "synthetic":
+        raise SceneError(f"eval needs a synthetic scene (this one is {scene.dataset}): only a "
+                         f"synthetic street can render the true shifted views", scene_id=sid,
+                         path=scene_dir / "scene.json", fix="evaluate a 'synthetic:' scene")
+    street = street_from_uri(parse_uri(scene.source), _ingest_params(scene_dir, ingest_params))
+    renders_path = scene_dir / "renders" / "renders.json"
+    renders = json.loads(renders_path.read_text()) if renders_path.is_file() else None
+    conds = [int(i) for i in render_params["condition_checkpoints"]]
+    final = int(render_params["source_checkpoint"])
+    for it in conds + [final]:
+        if not checkpoint_file(scene_dir, it).is_file():
+            raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid,
+                             path=checkpoint_file(scene_dir, it),
+                             fix="run the fit stage with the same profile first")
+    sky = sky_dome_of(scene, scene_dir)
+    batch = int(render_params["batch_frames"])
+    device = str(render_params.get("device", "auto"))
+    cams = list(cameras or render_params["cameras"])
+    for c in cams:
+        if c not in scene.cameras or c not in street.cameras:
+            raise SceneError(f"camera {c} is not in the scene", scene_id=sid,
+                             path=scene_dir / "scene.json", fix="choose a camera the scene has")
+
+    doc_cams = {}
+    for cam_name in cams:
+        frames, out = _plan_camera(scene, cam_name, render_params, renders)
+        frames = _subsample(frames, max_frames)
+        recorded = scene.c2w(cam_name)[frames]
+        ego = scene.ego2world()[frames]
+        target = np.stack([crop_resize(scene.load_image(p, cam_name), out) for p in frames])
+        cam_doc = {"intrinsics": out.intrinsics, "frames": frames, "conditions": [],
+                   "shifted": []}
+        for it in conds:
+            params = load_checkpoint(checkpoint_file(scene_dir, it), scene_id=sid)
+            rgb, _ = _render(params, recorded, out, depth=False, batch=batch, device=device)
+            q = image_quality(rgb, target)
+            cam_doc["conditions"].append({"iteration": it, "stream": condition_stream(it), **q})
+            log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it, q["psnr"],
+                     q["ssim"])
+        params = load_checkpoint(checkpoint_file(scene_dir, final), scene_id=sid)
+        rgb, dep = _render(params, recorded, out, depth=True, batch=batch, device=device,
+                           sky=sky)
+        truth = street.render(recorded, out.K, out.width, out.height)
+        cam_doc["recorded"] = {"iteration": final, **image_quality(rgb, target),
+                               "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
+                               "depth_abs_rel": depth_abs_rel(dep, truth["depth"])}
+        for d in render_params["offsets_m"]:
+            shifted = geometry.lateral_shift(recorded, ego, float(d))
+            rgb, dep = _render(params, shifted, out, depth=True, batch=batch, device=device,
+                           sky=sky)
+            truth = street.render(shifted, out.K, out.width, out.height)
+            q = image_quality(rgb, truth["rgb"])
+            cam_doc["shifted"].append({"offset_m": float(d), "stream": source_stream(d),
+                                       "iteration": final, **q,
+                                       "depth_abs_rel": depth_abs_rel(dep, truth["depth"])})
+            log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", sid, cam_name, source_stream(d),
+                     q["psnr"], q["ssim"])
+        by_abs: dict[str, dict] = {}
+        for row in cam_doc["shifted"]:
+            by_abs.setdefault(f"{abs(row['offset_m']):g}", []).append(row)
+        cam_doc["shifted_by_abs_offset"] = {
+            k: {"psnr": float(np.mean([r["psnr"] for r in rows])),
+                "ssim": float(np.mean([r["ssim"] for r in rows]))}
+            for k, rows in sorted(by_abs.items(), key=lambda kv: float(kv[0]))}
+        doc_cams[cam_name] = cam_doc
+
+    doc = {"schema_version": EVAL_SCHEMA_VERSION, "scene_id": sid, "source": scene.source,
+           "width": int(render_params["width"]), "height": int(render_params["height"]),
+           "condition_checkpoints": conds, "source_checkpoint": final,
+           "metrics": {"psnr": "dB, mean over frames", "ssim": "11x11 Gaussian window",
+                       "depth_abs_rel": "median |d - d_true| / d_true on non-sky pixels"},
+           "cameras": doc_cams}
+    folder = Path(out_dir) if out_dir is not None else scene_dir / "eval"
+    folder.mkdir(parents=True, exist_ok=True)
+    plot_eval(doc, folder / "eval.png")
+    write_json(folder / "eval.json", doc)
+    return doc
+
+
+def plot_eval(doc: dict, path: str | os.PathLike) -> None:
+    """PSNR / SSIM against lateral offset (left) and against the condition iteration (right)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    for cam, c in doc["cameras"].items():
+        rows = sorted(c["shifted"] + [{"offset_m": 0.0, "psnr": c["recorded"]["psnr_vs_truth"]}],
+                      key=lambda r: r["offset_m"])
+        ax1.plot([r["offset_m"] for r in rows], [r["psnr"] for r in rows], "o-", label=cam)
+        conds = c["conditions"]
+        ax2.plot([r["iteration"] for r in conds], [r["psnr"] for r in conds], "s-", label=cam)
+    ax1.set_xlabel("lateral offset (m, left > 0)")
+    ax1.set_ylabel("PSNR vs true view (dB)")
+    ax1.set_title(f"shifted renders @ {doc['source_checkpoint']}")
+    ax2.set_xscale("log")
+    ax2.set_xticks(doc["condition_checkpoints"], [str(i) for i in doc["condition_checkpoints"]])
+    ax2.minorticks_off()
+    ax2.set_xlabel("checkpoint iteration")
+    ax2.set_ylabel("PSNR vs recorded frames (dB)")
+    ax2.set_title("condition renders")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.suptitle(doc["scene_id"])
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- CLI
+
+def eval_table(doc: dict):
+    """A rich Table of one eval document."""
+    from rich.table import Table
+
+    table = Table(title=f"eval {doc['scene_id']}", title_justify="left",
+                  caption="vs: recorded = the recorded frames, truth = the street's true shifted "
+                          "view; depth = median relative z-depth error (non-sky)")
+    for col in ("camera", "stream", "iter", "vs", "PSNR", "SSIM", "depth"):
+        table.add_column(col, justify="right" if col in ("iter", "PSNR", "SSIM", "depth") else "left",
+                         no_wrap=True)
+
+    def fmt(x, spec):
+        return "-" if x is None else format(x, spec)
+
+    for cam, c in doc["cameras"].items():
+        for r in c["conditions"]:
+            table.add_row(cam, r["stream"], str(r["iteration"]), "recorded",
+                          fmt(r["psnr"], ".2f"), fmt(r["ssim"], ".4f"), "-")
+        r = c["recorded"]
+        table.add_row(cam, "recorded", str(r["iteration"]), "recorded",
+                      fmt(r["psnr"], ".2f"), fmt(r["ssim"], ".4f"), fmt(r["depth_abs_rel"], ".3f"))
+        for r in sorted(c["shifted"], key=lambda r: (abs(r["offset_m"]), -r["offset_m"])):
+            table.add_row(cam, r["stream"], str(r["iteration"]), "truth",
+                          fmt(r["psnr"], ".2f"), fmt(r["ssim"], ".4f"), fmt(r["depth_abs_rel"], ".3f"))
+    return table
+
+
+def register(app) -> None:
+    """Add the ``eval`` command to the typer ``app``."""
+    from typing import List
+
+    import typer
+
+    @app.command("eval")
+    def eval_cmd(
+        scene: List[str] = typer.Option([], "--scene", help="Synthetic scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
+        data: Path = typer.Option(Path("data"), "--data", help="Where scenes live (<data>/scenes/<scene_id>)."),
+        profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Parameter profile the scene was built with."),
+        set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
+        out_dir: Optional[Path] = typer.Option(None, "--out", help="Write eval.json / eval.png here (default <scene>/eval; one scene)."),
+        camera: Optional[str] = typer.Option(None, "--camera", help="Comma-separated cameras (default: render.cameras)."),
+        frames: int = typer.Option(16, "--frames", help="Evaluate at most this many evenly spaced clip frames (0 = all)."),
+    ) -> None:
+        """Measure shifted renders against the synthetic street's true views, and the condition renders against the recorded frames."""
+        from rich.console import Console
+
+        from paradrive.pipeline import StageRegistry, parse_overrides
+        from paradrive.pipeline.runner import scene_dir_for
+        from paradrive.uri import parse_uri
+
+        console, err = Console(), Console(stderr=True)
+        uris = list(scene) or ["synthetic:demo?seed=7"]
+        try:
+            config = StageRegistry().resolve(profile, parse_overrides(set_))
+            parsed = [parse_uri(u) for u in uris]
+        except ConfigError as exc:
+            err.print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(2)
+        if out_dir is not None and len(uris) > 1:
+            err.print("[bold red]error:[/] --out takes one --scene")
+            raise typer.Exit(2)
+        failed = 0
+        for uri in parsed:
+            if uri.kind != "synthetic":
+                err.print(f"[bold red]error:[/] {uri.text}: eval needs a 'synthetic:' scene, the "
+                          f"only kind whose shifted views have a known truth")
+                failed += 1
+                continue
+            try:
+                doc = evaluate_scene(scene_dir_for(data, uri.scene_id), config.params["render"],
+                                     ingest_params=config.params["ingest"],
+                                     cameras=[c.strip() for c in camera.split(",")] if camera else None,
+                                     max_frames=frames or None, out_dir=out_dir)
+            except (SceneError, ConfigError) as exc:
+                err.print(f"[bold red]error:[/] {exc}")
+                failed += 1
+                continue
+            console.print(eval_table(doc))
+            where = Path(out_dir) if out_dir else scene_dir_for(data, uri.scene_id) / "eval"
+            console.print(f"wrote {where / 'eval.json'} and {where / 'eval.png'}")
+        if failed:
+            raise typer.Exit(2 if failed == len(parsed) else 3)

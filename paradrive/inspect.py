@@ -1,0 +1,391 @@
+"""``paradrive inspect BUILD``: what a data engineer asks of a published build.
+
+Counts by dataset / scene / camera / clip / offset / checkpoint, per-scene quality, checksum
+verification of the shards and every referenced video (``--verify``), a machine-readable summary
+(``--json``) and pictures (``--sheet out.png``: a contact sheet of a few pairs, and
+``out_trajectories.png``: the recorded and shifted trajectories seen from above).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter, defaultdict
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from paradrive.errors import ParaDriveError
+from paradrive.io import sha256_file
+from paradrive.manifest import offset_token, read_index, read_pairs
+
+__all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "register"]
+
+_SUMMARY_COLUMNS = ["pair_id", "dataset", "scene_id", "camera", "clip", "offset_m",
+                    "condition_iteration", "source_iteration", "condition_psnr",
+                    "condition_ssim", "fit_train_psnr", "fit_train_ssim"]
+
+
+# --------------------------------------------------------------------------- summary
+
+def _mean(values) -> float | None:
+    vals = [v for v in values if v is not None and np.isfinite(v)]
+    return round(float(np.mean(vals)), 4) if vals else None
+
+
+def summarize(build_dir: str | Path) -> dict:
+    """Counts and quality figures of a build, as plain JSON-able data."""
+    build_dir = Path(build_dir)
+    index = read_index(build_dir)
+    cols = read_pairs(build_dir, _SUMMARY_COLUMNS).to_pydict()
+    n = len(cols["pair_id"])
+
+    def count(key, fmt=str):
+        c = Counter(fmt(v) for v in cols[key])
+        return dict(sorted(c.items()))
+
+    offsets = Counter(cols["offset_m"])
+    counts = {
+        "dataset": count("dataset"),
+        "scene": count("scene_id"),
+        "camera": count("camera"),
+        "clip": count("clip"),
+        "offset": {offset_token(d): offsets[d] for d in sorted(offsets)},
+        "checkpoint": count("condition_iteration", lambda v: f"{int(v):06d}"),
+    }
+    by_scene: dict[str, dict] = defaultdict(lambda: defaultdict(lambda: ([], [])))
+    fit: dict[str, tuple] = {}
+    for i in range(n):
+        sid, it = cols["scene_id"][i], f"{int(cols['condition_iteration'][i]):06d}"
+        by_scene[sid][it][0].append(cols["condition_psnr"][i])
+        by_scene[sid][it][1].append(cols["condition_ssim"][i])
+        fit[sid] = (cols["fit_train_psnr"][i], cols["fit_train_ssim"][i])
+    quality = {sid: {"fit_train_psnr": fit[sid][0], "fit_train_ssim": fit[sid][1],
+                     "condition": {it: {"psnr": _mean(p), "ssim": _mean(s)}
+                                   for it, (p, s) in sorted(cps.items())}}
+               for sid, cps in sorted(by_scene.items())}
+    overall = defaultdict(lambda: ([], []))
+    for i in range(n):
+        it = f"{int(cols['condition_iteration'][i]):06d}"
+        overall[it][0].append(cols["condition_psnr"][i])
+        overall[it][1].append(cols["condition_ssim"][i])
+    return {
+        "build": str(build_dir), "name": index.get("build"), "rows": n,
+        "shards": len(index["shards"]), "config_fingerprint": index.get("config_fingerprint"),
+        "software": index.get("software"), "created_at": index.get("created_at"),
+        "totals": index.get("totals"), "counts": counts,
+        "quality": {"by_checkpoint": {it: {"psnr": _mean(p), "ssim": _mean(s)}
+                                      for it, (p, s) in sorted(overall.items())},
+                    "scenes": quality},
+        "skipped_scenes": index.get("skipped_scenes", []),
+    }
+
+
+# --------------------------------------------------------------------------- verify
+
+def _check_file(path: Path, size: int | None, sha: str | None, what: str) -> str | None:
+    if not path.is_file():
+        return f"missing: {path} ({what}); restore it or re-run the manifest stage"
+    actual_size = path.stat().st_size
+    if size is not None and actual_size != size:
+        return (f"corrupt: {path} ({what}) has {actual_size} bytes, the manifest says {size}; "
+                f"restore it or re-run the manifest stage")
+    if sha:
+        actual = sha256_file(path)
+        if actual != sha:
+            return (f"corrupt: {path} ({what}) sha256 {actual[:12]}… differs from the manifest's "
+                    f"{sha[:12]}…; restore it or re-run the manifest stage")
+    return None
+
+
+def verify_build(build_dir: str | Path, threads: int | None = None) -> dict:
+    """Re-hash every shard (against index.json) and every referenced video (against the rows).
+
+    Returns {"ok", "checked_files", "problems": ["missing: <path> …" | "corrupt: <path> …"]}.
+    """
+    build_dir = Path(build_dir)
+    index = read_index(build_dir)
+    jobs = [(build_dir / s["file"], s["bytes"], s["sha256"], "shard") for s in index["shards"]]
+    problems = [p for p in (_check_file(*j) for j in jobs) if p]
+    if problems:  # rows cannot be trusted when a shard is bad
+        return {"ok": False, "checked_files": len(jobs), "problems": problems}
+    cols = read_pairs(build_dir, [f"{r}_{k}" for r in ("source", "condition", "target")
+                                  for k in ("uri", "sha256", "bytes")]).to_pydict()
+    files: dict[str, tuple] = {}
+    for role in ("source", "condition", "target"):
+        for uri, sha, size in zip(cols[f"{role}_uri"], cols[f"{role}_sha256"], cols[f"{role}_bytes"]):
+            files.setdefault(uri, (size, sha, f"{role} video"))
+    media = [(build_dir / uri, size, sha, what) for uri, (size, sha, what) in sorted(files.items())]
+    with ThreadPoolExecutor(max_workers=threads or min(8, os.cpu_count() or 2)) as pool:
+        problems += [p for p in pool.map(lambda j: _check_file(*j), media) if p]
+    return {"ok": not problems, "checked_files": len(jobs) + len(media), "problems": problems}
+
+
+# --------------------------------------------------------------------------- pictures
+
+def _font(size: int):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow without FreeType sizes
+        return ImageFont.load_default()
+
+
+def _pick_pairs(rows: list[dict], count: int) -> list[dict]:
+    """A few pairs that show the range: one scene and clip, offsets spread, checkpoints cycled."""
+    if not rows:
+        return []
+    sid = rows[0]["scene_id"]
+    clips = sorted({r["clip"] for r in rows if r["scene_id"] == sid})
+    clip = "middle" if "middle" in clips else clips[0]
+    pool = [r for r in rows if r["scene_id"] == sid and r["clip"] == clip]
+    offsets = sorted({r["offset_m"] for r in pool}, key=lambda d: (abs(d), -d))
+    picks = [offsets[int(round(k))] for k in np.linspace(0, len(offsets) - 1, min(count, len(offsets)))]
+    iterations = sorted({r["condition_iteration"] for r in pool})
+    chosen = []
+    for k, d in enumerate(picks):
+        it = iterations[k % len(iterations)]
+        chosen.extend(r for r in pool if r["offset_m"] == d and r["condition_iteration"] == it)
+    return chosen[:count]
+
+
+def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, frames: int = 3,
+                  thumb_width: int = 208) -> Path:
+    """A PNG with ``pairs`` pairs: source / condition / target thumbnails at ``frames`` frames."""
+    from PIL import Image, ImageDraw
+
+    from paradrive.data import decode_frames
+
+    build_dir, out = Path(build_dir), Path(out)
+    cols = read_pairs(build_dir, ["pair_id", "scene_id", "clip", "offset_m", "condition_iteration",
+                                  "source_iteration", "num_frames", "width", "height",
+                                  "source_uri", "condition_uri", "target_uri", "condition_psnr",
+                                  "condition_ssim", "frame_indices"]).to_pylist()
+    chosen = _pick_pairs(cols, pairs)
+    if not chosen:
+        raise ParaDriveError(f"{build_dir}: the build has no pairs to draw")
+    w0, h0 = chosen[0]["width"], chosen[0]["height"]
+    tw = thumb_width
+    th = max(2, int(round(tw * h0 / w0)) // 2 * 2)
+    label_w, pad, head = 190, 6, 26
+    font, small = _font(15), _font(12)
+    block_h = head + 3 * (th + pad)
+    sheet_w = label_w + frames * (tw + pad) + pad
+    sheet_h = pad + 18 + len(chosen) * (block_h + pad)
+    sheet = Image.new("RGB", (sheet_w, sheet_h), (250, 250, 250))
+    draw = ImageDraw.Draw(sheet)
+    y = pad
+    draw.text((pad, y), f"{build_dir.name}: {len(chosen)} pairs", fill=(0, 0, 0), font=font)
+    y += 18
+    for row in chosen:
+        n = int(row["num_frames"])
+        picks = sorted({int(round(x)) for x in np.linspace(0, n - 1, min(frames, n))})
+        psnr = row["condition_psnr"]
+        draw.rectangle([0, y, sheet_w, y + head - 4], fill=(225, 232, 242))
+        draw.text((pad, y + 4), f"{row['pair_id']}    offset {offset_token(row['offset_m'])}    "
+                                f"condition PSNR {psnr:.1f} dB" if psnr is not None else
+                                row["pair_id"], fill=(0, 0, 0), font=font)
+        y += head
+        labels = [("source", f"shifted {offset_token(row['offset_m'])}", f"ckpt {row['source_iteration']}"),
+                  ("condition", "recorded path", f"ckpt {row['condition_iteration']}"),
+                  ("target", "recorded camera", "")]
+        for (role, line2, line3) in labels:
+            pixels = decode_frames(build_dir / row[f"{role}_uri"], picks, size=(th, tw))
+            draw.text((pad, y + 4), role, fill=(0, 0, 0), font=font)
+            draw.text((pad, y + 24), line2, fill=(70, 70, 70), font=small)
+            draw.text((pad, y + 40), line3, fill=(70, 70, 70), font=small)
+            for k, (p, img) in enumerate(zip(picks, pixels)):
+                x = label_w + k * (tw + pad)
+                sheet.paste(Image.fromarray(img), (x, y))
+                frame_no = row["frame_indices"][p] if row["frame_indices"] else p
+                draw.text((x + 4, y + 3), f"f{frame_no}", fill=(255, 255, 0), font=small,
+                          stroke_width=2, stroke_fill=(0, 0, 0))
+            y += th + pad
+        y += pad
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    sheet.save(tmp)
+    os.replace(tmp, out)
+    return out
+
+
+def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: str | None = None,
+                         data_dir: str | Path | None = None, size: int = 900) -> Path:
+    """Top-down PNG of one scene: recorded (black) and shifted (coloured by offset) camera paths.
+
+    Positions come from the manifest (``target_c2w`` and ``target_c2w @ rel_pose``). LiDAR points
+    are drawn underneath when the scene folder is reachable (``data_dir/scenes/<id>`` or the
+    folder index.json records).
+    """
+    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+    import pyvista as pv
+
+    build_dir, out = Path(build_dir), Path(out)
+    index = read_index(build_dir)
+    table = read_pairs(build_dir, ["scene_id", "camera", "clip", "offset_m", "condition_iteration",
+                                   "rel_pose", "target_c2w"])
+    sids = table.column("scene_id").to_pylist()
+    scene_id = scene_id or sids[0]
+    rows = [r for r in table.filter(np.array([s == scene_id for s in sids])).to_pylist()]
+    if not rows:
+        raise ParaDriveError(f"{build_dir}: no pairs of scene {scene_id}")
+    first_it = min(r["condition_iteration"] for r in rows)
+    rows = [r for r in rows if r["condition_iteration"] == first_it]
+    pv.OFF_SCREEN = True
+    plotter = pv.Plotter(off_screen=True, window_size=(size, size))
+    plotter.set_background("white")
+    points = _lidar_points(index, scene_id, data_dir)
+    if points is not None:
+        plotter.add_points(points, color=(0.6, 0.6, 0.6), point_size=2, render_points_as_spheres=False,
+                           label=f"LiDAR ({len(points)} points)")
+    offsets = sorted({r["offset_m"] for r in rows})
+    span = max(1e-6, max(abs(d) for d in offsets))
+    drawn_offsets = set()
+    recorded_labelled = False
+    for r in sorted(rows, key=lambda r: (r["clip"], r["offset_m"])):
+        c2w = np.asarray(r["target_c2w"], np.float64).reshape(-1, 4, 4)
+        rel = np.asarray(r["rel_pose"], np.float64).reshape(-1, 4, 4)
+        rec = c2w[:, :3, 3]
+        src = (c2w @ rel)[:, :3, 3]
+        if len(rec) >= 2:
+            plotter.add_mesh(pv.lines_from_points(rec), color="black", line_width=5,
+                             label=None if recorded_labelled else "recorded (target, condition)")
+            recorded_labelled = True
+        d = r["offset_m"]
+        a = abs(d) / span  # left (+) blue, right (-) red, darker further out
+        color = (0.55 - 0.45 * a, 0.65 - 0.45 * a, 1.0) if d > 0 else (1.0, 0.6 - 0.45 * a, 0.55 - 0.45 * a)
+        if len(src) >= 2:
+            plotter.add_mesh(pv.lines_from_points(src), color=color, line_width=3,
+                             label=None if d in drawn_offsets else f"source {offset_token(d)}")
+            drawn_offsets.add(d)
+        plotter.add_points(rec[:1], color="black", point_size=10, render_points_as_spheres=True)
+    plotter.add_legend(bcolor="white", size=(0.3, 0.35), loc="upper right")
+    plotter.add_text(f"{scene_id}: camera paths from above (world x right, y up; + offset = left)",
+                     font_size=10, color="black", position="upper_left")
+    plotter.view_xy()
+    plotter.enable_parallel_projection()
+    plotter.show_grid(color="gray", xtitle="x (m)", ytitle="y (m)", ztitle="z (m)",
+                      show_zaxis=False)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    plotter.screenshot(str(tmp))
+    plotter.close()
+    os.replace(tmp, out)
+    return out
+
+
+def _lidar_points(index: dict, scene_id: str, data_dir, max_points: int = 60_000):
+    candidates = []
+    if data_dir is not None:
+        candidates.append(Path(data_dir) / "scenes" / scene_id)
+    for s in index.get("scenes", []):
+        if s.get("scene_id") == scene_id and s.get("scene_dir"):
+            candidates.append(Path(s["scene_dir"]))
+    for folder in candidates:
+        files = sorted((folder / "lidar").glob("*.npy")) if (folder / "lidar").is_dir() else []
+        if files:
+            files = files[:: max(1, len(files) // 20)]
+            pts = np.concatenate([np.load(f).astype(np.float32).reshape(-1, 3) for f in files])
+            if len(pts) > max_points:
+                pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+            return pts
+    return None
+
+
+# --------------------------------------------------------------------------- CLI
+
+def _print_tables(summary: dict, console) -> None:
+    from rich.table import Table
+
+    console.print(f"[bold]{summary['build']}[/]: {summary['rows']} pairs in {summary['shards']} "
+                  f"shards (fingerprint {summary['config_fingerprint']}, paradrive "
+                  f"{(summary.get('software') or {}).get('paradrive', '?')})")
+    titles = {"dataset": "dataset", "scene": "scene", "camera": "camera", "clip": "clip",
+              "offset": "offset", "checkpoint": "condition checkpoint"}
+    grid = Table.grid(padding=(0, 2))
+    small = []
+    for key, title in titles.items():
+        t = Table(title=f"pairs by {title}", title_justify="left")
+        t.add_column(title)
+        t.add_column("pairs", justify="right")
+        for k, v in summary["counts"][key].items():
+            t.add_row(k, str(v))
+        small.append(t)
+    grid.add_row(*small[:3])
+    grid.add_row(*small[3:])
+    console.print(grid)
+    its = list(summary["quality"]["by_checkpoint"])
+    q = Table(title="quality: condition vs target (mean over pairs), fit on training views",
+              title_justify="left")
+    q.add_column("scene")
+    q.add_column("fit PSNR", justify="right")
+    for it in its:
+        q.add_column(f"cond {it} PSNR / SSIM", justify="right")
+
+    def fmt(v, digits):
+        return "-" if v is None else f"{v:.{digits}f}"
+
+    for sid, s in summary["quality"]["scenes"].items():
+        q.add_row(sid, fmt(s["fit_train_psnr"], 2),
+                  *[f"{fmt(s['condition'].get(it, {}).get('psnr'), 2)} / "
+                    f"{fmt(s['condition'].get(it, {}).get('ssim'), 3)}" for it in its])
+    allq = summary["quality"]["by_checkpoint"]
+    q.add_row("[bold]all", "", *[f"{fmt(allq[it]['psnr'], 2)} / {fmt(allq[it]['ssim'], 3)}"
+                                  for it in its])
+    console.print(q)
+    for s in summary["skipped_scenes"]:
+        console.print(f"[yellow]skipped scene[/] {s['scene_id']}: {s['reason']}")
+
+
+def register(app) -> None:
+    import typer
+
+    @app.command("inspect")
+    def inspect_cmd(
+        build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
+        verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing or corrupt one."),
+        as_json: bool = typer.Option(False, "--json", help="Print a machine-readable summary instead of tables."),
+        sheet: Optional[Path] = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and <name>_trajectories.png next to it)."),
+        pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),
+        data: Optional[Path] = typer.Option(None, "--data", help="Data folder to find the scene's LiDAR in (default: the scene folders index.json records)."),
+    ) -> None:
+        """Counts, quality, checksum verification and pictures of a published build."""
+        from rich.console import Console
+
+        out, err = Console(), Console(stderr=True)
+        try:
+            summary = summarize(build)
+        except ParaDriveError as exc:
+            err.print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(2)
+        code = 0
+        if verify:
+            result = verify_build(build)
+            summary["verify"] = result
+            for p in result["problems"]:
+                err.print(f"[red]{p}[/]")
+            if result["ok"]:
+                err.print(f"[green]verified[/] {result['checked_files']} files")
+            else:
+                err.print(f"[bold red]{len(result['problems'])} of {result['checked_files']} files "
+                          f"missing or corrupt[/]")
+                code = 1
+        if sheet is not None:
+            try:
+                summary["sheet"] = str(contact_sheet(build, sheet, pairs=pairs))
+                traj = sheet.with_name(f"{sheet.stem}_trajectories.png")
+                summary["trajectories"] = str(trajectories_picture(build, traj, data_dir=data))
+            except ParaDriveError as exc:
+                err.print(f"[bold red]error:[/] {exc}")
+                code = code or 1
+        if as_json:
+            typer.echo(json.dumps(summary, indent=2))
+        else:
+            _print_tables(summary, out)
+            for key in ("sheet", "trajectories"):
+                if key in summary:
+                    out.print(f"wrote {summary[key]}")
+        raise typer.Exit(code)

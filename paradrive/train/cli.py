@@ -1,0 +1,98 @@
+"""``paradrive train``: train stage 1 or 2 of the reference model on a build, and write samples."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.console import Console
+
+console = Console(stderr=True)
+
+
+def _fail(message: str) -> None:
+    console.print(f"[bold red]error:[/] {message}")
+    raise typer.Exit(2)
+
+
+def train(
+    build: Path = typer.Option(..., "--build", help="A build folder (<manifests>/<build>) to read pairs from."),
+    stage: int = typer.Option(1, "--stage", min=1, max=2, help="1: relative-pose control; 2: add 3DGS renderings (stage-1 weights frozen)."),
+    config: Optional[str] = typer.Option(None, "--config", help="Training config: a name in stages/train/ (default, smoke) or a YAML file."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Run folder; stage k writes <out>/stage<k>. Default: runs/<build name>."),
+    steps: Optional[int] = typer.Option(None, "--steps", min=0, help="Train until this many steps in total (default: train.steps). A finished run resumes and stops at once."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Weights to start from; stage 2 defaults to <out>/stage1/last.pt."),
+    set_: List[str] = typer.Option([], "--set", help="Override a config value: section.key=value (e.g. train.lr=3e-4). Repeatable."),
+    sample: Optional[Path] = typer.Option(None, "--sample", help="After training, generate the target video of one pair and write it here (mp4)."),
+    pair: str = typer.Option("0", "--pair", help="Pair to sample: its index in the build or its pair_id."),
+    sample_steps: Optional[int] = typer.Option(None, "--sample-steps", min=1, help="Euler steps of the sampler (default: sample.steps)."),
+) -> None:
+    """Train the ReCamDriving-style model on a build's pairs (resumes a run left in --out)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from paradrive.train.trainer import Trainer, load_config, open_dataset, parse_set
+
+    try:
+        cfg = load_config(config, parse_set(set_))
+        if not build.is_dir():
+            raise FileNotFoundError(f"--build {build}: no such build folder (run 'paradrive build' first)")
+        run_dir = out_dir if out_dir is not None else Path("runs") / build.resolve().name
+        stage_dir = run_dir / f"stage{stage}"
+        if stage == 2 and init is None and not (stage_dir / "last.pt").exists():
+            init = run_dir / "stage1" / "last.pt"
+            if not init.exists():
+                raise FileNotFoundError(f"stage 2 needs stage-1 weights: none at {init}; run "
+                                        f"'paradrive train --stage 1' with the same --out, or pass --init")
+        dataset = open_dataset(build, cfg)
+        trainer = Trainer(cfg, stage, stage_dir, dataset, init=init)
+    except (ValueError, FileNotFoundError, TypeError) as exc:
+        _fail(str(exc))
+
+    total = int(cfg["train"]["steps"] if steps is None else steps)
+    progress = Progress(TextColumn("[bold]stage {task.fields[stage]}"), BarColumn(), MofNCompleteColumn(),
+                        TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), console=console,
+                        disable=not console.is_terminal)
+    with progress:
+        task = progress.add_task("train", total=total, completed=min(trainer.step, total), stage=stage, loss="-")
+        losses = trainer.train(total, on_step=lambda s, l: progress.update(task, completed=s, loss=f"{l:.4f}"))
+    if losses:
+        k = max(1, min(10, len(losses) // 4))
+        first, last = sum(losses[:k]) / k, sum(losses[-k:]) / k
+        typer.echo(f"stage {stage}: {len(losses)} steps to step {trainer.step}; loss {first:.4f} -> {last:.4f} "
+                  f"(mean of first / last {k}); checkpoint {stage_dir / 'last.pt'}")
+    else:
+        typer.echo(f"stage {stage}: already at step {trainer.step} (of {total}); checkpoint {stage_dir / 'last.pt'}")
+
+    if sample is not None:
+        from paradrive.train.trainer import sample_video, torch_threads, write_video
+
+        try:
+            item = _find_pair(dataset, pair)
+        except (ValueError, IndexError) as exc:
+            _fail(str(exc))
+        s = cfg["sample"]
+        trainer.model.eval()
+        with torch_threads(cfg["threads"]):
+            video = sample_video(trainer.model, trainer.encoder, item, sample_steps or int(s["steps"]),
+                                 seed=int(s["seed"]), shift=float(cfg["flow"]["shift"]))
+        write_video(sample, video, float(s["fps"]))
+        typer.echo(f"sample of {item['pair_id']} ({video.shape[0]} frames, offset {item['offset_m']} m) -> {sample}")
+
+
+def _find_pair(dataset, pair: str) -> dict:
+    if pair.lstrip("-").isdigit():
+        index = int(pair)
+        if not -len(dataset) <= index < len(dataset):
+            raise IndexError(f"--pair {index}: the build has {len(dataset)} pairs")
+        return dataset[index]
+    ids = getattr(dataset, "pair_ids", None)
+    ids = list(ids) if ids is not None else [dataset[i]["pair_id"] for i in range(len(dataset))]
+    if pair not in ids:
+        raise ValueError(f"--pair {pair!r}: no such pair_id in the build (e.g. {ids[0]!r})")
+    return dataset[ids.index(pair)]
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``paradrive train`` to the command line."""
+    app.command("train")(train)

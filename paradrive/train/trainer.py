@@ -1,0 +1,459 @@
+"""The two-stage training loop: configs, data order, optimisation, checkpoints and exact resume.
+
+A run lives in one folder (``<out>/stage<k>``)::
+
+    config.yaml        the resolved config the run uses
+    last.pt            the newest checkpoint (model, optimiser, data position, RNG states)
+    ckpt_<step>.pt     kept checkpoints every ``train.checkpoint_every`` steps
+    metrics.jsonl      one line per step: step, loss, lr
+
+Running again in the same folder resumes from ``last.pt`` and computes exactly what an
+uninterrupted run would (fixed thread count, data order from (seed, epoch), saved RNG states).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping, Sequence
+
+import torch
+import yaml
+
+from paradrive.io import atomic_path, write_text
+from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
+from paradrive.train.flow import euler_sample, flow_matching_loss
+from paradrive.train.model import ModelConfig, VideoDiT, is_stage2_parameter, load_stage1_weights
+
+log = logging.getLogger(__name__)
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "stages" / "train"
+CHECKPOINT_FORMAT = "paradrive-train/1"
+
+
+# -- configs -------------------------------------------------------------------------------------
+def _values(tree: Mapping[str, Any], where: str) -> dict:
+    """{key: {value, doc}} leaves -> {key: value}, recursively."""
+    out = {}
+    for key, node in tree.items():
+        if isinstance(node, Mapping) and "value" in node:
+            out[key] = node["value"]
+        elif isinstance(node, Mapping):
+            out[key] = _values(node, f"{where}.{key}")
+        else:
+            raise ValueError(f"{where}.{key}: write {{value: ..., doc: ...}}, got {node!r}")
+    return out
+
+
+def _merge(base: dict, override: Mapping[str, Any], where: str) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in override.items():
+        if key not in out:
+            raise ValueError(f"{where}: unknown setting {key!r}; known: {', '.join(sorted(out))}")
+        if isinstance(out[key], dict):
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{where}.{key} is a section; give its settings, not {value!r}")
+            out[key] = _merge(out[key], value, f"{where}.{key}")
+        else:
+            out[key] = value
+    return out
+
+
+def load_config(source: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> dict:
+    """Read a training config: a name in ``stages/train/`` (``default``, ``smoke``) or a YAML path.
+
+    A file may ``extends: <name>`` another and then lists only what it changes. Every leaf is
+    ``{value: ..., doc: ...}``. ``overrides`` (nested dict of plain values) are applied last.
+    """
+    path = Path(source) if source is not None else CONFIG_DIR / "default.yaml"
+    if not path.suffix and not path.exists():
+        path = CONFIG_DIR / f"{path}.yaml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
+        raise FileNotFoundError(f"training config {source}: no such file (configs in {CONFIG_DIR}: {known})")
+    doc = yaml.safe_load(path.read_text()) or {}
+    values = _values(doc.get("params") or {}, path.name)
+    if doc.get("extends"):
+        base_path = path.parent / f"{doc['extends']}.yaml"
+        values = _merge(load_config(base_path), values, path.name)
+    if overrides:
+        values = _merge(values, overrides, "override")
+    return values
+
+
+def parse_set(items: Sequence[str]) -> dict:
+    """``["model.dim=64", "train.lr=1e-3"]`` -> nested dict with YAML-parsed values."""
+    out: dict = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set {item!r}: write section.key=value, e.g. model.dim=128")
+        node = out
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = yaml.safe_load(raw)
+    return out
+
+
+# -- pieces built from a config -----------------------------------------------------------------
+def build_model(config: Mapping[str, Any], stage: int, encoder: VideoEncoder) -> VideoDiT:
+    m = config["model"]
+    return VideoDiT(ModelConfig(latent_channels=encoder.latent_channels, dim=m["dim"], depth=m["depth"],
+                                heads=m["heads"], mlp_ratio=m["mlp_ratio"], patch=m["patch"],
+                                max_frames=m["max_frames"], rendering=stage == 2))
+
+
+def open_dataset(build_dir: str | Path, config: Mapping[str, Any]):
+    """The build's pairs through the adapter (``paradrive.data``), at the config's clip shape."""
+    from paradrive.data import PairDataset
+
+    d = config["data"]
+    return PairDataset(build_dir, num_frames=d["num_frames"], frame_stride=d["frame_stride"],
+                       output_size=(d["height"], d["width"]))
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _matches(name: str, modules: Sequence[str]) -> bool:
+    return any(f".{m}." in f".{name}." for m in modules)
+
+
+def trainable_mask(model: VideoDiT, stage: int, stage1_trainable: str | Sequence[str]) -> dict[str, bool]:
+    """Which parameters a stage trains.
+
+    Stage 2: only the Rendering / Cross Attention modules (everything from stage 1 frozen).
+    Stage 1: ``all``, or a list of module names (the paper, starting from pretrained Wan2.1 and
+    ReCamMaster weights, trains ``[self_attn, camera_encoder, frame_embed]``).
+    """
+    names = [n for n, _ in model.named_parameters()]
+    if stage == 2:
+        return {n: is_stage2_parameter(n) for n in names}
+    if stage1_trainable == "all":
+        return {n: True for n in names}
+    if isinstance(stage1_trainable, str):
+        stage1_trainable = [stage1_trainable]
+    mask = {n: _matches(n, stage1_trainable) for n in names}
+    if not any(mask.values()):
+        raise ValueError(f"train.stage1_trainable={list(stage1_trainable)} names no parameter of the model")
+    return mask
+
+
+def latent_poses(poses: torch.Tensor, groups: Sequence[int]) -> torch.Tensor:
+    """One pose per latent frame: poses (B, F, 4, 4) -> (B, f, 4, 4)."""
+    if max(groups) >= poses.shape[1]:
+        raise ValueError(f"the autoencoder wants the pose of frame {max(groups)}; the clip has {poses.shape[1]}")
+    return poses[:, list(groups)]
+
+
+def collate(samples: list[dict]) -> dict:
+    out = {}
+    for key in samples[0]:
+        values = [s[key] for s in samples]
+        out[key] = torch.stack(values) if isinstance(values[0], torch.Tensor) else values
+    return out
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run with ``n`` torch CPU threads (a fixed count makes a resumed run compute identically),
+    then give the caller back its own."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+# -- the trainer ---------------------------------------------------------------------------------
+class Trainer:
+    """Trains one stage on a map-style dataset of pair dicts (see DESIGN.md, "Dataset adapter").
+
+    ``init``: weights to start from (a trainer checkpoint or a bare state dict). Stage 2 needs the
+    stage-1 weights; its new modules start fresh. A ``last.pt`` in ``out_dir`` takes precedence:
+    the run resumes from it.
+    """
+
+    def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
+                 init: str | Path | None = None):
+        if stage not in (1, 2):
+            raise ValueError(f"stage must be 1 or 2, got {stage}")
+        self.config = copy.deepcopy(dict(config))
+        self.stage = stage
+        self.out_dir = Path(out_dir)
+        self.dataset = dataset
+        self.device = resolve_device(self.config["device"])
+        seed = int(self.config["seed"])
+        torch.manual_seed(seed)
+        self.encoder = make_autoencoder(self.config["autoencoder"])
+        if isinstance(self.encoder, torch.nn.Module):
+            self.encoder.to(self.device).eval()
+        self.model = build_model(self.config, stage, self.encoder).to(self.device)
+        t = self.config["train"]
+        self.batch_size = int(t["batch_size"])
+        if len(dataset) < self.batch_size:
+            raise ValueError(f"the dataset has {len(dataset)} pairs, fewer than train.batch_size={self.batch_size}")
+        self.generator = torch.Generator().manual_seed(seed + 1000 * stage)
+        self.step = 0
+        self.epoch = 0
+        self.batch_in_epoch = 0
+        self._pending_optimizer: dict | None = None
+        resume = self.out_dir / "last.pt"
+        if resume.exists():
+            self._load(resume)
+        elif init is not None:
+            self._init_from(Path(init))
+        elif stage == 2:
+            raise ValueError("stage 2 starts from stage-1 weights: pass --init <stage-1 checkpoint> "
+                             "(e.g. <out>/stage1/last.pt)")
+        mask = trainable_mask(self.model, stage, t["stage1_trainable"])
+        for name, p in self.model.named_parameters():
+            p.requires_grad_(mask[name])
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=float(t["lr"]), betas=tuple(t["betas"]),
+                                           weight_decay=float(t["weight_decay"]), eps=float(t["eps"]))
+        if self._pending_optimizer is not None:
+            self.optimizer.load_state_dict(self._pending_optimizer)
+        self._pending_optimizer = None
+
+    # -- weights -----------------------------------------------------------------------------------
+    def _init_from(self, path: Path) -> None:
+        if not path.is_file():
+            raise FileNotFoundError(f"--init {path}: no such checkpoint")
+        ckpt = torch.load(path, map_location=self.device, weights_only=False)
+        state = ckpt.get("model", ckpt) if isinstance(ckpt, dict) else ckpt
+        if isinstance(ckpt, dict) and "config" in ckpt:
+            for key in ("model", "autoencoder"):
+                if ckpt["config"][key] != self.config[key]:
+                    raise ValueError(f"--init {path}: its {key} settings {ckpt['config'][key]} differ from "
+                                     f"this run's {self.config[key]}; use the same training config")
+        try:
+            load_stage1_weights(self.model, state)
+        except RuntimeError as exc:  # tensor size mismatch
+            raise ValueError(f"--init {path}: weights do not fit this model ({exc})") from exc
+        log.info("initialised from %s", path)
+
+    def _load(self, path: Path) -> None:
+        ckpt = torch.load(path, map_location=self.device, weights_only=False)
+        if ckpt.get("format") != CHECKPOINT_FORMAT or ckpt.get("stage") != self.stage:
+            raise ValueError(f"{path}: not a stage-{self.stage} trainer checkpoint; use another --out "
+                             f"or delete it to start over")
+        for key in ("model", "autoencoder", "seed"):
+            if ckpt["config"][key] != self.config[key]:
+                raise ValueError(f"{path}: was trained with {key}={ckpt['config'][key]}, this run has "
+                                 f"{self.config[key]}; resume with the same config or use another --out")
+        self.model.load_state_dict(ckpt["model"])
+        self._pending_optimizer = ckpt["optimizer"]
+        self.step, self.epoch, self.batch_in_epoch = ckpt["step"], ckpt["epoch"], ckpt["batch_in_epoch"]
+        self.generator.set_state(ckpt["generator"])
+        torch.set_rng_state(ckpt["torch_rng"])
+        log.info("resumed %s at step %d", path, self.step)
+
+    def state_dict(self) -> dict:
+        return {"format": CHECKPOINT_FORMAT, "stage": self.stage, "step": self.step, "epoch": self.epoch,
+                "batch_in_epoch": self.batch_in_epoch, "config": self.config,
+                "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state()}
+
+    def save(self) -> Path:
+        """Write ``last.pt`` (and ``ckpt_<step>.pt`` on checkpoint steps) atomically."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        state = self.state_dict()
+        last = self.out_dir / "last.pt"
+        with atomic_path(last) as tmp:
+            torch.save(state, tmp)
+        every = int(self.config["train"]["checkpoint_every"])
+        if every and self.step % every == 0:
+            with atomic_path(self.out_dir / f"ckpt_{self.step:06d}.pt") as tmp:
+                torch.save(state, tmp)
+            keep = int(self.config["train"]["keep_checkpoints"])
+            kept = sorted(self.out_dir.glob("ckpt_*.pt"))
+            for old in kept[:-keep] if keep > 0 else []:
+                old.unlink()
+        return last
+
+    # -- data --------------------------------------------------------------------------------------
+    def _epoch_order(self, epoch: int) -> list[list[int]]:
+        """Batches of one epoch: a permutation drawn from (seed, epoch), incomplete tail dropped."""
+        g = torch.Generator().manual_seed(int(self.config["seed"]) * 100003 + epoch)
+        order = torch.randperm(len(self.dataset), generator=g).tolist()
+        n = len(order) // self.batch_size
+        return [order[i * self.batch_size:(i + 1) * self.batch_size] for i in range(n)]
+
+    def _batches(self) -> Iterator[dict]:
+        """Batches from the current (epoch, batch_in_epoch) on; the caller advances the position."""
+        workers = int(self.config["data"]["num_workers"])
+        while True:
+            remaining = self._epoch_order(self.epoch)[self.batch_in_epoch:]
+            loader = torch.utils.data.DataLoader(self.dataset, batch_sampler=remaining, num_workers=workers,
+                                                 collate_fn=collate, persistent_workers=False)
+            for batch in loader:
+                yield batch
+            self.epoch += 1
+            self.batch_in_epoch = 0
+
+    # -- one step ----------------------------------------------------------------------------------
+    def latents(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        """Encode a batch: target/source(/condition) latents and per-latent-frame poses."""
+        frames = batch["target"].shape[1]
+        groups = self.encoder.frame_groups(frames)
+        with torch.no_grad():
+            out = {k: self.encoder.encode(batch[k].to(self.device)) for k in ("target", "source")}
+            if self.stage == 2:
+                out["condition"] = self.encoder.encode(batch["condition"].to(self.device))
+        out["rel_pose"] = latent_poses(batch["rel_pose"].to(self.device), groups)
+        out["identity_pose"] = latent_poses(batch["identity_pose"].to(self.device), groups)
+        return out
+
+    def loss(self, z: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """Flow-matching loss on the target half for encoded batch ``z`` (noise and times from
+        ``generator``, default the run's own)."""
+        f = self.config["flow"]
+
+        def velocity(x_t, t):
+            return self.model(x_t, t, z["source"], z["rel_pose"], z["identity_pose"], z.get("condition"))
+
+        return flow_matching_loss(velocity, z["target"], generator or self.generator, f["schedule"],
+                                  float(f["shift"]))
+
+    @torch.no_grad()
+    def evaluate(self, batch: Mapping[str, Any], seed: int = 0, repeats: int = 8) -> float:
+        """Loss on ``batch`` with noise and times fixed by ``seed`` (averaged over ``repeats``
+        draws): comparable between calls, unlike the training loss of single random draws."""
+        was_training = self.model.training
+        self.model.eval()
+        with torch_threads(self.config["threads"]):
+            z = self.latents(batch)
+            g = torch.Generator().manual_seed(seed)
+            value = sum(float(self.loss(z, g)) for _ in range(repeats)) / repeats
+        self.model.train(was_training)
+        return value
+
+    def learning_rate(self, step: int) -> float:
+        t = self.config["train"]
+        warmup = int(t["warmup_steps"])
+        return float(t["lr"]) * (min(1.0, (step + 1) / warmup) if warmup > 0 else 1.0)
+
+    def train(self, steps: int | None = None,
+              on_step: Callable[[int, float], None] | None = None) -> list[float]:
+        """Train until ``steps`` total steps (default ``train.steps``); return this call's losses."""
+        with torch_threads(self.config["threads"]):
+            return self._train(steps, on_step)
+
+    def _train(self, steps: int | None, on_step: Callable[[int, float], None] | None) -> list[float]:
+        total = int(self.config["train"]["steps"] if steps is None else steps)
+        t = self.config["train"]
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        write_text(self.out_dir / "config.yaml", yaml.safe_dump({"stage": self.stage, **self.config},
+                                                                  sort_keys=False))
+        self._trim_metrics()
+        losses: list[float] = []
+        if self.step >= total:
+            return losses
+        self.model.train()
+        clip = float(t["grad_clip"])
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        save_every = int(t["save_every"])
+        started = time.time()
+        with open(self.out_dir / "metrics.jsonl", "a") as metrics:
+            for batch in self._batches():
+                lr = self.learning_rate(self.step)
+                for group in self.optimizer.param_groups:
+                    group["lr"] = lr
+                loss = self.loss(self.latents(batch))
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"stage {self.stage} step {self.step}: loss is {loss.item()}; "
+                                             f"lower train.lr or check the data ({batch['pair_id']})")
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if clip > 0:
+                    torch.nn.utils.clip_grad_norm_(params, clip)
+                self.optimizer.step()
+                self.step += 1
+                self.batch_in_epoch += 1
+                value = float(loss.detach())
+                losses.append(value)
+                metrics.write(json.dumps({"step": self.step, "loss": value, "lr": lr,
+                                          "seconds": round(time.time() - started, 3)}) + "\n")
+                metrics.flush()
+                if on_step:
+                    on_step(self.step, value)
+                every_ckpt = int(t["checkpoint_every"])
+                if self.step >= total or (save_every and self.step % save_every == 0) \
+                        or (every_ckpt and self.step % every_ckpt == 0):
+                    self.save()
+                if self.step >= total:
+                    break
+        return losses
+
+    def _trim_metrics(self) -> None:
+        """Drop metric lines past the resumed step (a killed run may have logged beyond its last save)."""
+        path = self.out_dir / "metrics.jsonl"
+        if not path.exists():
+            return
+        lines = [l for l in path.read_text().splitlines() if l.strip()]
+        kept = [l for l in lines if json.loads(l)["step"] <= self.step]
+        if len(kept) != len(lines):
+            write_text(path, "".join(l + "\n" for l in kept))
+
+
+# -- sampling ------------------------------------------------------------------------------------
+def load_for_sampling(checkpoint: str | Path, device: str = "auto") -> tuple[VideoDiT, VideoEncoder, dict, int]:
+    """(model, autoencoder, config, stage) from a trainer checkpoint, in eval mode."""
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{checkpoint}: not a paradrive trainer checkpoint")
+    dev = resolve_device(device)
+    encoder = make_autoencoder(ckpt["config"]["autoencoder"])
+    if isinstance(encoder, torch.nn.Module):
+        encoder.to(dev).eval()
+    model = build_model(ckpt["config"], ckpt["stage"], encoder)
+    model.load_state_dict(ckpt["model"])
+    return model.to(dev).eval(), encoder, ckpt["config"], ckpt["stage"]
+
+
+@torch.no_grad()
+def sample_video(model: VideoDiT, encoder: VideoEncoder, sample: Mapping[str, Any], steps: int,
+                 seed: int = 0, shift: float = 1.0) -> torch.Tensor:
+    """Generate the target-trajectory video of one pair dict (unbatched tensors, as the adapter
+    gives them) from its source, ΔT and (stage 2) condition. Returns (F, 3, H, W) in [-1, 1]."""
+    device = next(model.parameters()).device
+    batch = collate([dict(sample)])
+    groups = encoder.frame_groups(batch["source"].shape[1])
+    x_s = encoder.encode(batch["source"].to(device))
+    rel = latent_poses(batch["rel_pose"].to(device), groups)
+    ident = latent_poses(batch["identity_pose"].to(device), groups)
+    cond = encoder.encode(batch["condition"].to(device)) if model.config.rendering else None
+    noise = torch.randn(x_s.shape, generator=torch.Generator().manual_seed(seed)).to(device)
+    z = euler_sample(lambda x, t: model(x, t, x_s, rel, ident, cond), noise, steps, shift)
+    return encoder.decode(z)[0].clamp(-1, 1).cpu()
+
+
+def write_video(path: str | Path, video: torch.Tensor, fps: float) -> Path:
+    """Write (F, 3, H, W) in [-1, 1] as an H.264 mp4 (even H and W), atomically."""
+    import av
+    from fractions import Fraction
+
+    frames = ((video.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+    _, h, w, _ = frames.shape
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with av.open(str(tmp), mode="w", format="mp4") as container:
+            stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+            stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+            for frame in frames:
+                for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+    return path

@@ -1,0 +1,136 @@
+"""Video files with PyAV (FFmpeg): encode uint8 RGB frames, decode them back, probe a file.
+
+Two codecs are supported:
+
+* ``libx264`` (H.264, ``yuv420p`` by default) in an ``.mp4`` container: small and plays everywhere;
+* ``ffv1`` (lossless, ``bgr0`` so RGB survives exactly) in an ``.mkv`` container.
+
+Frames are stamped with ``pts = i`` in a ``1/fps`` time base, so decoding yields them in order
+with no frame dropped or duplicated. Every file is written under a temporary name and renamed.
+"""
+
+from __future__ import annotations
+
+import os
+from fractions import Fraction
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from paradrive.io import atomic_path, sha256_file
+
+__all__ = ["CODECS", "container_suffix", "encode_video", "decode_video", "iter_video",
+           "probe_video"]
+
+# codec -> (container suffix, FFmpeg container format, default pixel format)
+CODECS = {
+    "libx264": (".mp4", "mp4", "yuv420p"),
+    "ffv1": (".mkv", "matroska", "bgr0"),
+}
+
+
+def container_suffix(codec: str) -> str:
+    """File suffix for ``codec``: ``.mp4`` for H.264, ``.mkv`` for FFV1."""
+    if codec not in CODECS:
+        raise ValueError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}")
+    return CODECS[codec][0]
+
+
+def _rate(fps: float) -> Fraction:
+    if not (fps > 0 and np.isfinite(fps)):
+        raise ValueError(f"fps must be positive, got {fps}")
+    # 29.97 -> 30000/1001; integer rates stay exact.
+    return Fraction(fps).limit_denominator(1001)
+
+
+def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float, *,
+                 codec: str = "libx264", crf: int = 18, preset: str = "medium",
+                 pix_fmt: str | None = None, threads: int = 0) -> dict:
+    """Encode uint8 RGB frames (H, W, 3), all the same size, into ``path``.
+
+    codec: ``libx264`` (``crf``, ``preset``, ``pix_fmt`` default ``yuv420p``, whose 2x2 chroma
+    needs even width and height) or ``ffv1`` (lossless; ``crf`` and ``preset`` are ignored).
+    ``threads``: encoder threads (0 = FFmpeg's choice). The container follows the codec, so
+    ``path`` must end in :func:`container_suffix`. Returns ``{"frames", "width", "height",
+    "bytes", "sha256"}`` of the written file.
+    """
+    import av
+
+    path = Path(path)
+    suffix, fmt, default_pix = CODECS.get(codec, (None, None, None))
+    if suffix is None:
+        raise ValueError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}")
+    if path.suffix != suffix:
+        raise ValueError(f"{path}: a {codec} stream goes in a '{suffix}' file")
+    pix_fmt = pix_fmt or default_pix
+    rate = _rate(fps)
+    count, size = 0, None
+    with atomic_path(path) as tmp:
+        with av.open(str(tmp), mode="w", format=fmt) as container:
+            stream = None
+            for frame in frames:
+                frame = np.ascontiguousarray(frame)
+                if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+                    raise ValueError(f"{path}: frames must be uint8 (H, W, 3), got "
+                                     f"{frame.dtype} {frame.shape}")
+                if stream is None:
+                    size = frame.shape[:2]
+                    h, w = size
+                    if pix_fmt.startswith("yuv420") and (w % 2 or h % 2):
+                        raise ValueError(f"{path}: {pix_fmt} needs even width and height, got "
+                                         f"{w}x{h}; choose an even output size")
+                    stream = container.add_stream(codec, rate=rate)
+                    stream.width, stream.height = w, h
+                    stream.pix_fmt = pix_fmt
+                    stream.thread_count = int(threads)
+                    if codec == "libx264":
+                        stream.options = {"crf": str(int(crf)), "preset": str(preset)}
+                    else:
+                        stream.options = {"level": "3", "slicecrc": "1"}
+                elif frame.shape[:2] != size:
+                    raise ValueError(f"{path}: frame {count} is {frame.shape[1]}x{frame.shape[0]}, "
+                                     f"the first was {size[1]}x{size[0]}")
+                vf = av.VideoFrame.from_ndarray(frame, format="rgb24")
+                vf.pts = count
+                vf.time_base = Fraction(1) / rate
+                for packet in stream.encode(vf):
+                    container.mux(packet)
+                count += 1
+            if stream is None:
+                raise ValueError(f"{path}: no frames to encode")
+            for packet in stream.encode(None):
+                container.mux(packet)
+    return {"frames": count, "width": int(size[1]), "height": int(size[0]),
+            "bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
+def iter_video(path: str | os.PathLike) -> Iterator[np.ndarray]:
+    """Decoded frames of the first video stream of ``path``, uint8 RGB (H, W, 3), in order."""
+    import av
+
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        for frame in container.decode(stream):
+            yield frame.to_ndarray(format="rgb24")
+
+
+def decode_video(path: str | os.PathLike) -> np.ndarray:
+    """All frames of ``path`` as uint8 (F, H, W, 3)."""
+    frames = list(iter_video(path))
+    if not frames:
+        raise ValueError(f"{path}: no video frames")
+    return np.stack(frames)
+
+
+def probe_video(path: str | os.PathLike) -> dict:
+    """Codec, size, pixel format, frame rate and the number of frames (counted by decoding)."""
+    import av
+
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        info = {"codec": stream.codec_context.name, "width": stream.codec_context.width,
+                "height": stream.codec_context.height, "pix_fmt": stream.codec_context.pix_fmt,
+                "fps": float(stream.average_rate or stream.base_rate or 0)}
+        info["frames"] = sum(1 for _ in container.decode(stream))
+    return info

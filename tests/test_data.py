@@ -1,0 +1,300 @@
+"""The trainer's adapter: decoding, sample contents, ranks x workers, deterministic order, resume."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from paradrive import geometry
+from paradrive.data import (PairDataset, PairIterableDataset, decode_frames, output_geometry,
+                            recammaster_camera)
+from paradrive.errors import ParaDriveError
+from paradrive.manifest import build_manifest, read_pairs
+from test_manifest import frame_pixels, scenes_entry, write_clip_scene, write_video
+
+
+@pytest.fixture(scope="module")
+def build(tmp_path_factory):
+    """Two scenes x 72 pairs (3 clips x 8 offsets x 3 checkpoints), 8 frames of 64x48."""
+    data = tmp_path_factory.mktemp("data")
+    scenes = [write_clip_scene(data, "synthetic-a"), write_clip_scene(data, "synthetic-b")]
+    build_dir = tmp_path_factory.mktemp("manifests") / "b"
+    build_manifest(build_dir, [scenes_entry(s) for s in scenes], {"shard_rows": 40,
+                                                                  "row_group_rows": 8})
+    return build_dir
+
+
+@pytest.fixture(scope="module")
+def long_video(tmp_path_factory):
+    """40 frames of H.264 with B-frames and a keyframe every 5 frames."""
+    import av
+
+    path = tmp_path_factory.mktemp("video") / "long.mp4"
+    frames = [frame_pixels(3, i, 64, 48) for i in range(40)]
+    with av.open(str(path), "w") as out:
+        s = out.add_stream("libx264", rate=10)
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        s.options = {"crf": "10", "preset": "veryfast", "g": "5", "keyint_min": "5", "bf": "2"}
+        for img in frames:
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                out.mux(p)
+        for p in s.encode():
+            out.mux(p)
+    return path, frames
+
+
+# --------------------------------------------------------------------------- decoding
+
+def test_lossless_video_decodes_to_the_exact_frames_in_order(tmp_path):
+    frames = [frame_pixels(5, i, 32, 24) for i in range(6)]
+    path = tmp_path / "v.mkv"
+    write_video(path, frames, codec="ffv1")
+    np.testing.assert_array_equal(decode_frames(path), np.stack(frames))
+    np.testing.assert_array_equal(decode_frames(path, [4, 1, 1]), np.stack(frames)[[4, 1, 1]])
+
+
+def test_h264_frames_match_the_source_values_and_order(long_video):
+    path, frames = long_video
+    decoded = decode_frames(path)
+    assert decoded.shape == (40, 48, 64, 3)
+    assert np.abs(decoded.astype(int) - np.stack(frames).astype(int)).mean() < 3.0
+    # Each decoded frame is nearest to its own source frame: the order survived.
+    src = np.stack(frames).reshape(40, -1).astype(float)
+    dist = ((decoded.reshape(40, -1)[:, None, :] - src[None]) ** 2).mean(axis=2)
+    assert list(dist.argmin(axis=1)) == list(range(40))
+
+
+def test_seeking_gives_the_same_frames_as_a_full_decode_and_decodes_fewer(long_video):
+    path, _ = long_video
+    full = decode_frames(path)
+    for wanted in ([30], [7, 13, 14], [39], [0, 5, 10, 35], [22, 21]):
+        stats = {}
+        np.testing.assert_array_equal(decode_frames(path, wanted, stats=stats), full[wanted])
+        assert stats["decoded"] <= max(wanted) - min(wanted) + 12  # from the keyframe before, not 0
+    stats = {}
+    decode_frames(path, [33], stats=stats)
+    assert stats["decoded"] < 15
+
+
+def test_asking_past_the_end_names_the_file(long_video):
+    path, _ = long_video
+    with pytest.raises(ParaDriveError, match="long.mp4"):
+        decode_frames(path, [38, 45])
+
+
+# --------------------------------------------------------------------------- samples
+
+def test_sample_has_the_trainer_keys_shapes_and_ranges(build):
+    ds = PairDataset(build)
+    assert len(ds) == 144
+    s = ds[5]
+    for role in ("source", "condition", "target"):
+        assert s[role].shape == (8, 3, 48, 64) and s[role].dtype == torch.float32
+        assert -1.0 <= s[role].min() and s[role].max() <= 1.0
+    assert s["rel_pose"].shape == (8, 4, 4) and s["identity_pose"].shape == (8, 4, 4)
+    assert torch.equal(s["identity_pose"], torch.eye(4).expand(8, 4, 4))
+    row = read_pairs(build).slice(5, 1).to_pylist()[0]
+    assert s["pair_id"] == row["pair_id"] and s["prompt"] == ""
+    assert s["offset_m"] == row["offset_m"] and s["condition_iteration"] == row["condition_iteration"]
+    np.testing.assert_allclose(s["rel_pose"].numpy().reshape(8, 16), np.asarray(row["rel_pose"]))
+    np.testing.assert_allclose(s["intrinsics"].numpy(), row["intrinsics"])
+
+
+def test_target_frames_are_the_video_frames_scaled_to_minus_one_one(build):
+    ds = PairDataset(build, num_frames=3, frame_stride=2, frame_offset=1)
+    s = ds[17]
+    row = ds.row(17)
+    video = decode_frames(build / row["target_uri"])[[1, 3, 5]]
+    expected = torch.from_numpy(video).permute(0, 3, 1, 2).float() / 127.5 - 1
+    assert torch.equal(s["target"], expected)
+    np.testing.assert_allclose(s["rel_pose"].numpy(), row["rel_pose"][[1, 3, 5]], atol=1e-7)
+
+
+def test_a_window_beyond_the_clip_is_refused_with_the_fix(build):
+    ds = PairDataset(build, num_frames=5, frame_stride=2)
+    with pytest.raises(ValueError, match="clip has 8"):
+        ds[0]
+
+
+def test_resize_and_centre_crop_adjust_the_intrinsics(build):
+    ds = PairDataset(build, output_size=(32, 32))
+    s = ds[0]
+    assert s["target"].shape == (8, 3, 32, 32)
+    # 64x48 -> scale 2/3 covers 32x32 at 43x32, centre crop starts at x = 5.
+    geo = output_geometry(64, 48, (32, 32))
+    assert geo["resize"] == (32, 43) and geo["crop"] == (0, 5)
+    sx, sy = 43 / 64, 32 / 48
+    np.testing.assert_allclose(s["intrinsics"].numpy(),
+                               [50 * sx, 50 * sy, 32 * sx - 5, 24 * sy], rtol=1e-6)
+    stretched = PairDataset(build, output_size=(24, 16), resize="stretch")[0]
+    np.testing.assert_allclose(stretched["intrinsics"].numpy(), [12.5, 25, 8, 12], rtol=1e-6)
+
+
+def test_recammaster_camera_is_target_relative_to_the_first_source_frame(tmp_path):
+    scene = write_clip_scene(tmp_path / "data", "synthetic-long", clips=("front",),
+                             offsets=(2.0,), conditions=(100,), num_frames=121, width=32,
+                             height=32, gop=30)
+    build = tmp_path / "b"
+    build_manifest(build, [scenes_entry(scene)], {})
+    ds = PairDataset(build, pose_format="recammaster", output_size=(16, 16))
+    s = ds[0]
+    assert s["camera"].shape == (31, 12) and s["target"].shape == (121, 3, 16, 16)
+    cam = s["camera"].numpy().reshape(31, 3, 4)
+    np.testing.assert_allclose(cam[:, :, :3], np.broadcast_to(np.eye(3), (31, 3, 3)), atol=1e-5)
+    # Target of frame 4k seen from the source camera at frame 0: d to its right (camera +x) and
+    # 4k metres ahead (the car drives 1 m per frame along camera z).
+    np.testing.assert_allclose(cam[:, 0, 3], 2.0, atol=1e-4)
+    np.testing.assert_allclose(cam[:, 2, 3], 4.0 * np.arange(31), atol=1e-4)
+    np.testing.assert_allclose(cam[:, 1, 3], 0.0, atol=1e-4)
+
+
+def test_recammaster_camera_function_matches_its_definition():
+    rng = np.random.default_rng(0)
+    tgt = np.stack([geometry.make_pose(geometry.rotation_about("y", a), rng.normal(size=3))
+                    for a in rng.normal(size=9)])
+    src = tgt @ geometry.translation(x=-1.0)
+    cam = recammaster_camera(tgt, src)
+    assert cam.shape == (3, 12)
+    for k, f in enumerate((0, 4, 8)):
+        expect = (np.linalg.inv(src[0]) @ tgt[f])[:3, :4].reshape(12)
+        np.testing.assert_allclose(cam[k], expect, atol=1e-5)
+
+
+def test_verify_checksums_names_a_corrupt_file(build, tmp_path):
+    copy = tmp_path / "b"
+    shutil.copytree(build, copy)
+    ds = PairDataset(copy, verify_checksums=True)
+    ds[0]  # clean files pass
+    victim = copy / ds.row(1)["source_uri"]
+    data = bytearray(victim.read_bytes())
+    data[-5] ^= 0xFF
+    victim.unlink()  # hardlinked: write a new file rather than change the original
+    victim.write_bytes(bytes(data))
+    with pytest.raises(ParaDriveError, match=re.escape(str(victim))):
+        PairDataset(copy, verify_checksums=True)[1]
+
+
+# --------------------------------------------------------------------------- ranks x workers
+
+def loader_order(ds: PairIterableDataset, num_workers: int) -> list[int]:
+    """The order a DataLoader delivers: batches taken from the workers in turn."""
+    per_worker = [list(ds.worker_order(w, num_workers)) for w in range(num_workers)]
+    b = ds.batch_size
+    batches = [[ws[i:i + b] for i in range(0, len(ws), b)] for ws in per_worker]
+    out = []
+    for k in range(max(len(x) for x in batches)):
+        for w in range(num_workers):
+            if k < len(batches[w]):
+                out.extend(batches[w][k])
+    return out
+
+
+@pytest.mark.parametrize("partition", ["pad", "drop"])
+def test_ranks_and_workers_cover_the_build_without_overlap(build, partition):
+    world, workers = 5, 3  # 144 pairs do not divide by 5
+    seen = []
+    counts = []
+    for rank in range(world):
+        ds = PairIterableDataset(build, rank=rank, world_size=world, batch_size=2, seed=3,
+                                 partition=partition)
+        ds.set_epoch(1)
+        parts = [list(ds.worker_order(w, workers)) for w in range(workers)]
+        flat = [i for p in parts for i in p]
+        assert sorted(flat) == sorted(ds.rank_order())
+        assert loader_order(ds, workers) == list(ds.rank_order())
+        counts.append(len(flat))
+        seen.extend(flat)
+    assert len(set(counts)) == 1 and counts[0] == len(ds)
+    if partition == "pad":
+        assert counts[0] == 29 and set(seen) == set(range(144))
+        assert len(seen) - len(set(seen)) == 1  # one pair repeated to even out the ranks
+    else:
+        assert counts[0] == 28 and len(set(seen)) == len(seen) == 140
+
+
+def test_shuffle_is_deterministic_in_seed_and_epoch(build):
+    a = PairIterableDataset(build, seed=1)
+    b = PairIterableDataset(build, seed=1)
+    a.set_epoch(4)
+    b.set_epoch(4)
+    assert list(a.epoch_order()) == list(b.epoch_order())
+    assert list(a.epoch_order(5)) != list(a.epoch_order(4))
+    assert list(PairIterableDataset(build, seed=2).epoch_order(4)) != list(a.epoch_order())
+    assert list(PairIterableDataset(build, shuffle=False).epoch_order()) == list(range(144))
+
+
+def test_state_dict_resumes_exactly_mid_epoch_with_workers(build):
+    world, workers, batch = 2, 2, 3
+    for rank in range(world):
+        ds = PairIterableDataset(build, rank=rank, world_size=world, batch_size=batch, seed=9)
+        ds.set_epoch(2)
+        full = loader_order(ds, workers)
+        state = ds.state_dict(samples_consumed=4 * batch)  # four batches trained on
+        resumed = PairIterableDataset(build, rank=rank, world_size=world, batch_size=batch, seed=9)
+        resumed.load_state_dict(state)
+        assert resumed.epoch == 2
+        rest = loader_order(resumed, workers)
+        assert rest == full[4 * batch:]
+        # A second save during the resumed epoch counts from the epoch start.
+        assert resumed.state_dict(samples_consumed=3)["samples_consumed"] == 4 * batch + 3
+        resumed.set_epoch(3)  # the next epoch starts from its beginning
+        assert loader_order(resumed, workers) == list(resumed.rank_order(3))
+
+
+def test_real_dataloader_with_workers_delivers_the_rank_sequence_and_resumes(build):
+    ds = PairIterableDataset(build, rank=1, world_size=4, batch_size=2, seed=5, num_frames=2)
+    ds.set_epoch(1)
+    expected = [ds.dataset.pair_ids[i] for i in ds.rank_order()]
+    loader = DataLoader(ds, batch_size=2, num_workers=2)
+    got = [pid for batch in loader for pid in batch["pair_id"]]
+    assert got == expected and len(got) == 36
+    batch = next(iter(loader))
+    assert batch["source"].shape == (2, 2, 3, 48, 64)
+
+    state = ds.state_dict(samples_consumed=10)
+    again = PairIterableDataset(build, rank=1, world_size=4, batch_size=2, seed=5, num_frames=2)
+    again.load_state_dict(state)
+    got = [pid for b in DataLoader(again, batch_size=2, num_workers=2) for pid in b["pair_id"]]
+    assert got == expected[10:]
+
+
+def test_without_workers_the_dataset_counts_what_it_yielded(build):
+    ds = PairIterableDataset(build, rank=0, world_size=8, seed=0, num_frames=1)
+    it = iter(ds)
+    first = [next(it)["pair_id"] for _ in range(5)]
+    state = ds.state_dict()
+    assert state["samples_consumed"] == 5
+    again = PairIterableDataset(build, rank=0, world_size=8, seed=0, num_frames=1)
+    again.load_state_dict(state)
+    rest = [s["pair_id"] for s in again]
+    assert first + rest == [ds.dataset.pair_ids[i] for i in ds.rank_order()]
+
+
+def test_resume_with_other_settings_is_refused(build):
+    state = PairIterableDataset(build, world_size=2, rank=0).state_dict(samples_consumed=3)
+    with pytest.raises(ValueError, match="world_size"):
+        PairIterableDataset(build, world_size=4, rank=0).load_state_dict(state)
+
+
+# --------------------------------------------------------------------------- end to end
+
+@pytest.mark.slow
+def test_smoke_build_feeds_the_adapter_and_verifies(smoke_build):
+    from test_inspect import invoke
+
+    build = smoke_build["build_dir"]
+    ds = PairDataset(build, verify_checksums=True, pose_format="recammaster")
+    assert len(ds) == 72 * len(smoke_build["scene_uris"])
+    s = ds[len(ds) // 2]
+    assert s["target"].shape == (8, 3, 96, 160) and s["camera"].shape == (2, 12)
+    t = s["rel_pose"][:, :3, 3]
+    assert torch.allclose(t.norm(dim=1), torch.tensor(abs(s["offset_m"])).expand(8), atol=1e-4)
+    result = invoke(build, "--verify", "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["verify"]["ok"]

@@ -1,0 +1,120 @@
+"""``paradrive inspect``: counts, quality, --verify, --json and the pictures."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from paradrive.inspect import register, summarize, verify_build
+from paradrive.manifest import build_manifest, read_index
+from test_manifest import scenes_entry, write_clip_scene
+
+
+@pytest.fixture(scope="module")
+def build(tmp_path_factory):
+    data = tmp_path_factory.mktemp("data")
+    scenes = [write_clip_scene(data, "synthetic-a"),
+              write_clip_scene(data, "synthetic-b", clips=("middle",))]
+    lidar = scenes[0] / "lidar"
+    lidar.mkdir()
+    rng = np.random.default_rng(0)
+    np.save(lidar / "000000.npy", (rng.uniform([-5, -12, -1], [30, 12, 3], (4000, 3))).astype(np.float32))
+    build_dir = tmp_path_factory.mktemp("manifests") / "b"
+    build_manifest(build_dir, [scenes_entry(s) for s in scenes], {"media": "copy"})
+    return build_dir
+
+
+def invoke(*args):
+    # The command on an app of its own, as cli.py registers it.
+    app = typer.Typer()
+    app.callback()(lambda: None)
+    register(app)
+    return CliRunner().invoke(app, ["inspect", *map(str, args)], env={"COLUMNS": "400"})
+
+
+def test_summary_counts_by_every_key(build):
+    s = summarize(build)
+    assert s["rows"] == 72 + 24
+    c = s["counts"]
+    assert c["scene"] == {"synthetic-a": 72, "synthetic-b": 24}
+    assert c["dataset"] == {"synthetic": 96} and c["camera"] == {"front": 96}
+    assert c["clip"] == {"front": 24, "middle": 48, "rear": 24}
+    assert c["offset"] == {k: 12 for k in ("-4m", "-3m", "-2m", "-1m", "+1m", "+2m", "+3m", "+4m")}
+    assert c["checkpoint"] == {"000100": 32, "000500": 32, "001000": 32}
+    q = s["quality"]["scenes"]["synthetic-a"]
+    assert q["fit_train_psnr"] == pytest.approx(31.2)
+    assert q["condition"]["000500"]["psnr"] == pytest.approx(20.0)
+
+
+def test_cli_prints_tables(build):
+    result = invoke(build)
+    assert result.exit_code == 0, result.output
+    for text in ("pairs by offset", "synthetic-b", "+4m", "001000", "fit PSNR"):
+        assert text in result.output
+
+
+def test_cli_json_is_machine_readable(build):
+    result = invoke(build, "--json", "--verify")
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.stdout)
+    assert doc["rows"] == 96 and doc["verify"]["ok"]
+    assert doc["verify"]["checked_files"] == 1 + 12 * 3 + 12  # shard + videos
+
+
+def test_verify_names_each_missing_or_corrupt_file(build, tmp_path):
+    copy = tmp_path / "b"
+    shutil.copytree(build, copy)
+    corrupt = copy / "media/synthetic-a/clips/front/rear/cond@000500.mp4"
+    data = bytearray(corrupt.read_bytes())
+    data[100] ^= 0x55
+    corrupt.write_bytes(bytes(data))
+    missing = copy / "media/synthetic-b/clips/front/middle/source-3m.mp4"
+    missing.unlink()
+    result = invoke(copy, "--verify")
+    assert result.exit_code == 1
+    out = result.output.replace("\n", "")
+    assert "cond@000500.mp4" in out and "source-3m.mp4" in out
+    problems = verify_build(copy)["problems"]
+    assert len(problems) == 2
+    assert any(p.startswith("corrupt:") and str(corrupt) in p for p in problems)
+    assert any(p.startswith("missing:") and str(missing) in p for p in problems)
+
+
+def test_verify_checks_shards_against_the_index(build, tmp_path):
+    copy = tmp_path / "b"
+    shutil.copytree(build, copy)
+    shard = copy / read_index(copy)["shards"][0]["file"]
+    with open(shard, "r+b") as f:
+        f.seek(20)
+        f.write(b"\0\0\0\0")
+    problems = verify_build(copy)["problems"]
+    assert len(problems) == 1 and "pairs-00000.parquet" in problems[0] and "shard" in problems[0]
+
+
+def test_not_a_build_is_a_usage_error(tmp_path):
+    result = invoke(tmp_path)
+    assert result.exit_code == 2 and "index.json is missing" in result.output.replace("\n", "")
+
+
+def test_sheet_and_trajectory_pictures(build, tmp_path):
+    from PIL import Image
+
+    out = tmp_path / "sheet.png"
+    result = invoke(build, "--sheet", out, "--pairs", "3")
+    assert result.exit_code == 0, result.output
+    sheet = np.asarray(Image.open(out).convert("RGB"))
+    assert sheet.shape[0] > 3 * 3 * 40 and sheet.shape[1] > 3 * 150
+    assert sheet.std() > 20  # thumbnails, not a blank page
+    traj = tmp_path / "sheet_trajectories.png"
+    picture = np.asarray(Image.open(traj).convert("RGB")).astype(int)
+    assert picture.shape[:2] == (900, 900)
+    # The shifted paths are drawn in colour (blue left, red right), the recorded one in black.
+    coloured = (np.abs(picture[..., 0] - picture[..., 2]) > 80).sum()
+    assert coloured > 500
+    assert not [p for p in os.listdir(tmp_path) if ".tmp-" in p]
