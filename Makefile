@@ -12,7 +12,7 @@ PYTEST_ARGS ?=
 profile_flag = $(if $(PROFILE),--profile $(PROFILE),)
 build_args = --scene '$(SCENE)' $(profile_flag) --data $(DATA) --manifests $(MANIFESTS) --build $(BUILD)
 
-.PHONY: setup setup-test ingest fit render clip manifest build demo inspect eval status test bench clean
+.PHONY: setup setup-test ingest fit render clip manifest build demo inspect eval status train test bench clean
 
 .venv/.installed: pyproject.toml scripts/setup.sh
 	scripts/setup.sh
@@ -50,6 +50,12 @@ eval: setup
 	$(PARADRIVE) eval --scene '$(SCENE)' $(profile_flag) --data $(DATA)
 status: setup
 	$(PARADRIVE) status $(MANIFESTS)/$(BUILD)
+
+# The reference trainer on a build: stage 1, then stage 2 (TRAIN_CONFIG=smoke for a quick CPU run).
+TRAIN_CONFIG ?= default
+train: setup
+	$(PARADRIVE) train --build $(MANIFESTS)/$(BUILD) --stage 1 --config $(TRAIN_CONFIG)
+	$(PARADRIVE) train --build $(MANIFESTS)/$(BUILD) --stage 2 --config $(TRAIN_CONFIG)
 
 test: setup-test
 	$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)

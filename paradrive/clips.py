@@ -209,7 +209,8 @@ def write_clips(scene_dir: Path, params: dict, *, log=None, progress=None) -> di
                 rel = rel_dir / f"{name}{suffix}"
                 info = encode_video(tmp_root.parent / _under(tmp_root, rel), frames,
                                     scene.fps, codec=codec, crf=int(params["crf"]),
-                                    preset=str(params["preset"]), pix_fmt=pix_fmt)
+                                    preset=str(params["preset"]), pix_fmt=pix_fmt,
+                                    gop=params["gop"])
                 entry = {"file": rel.as_posix(), "bytes": info["bytes"], "sha256": info["sha256"],
                          "kind": stream["kind"]}
                 if stream.get("iteration") is not None:

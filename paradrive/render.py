@@ -411,5 +411,8 @@ def render_scene(scene_dir: str | os.PathLike, params: dict, *,
 
 def run_stage(ctx) -> dict:
     """Stage entry (``stages/render.yaml``)."""
-    return render_scene(ctx.scene_dir, ctx.params, log=getattr(ctx, "log", None),
-                        progress=getattr(ctx, "progress", None))
+    from paradrive.gs.model import deterministic_torch
+
+    with deterministic_torch(int(ctx.params["threads"])):
+        return render_scene(ctx.scene_dir, ctx.params, log=getattr(ctx, "log", None),
+                            progress=getattr(ctx, "progress", None))

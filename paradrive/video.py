@@ -46,12 +46,13 @@ def _rate(fps: float) -> Fraction:
 
 def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float, *,
                  codec: str = "libx264", crf: int = 18, preset: str = "medium",
-                 pix_fmt: str | None = None, threads: int = 0) -> dict:
+                 pix_fmt: str | None = None, threads: int = 0, gop: int | None = None) -> dict:
     """Encode uint8 RGB frames (H, W, 3), all the same size, into ``path``.
 
     codec: ``libx264`` (``crf``, ``preset``, ``pix_fmt`` default ``yuv420p``, whose 2x2 chroma
     needs even width and height) or ``ffv1`` (lossless; ``crf`` and ``preset`` are ignored).
-    ``threads``: encoder threads (0 = FFmpeg's choice). The container follows the codec, so
+    ``threads``: encoder threads (0 = FFmpeg's choice). ``gop``: frames between keyframes
+    (None = the encoder's default); short GOPs let readers seek into a clip cheaply. The container follows the codec, so
     ``path`` must end in :func:`container_suffix`. Returns ``{"frames", "width", "height",
     "bytes", "sha256"}`` of the written file.
     """
@@ -84,8 +85,12 @@ def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: flo
                     stream.width, stream.height = w, h
                     stream.pix_fmt = pix_fmt
                     stream.thread_count = int(threads)
+                    if gop:
+                        stream.codec_context.gop_size = int(gop)
                     if codec == "libx264":
                         stream.options = {"crf": str(int(crf)), "preset": str(preset)}
+                        if gop:
+                            stream.options = {**stream.options, "keyint_min": str(int(gop))}
                     else:
                         stream.options = {"level": "3", "slicecrc": "1"}
                 elif frame.shape[:2] != size:

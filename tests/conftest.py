@@ -37,10 +37,13 @@ def smoke_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def smoke_build(tmp_path_factory):
-    """Two synthetic scenes (seeds 7 and 11) through every stage, manifest included."""
-    root = tmp_path_factory.mktemp("smoke_build")
-    return _build(root, SMOKE_SCENES)
+def smoke_build(smoke_scene):
+    """Two synthetic scenes (seeds 7 and 11) through every stage, manifest included.
+
+    It grows the ``smoke_scene`` data folder, so seed 7's ingest and fit are reused (skipped by
+    their fingerprints), not redone.
+    """
+    return _build(smoke_scene["root"], SMOKE_SCENES)
 
 
 @pytest.fixture

@@ -76,12 +76,9 @@ def test_psnr_and_ssim_of_identical_and_noisy_images():
 
 # --------------------------------------------------------------------------- quality
 
-def test_smoke_fit_psnr_rises_across_checkpoints_and_reaches_25db(request):
+def test_smoke_fit_psnr_rises_across_checkpoints_and_reaches_25db(smoke_scene):
     params = stage_params("smoke")
-    if max(params["checkpoints"]) > 2000:
-        pytest.skip("stages/profiles/smoke.yaml has no fit overrides yet (paper-length fit)")
-    built = request.getfixturevalue("smoke_scene")
-    (scene_dir,) = (built["data_dir"] / "scenes").iterdir()
+    scene_dir = smoke_scene["data_dir"] / "scenes" / smoke_scene["report"].results[0].scene_id
     doc = json.loads((scene_dir / "gs" / "fit.json").read_text())
     assert doc["complete"]
     its = [c["iteration"] for c in doc["checkpoints"]]

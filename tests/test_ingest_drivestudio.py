@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 
 import numpy as np
@@ -14,25 +13,17 @@ from paradrive.ingest import export, ingest
 from paradrive.ingest.common import OPENCV_TO_FLU
 from paradrive.scene import load_scene
 from paradrive.uri import parse_uri
+from synthetic_logs import street_log
 
 CAMS = ("front", "front_left")
 FRAMES = 4
 DIST = (-0.08, 0.02, 0.0005, 0.0, 0.0)
 
 
-def fake_lidar(i, ego2world):
-    rng = np.random.default_rng(7 + i)
-    local = rng.uniform([-25, -25, -1.5], [25, 25, 3.0], (1500, 3))
-    return local @ ego2world[i][:3, :3].T + ego2world[i][:3, 3]
-
-
 @pytest.fixture(scope="module")
 def source():
-    from paradrive.synthetic import SyntheticStreet
-
-    street = SyntheticStreet("demo", seed=9, frames=FRAMES, width=96, height=64, cameras=CAMS)
-    src = export.source_from_street(street)
-    return dataclasses.replace(src, lidar=lambda i: fake_lidar(i, src.ego2world))
+    return street_log(9, FRAMES, 96, 64, CAMS, lidar_seed=7, lidar_points=1500,
+                      lidar_extent_m=25)
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 
@@ -13,24 +12,16 @@ from paradrive.errors import SceneError
 from paradrive.ingest import export, ingest
 from paradrive.scene import load_scene
 from paradrive.uri import parse_uri
+from synthetic_logs import street_log
 
 CAMS = ("front", "front_left")
 FRAMES = 7
 
 
-def fake_lidar(i, ego2world):
-    rng = np.random.default_rng(100 + i)
-    local = rng.uniform([-30, -30, -1.5], [30, 30, 3.0], (2000, 3))
-    return local @ ego2world[i][:3, :3].T + ego2world[i][:3, 3]
-
-
 @pytest.fixture(scope="module")
 def source():
-    from paradrive.synthetic import SyntheticStreet
-
-    street = SyntheticStreet("demo", seed=5, frames=FRAMES, width=80, height=48, cameras=CAMS)
-    src = export.source_from_street(street)
-    return dataclasses.replace(src, lidar=lambda i: fake_lidar(i, src.ego2world))
+    return street_log(5, FRAMES, 80, 48, CAMS, lidar_seed=100, lidar_points=2000,
+                      lidar_extent_m=30)
 
 
 @pytest.fixture(scope="module")

@@ -71,3 +71,16 @@ def test_iter_video_streams_frames(tmp_path):
     encode_video(tmp_path / "a.mkv", _frames(4), 10.0, codec="ffv1")
     shapes = [f.shape for f in iter_video(tmp_path / "a.mkv")]
     assert shapes == [(48, 64, 3)] * 4
+
+
+def test_gop_sets_the_keyframe_interval(tmp_path):
+    import av
+
+    frames = _frames(40, 32, 48)
+    path = tmp_path / "g.mp4"
+    encode_video(path, frames, fps=10.0, gop=10, preset="ultrafast")
+    with av.open(str(path)) as container:
+        keys = [i for i, packet in enumerate(
+            sorted((p for p in container.demux(video=0) if p.size), key=lambda p: p.pts))
+            if packet.is_keyframe]
+    assert keys == [0, 10, 20, 30]

@@ -27,7 +27,6 @@ import os
 import random
 import resource
 import time
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional, Sequence
 
@@ -41,8 +40,8 @@ from paradrive.metrics import psnr, ssim
 
 from . import init as gsinit
 from .init import View
-from .model import (PARAM_KEYS, Params, cat_params, new_params, render, scene_scale_of,
-                    sh_degree_of)
+from .model import (PARAM_KEYS, Params, cat_params, deterministic_torch, new_params, render,
+                    scene_scale_of, sh_degree_of)
 from .ply import load_ply, save_ply
 from .strategy import DensifyStrategy
 
@@ -226,22 +225,6 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
-@contextmanager
-def _deterministic(threads: int):
-    """Fixed thread count and deterministic kernels while fitting; restored afterwards."""
-    old_threads = torch.get_num_threads()
-    old_det = torch.are_deterministic_algorithms_enabled()
-    old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
-    if threads > 0:
-        torch.set_num_threads(threads)
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old_threads)
-        torch.use_deterministic_algorithms(old_det, warn_only=old_warn)
-
-
 # --------------------------------------------------------------------------- evaluation
 
 @torch.no_grad()
@@ -305,7 +288,7 @@ def fit_scene(scene_dir: str | os.PathLike, params: Dict[str, Any], *,
         dev_name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(dev_name)
 
-    with _deterministic(int(p["threads"])):
+    with deterministic_torch(int(p["threads"])):
         return _fit(scene, gs_dir, p, fp, device, log, progress, stop_after)
 
 

@@ -18,6 +18,7 @@ key                   shape         meaning (activation)
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from typing import Dict, Optional
 
 import torch
@@ -126,3 +127,23 @@ def scene_scale_of(c2w: torch.Tensor | "np.ndarray") -> float:  # noqa: F821
     c = torch.as_tensor(c2w, dtype=torch.float64)[:, :3, 3]
     d = (c - c.mean(0)).norm(dim=1).max().item() if len(c) else 0.0
     return max(1.1 * d, 1.0)
+
+
+@contextmanager
+def deterministic_torch(threads: int):
+    """Fixed thread count and deterministic kernels (fit, render); restored afterwards.
+
+    The CPU rasterizer's many small ops run fastest on one thread, and a fixed count makes the
+    floating-point sums, hence the files, identical whichever executor runs the stage.
+    """
+    old_threads = torch.get_num_threads()
+    old_det = torch.are_deterministic_algorithms_enabled()
+    old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    if threads > 0:
+        torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old_threads)
+        torch.use_deterministic_algorithms(old_det, warn_only=old_warn)

@@ -8,7 +8,7 @@ import numpy as np
 
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
-from paradrive.scene import Camera, Frame, FrameCamera, Scene, write_image
+from paradrive.scene import Frame, FrameCamera, Scene, write_image
 from paradrive.uri import SceneURI
 
 # URI query keys and their types; the stage's synthetic_* params are the defaults.
@@ -59,9 +59,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     frames = [Frame(index=i, timestamp_us=int(stamps[i]), ego2world=ego[i], cameras={})
               for i in range(n)]
     for name in cam_names:
-        spec = street.cameras[name]
-        cameras[name] = Camera(name=name, width=spec.width, height=spec.height, fx=spec.fx,
-                               fy=spec.fy, cx=spec.cx, cy=spec.cy, cam2ego=spec.cam2ego)
+        spec = cameras[name] = street.cameras[name]
         c2w = street.c2w(name)[:n]
         batch = 8
         for start in range(0, n, batch):

@@ -170,6 +170,7 @@ def scene_logger(scene_id: str, log_file: Path | None = None) -> Iterator[loggin
     """The scene's logger, appending to ``log_file`` while the stage runs (then closed)."""
     log = logging.getLogger(f"paradrive.scene.{scene_id}")
     log.setLevel(logging.INFO)
+    log.propagate = False  # the console shows results; the per-scene file has the details
     handler = None
     if log_file is not None:
         log_file.parent.mkdir(parents=True, exist_ok=True)

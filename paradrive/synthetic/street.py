@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from paradrive.geometry import rotation_about
+from paradrive.scene import Camera
 from paradrive.synthetic import raycast as rc
 
 # box / cylinder / sphere materials
@@ -54,26 +56,8 @@ _CAR_COLOURS = np.array([
 ])
 
 
-@dataclass(frozen=True)
-class CameraSpec:
-    """A pinhole camera of the rig. cam2ego: (4, 4) OpenCV camera axes -> ego (x fwd, y left, z up)."""
-
-    name: str
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    cam2ego: np.ndarray = field(repr=False)
-
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+# The rig's cameras are the canonical scene's pinhole cameras (OpenCV axes, cam2ego to ego).
+CameraSpec = Camera
 
 
 def camera_spec(name: str, width: int, height: int, hfov_deg: float = 70.0,
@@ -89,7 +73,7 @@ def camera_spec(name: str, width: int, height: int, hfov_deg: float = 70.0,
                     [-1.0, 0.0, 0.0],
                     [0.0, -np.cos(p), -np.sin(p)]])
     cam2ego = np.eye(4)
-    cam2ego[:3, :3] = _rot_z(yaw) @ rot
+    cam2ego[:3, :3] = rotation_about("z", yaw) @ rot
     cam2ego[:3, 3] = pos
     f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2)
     return CameraSpec(name, int(width), int(height), float(f), float(f), 0.5 * width, 0.5 * height,
