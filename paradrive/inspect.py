@@ -221,6 +221,9 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
     folder index.json records).
     """
     os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+    if not os.environ.get("DISPLAY"):
+        # No X server: render with OSMesa (installed by the setup) instead of failing over from X.
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkOSOpenGLRenderWindow")
     import pyvista as pv
 
     build_dir, out = Path(build_dir), Path(out)
