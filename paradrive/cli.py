@@ -235,6 +235,7 @@ COMMAND_MODULES = [
     ("paradrive.eval", "eval"),
     ("paradrive.pipeline.status", "status"),
     ("paradrive.train.cli", "train"),
+    ("paradrive.ingest.export", "export"),
 ]
 
 

@@ -450,3 +450,49 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
         if not sky_masks:
             shutil.rmtree(tmp / "sky_masks")
     return folder
+
+
+# --------------------------------------------------------------------------- command line
+
+def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: dict) -> str:
+    """Write the synthetic scene ``scene_uri`` in format ``fmt`` under ``out``; returns its URI."""
+    from paradrive.ingest.synthetic import street_from_uri
+    from paradrive.uri import parse_uri
+
+    uri = parse_uri(scene_uri)
+    if uri.kind != "synthetic":
+        raise ValueError(f"export writes synthetic scenes only, got {scene_uri!r}")
+    street = street_from_uri(uri, ingest_params)
+    out = Path(out).resolve()
+    name = uri.scene_id
+    if fmt == "waymo":
+        path = export_waymo(street, out / f"segment-{name}_with_camera_labels.tfrecord",
+                            segment=name)
+        return f"waymo:{path}"
+    if fmt == "nuscenes":
+        export_nuscenes(street, out, scene_name=name)
+        return f"nuscenes:{out}?version=v1.0-mini#{name}"
+    if fmt == "drivestudio":
+        return f"drivestudio:{export_drivestudio(street, out / name)}"
+    raise ValueError(f"unknown format {fmt!r}; use waymo, nuscenes or drivestudio")
+
+
+def register(app) -> None:
+    import typer
+
+    @app.command("export")
+    def export_cmd(
+        fmt: str = typer.Argument(..., help="waymo, nuscenes or drivestudio"),
+        out: Path = typer.Argument(..., help="Folder to write the log into."),
+        scene: str = typer.Option("synthetic:demo?seed=7", "--scene", help="A synthetic scene URI."),
+        profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes apply."),
+    ) -> None:
+        """Write a synthetic scene as a real log (known answers) and print the URI that ingests it."""
+        from paradrive.pipeline import StageRegistry
+
+        params = StageRegistry().resolve(profile).params["ingest"]
+        try:
+            print(export_scene(scene, fmt, out, params))
+        except ValueError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2)
