@@ -106,3 +106,15 @@ def test_cli_unknown_stage_is_a_usage_error(tmp_path):
                                       "--data", str(tmp_path)])
     assert result.exit_code == 2
     assert "unknown stage 'fitt'" in result.output
+
+
+def test_each_stage_appends_to_the_scene_log_and_leaves_no_file_open(tmp_path):
+    import logging
+
+    config = StageRegistry().resolve("smoke")
+    result = run_scene_stage(config, "ingest", URI, tmp_path)
+    run_scene_stage(config, "ingest", URI, tmp_path)
+    text = (tmp_path / "logs" / f"{result.scene_id}.log").read_text()
+    assert text.count("ingest: started") == 1 and text.count("up to date") == 1
+    handlers = logging.getLogger(f"paradrive.scene.{result.scene_id}").handlers
+    assert not any(isinstance(h, logging.FileHandler) for h in handlers)
