@@ -268,3 +268,13 @@ def test_a_build_killed_midway_resumes_with_only_the_missing_work(tmp_path):
     states = {(r["scene_id"], r["stage"]): r["state"] for r in ledger.tasks()}
     assert states[(IDS[0], "clip")] == "skipped" and states[(IDS[1], "fit")] == "done"
     assert states[(IDS[2], "ingest")] == "done" and ledger.runs()[-1]["exit_code"] == 0
+
+
+def test_a_folder_of_tfrecords_files_lists_every_segment(tmp_path):
+    from paradrive.pipeline.scenes import expand_scene_inputs
+
+    (tmp_path / "a").mkdir()
+    for name in ("a/segment-1.tfrecord", "segment-2.tfrecords"):
+        (tmp_path / name).write_bytes(b"")
+    uris = expand_scene_inputs([str(tmp_path)])
+    assert sorted(u.rsplit("/", 1)[-1] for u in uris) == ["segment-1.tfrecord", "segment-2.tfrecords"]

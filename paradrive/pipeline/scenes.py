@@ -26,6 +26,7 @@ import re
 from pathlib import Path
 
 from paradrive.errors import ConfigError
+from paradrive.ingest.waymo import SUFFIXES as WAYMO_SUFFIXES
 from paradrive.uri import KINDS
 
 _TRAILING_COMMENT = re.compile(r"\s+#.*$")
@@ -56,7 +57,7 @@ def _expand(item: str, base: Path, depth: int) -> list[str]:
     if path.is_dir():
         return scenes_in_folder(path)
     if path.is_file():
-        if path.suffix == ".tfrecord":
+        if path.suffix in WAYMO_SUFFIXES:
             return [f"waymo:{path.resolve()}"]
         if depth > 4:
             raise ConfigError(f"{path}: scene lists nest more than 4 deep; is a list including itself?")
@@ -113,7 +114,8 @@ def scenes_in_folder(folder: Path) -> list[str]:
         return nuscenes_scene_uris(folder)
     if is_drivestudio_scene(folder):
         return [f"drivestudio:{folder}"]
-    uris = [f"waymo:{p}" for p in sorted(folder.rglob("*.tfrecord"))]
+    uris = [f"waymo:{p}" for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.suffix in WAYMO_SUFFIXES and not p.name.startswith(".")]
     uris += [f"drivestudio:{p}" for p in sorted(folder.iterdir())
              if p.is_dir() and is_drivestudio_scene(p)]
     if not uris:
