@@ -65,12 +65,17 @@ def build(
     scenes: List[str] = typer.Option([], "--scenes", help="A scene list file (one URI or path a line, '#' comments), a folder of logs (*.tfrecord, a nuScenes dataroot, DriveStudio folders), or URIs. Repeatable."),
     profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Parameter profile (stages/profiles/NAME.yaml); default: the paper's."),
     stages: Optional[str] = typer.Option(None, "--stages", help="Comma-separated stages to run (default: all)."),
-    data: Path = typer.Option(DEFAULT_DATA, "--data", help="Where scenes are written (<data>/scenes/<scene_id>); with --executor ray every node must see it at this path."),
+    data: str = typer.Option(str(DEFAULT_DATA), "--data", help="Where scenes are written (<data>/scenes/<scene_id>): a folder (with --executor ray, one every node sees at this path) or an fsspec URL such as s3://bucket/prefix, which each worker copies scenes from and back."),
+    storage_option: List[str] = typer.Option([], "--storage-option", help="fsspec option for a URL --data, KEY=VALUE (VALUE as JSON when it parses), e.g. endpoint_url=http://minio:9000. Repeatable."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help="With a URL --data: where each node keeps its copy of the scenes (default: $PARADRIVE_CACHE, else ~/.cache/paradrive)."),
+    drop_cache: bool = typer.Option(False, "--drop-cache", help="With a URL --data: delete a scene's local copy once each stage is uploaded (less disk, more downloads)."),
     manifests: Path = typer.Option(DEFAULT_MANIFESTS, "--manifests", help="Where builds (pair manifests) are written."),
     build_name: str = typer.Option("default", "--build", help="Build name: manifests and the status ledger go to <manifests>/<build>."),
     executor: str = typer.Option("local", "--executor", help="local (this process) or ray (each scene stage a Ray task)."),
     address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address, e.g. 'auto' or 'head:6379' (default: start a local Ray)."),
     gpu_policy: str = typer.Option("auto", "--gpu-policy", help="ray: auto (GPU stages run on CPU when the cluster has no GPU, with a warning), require (refuse), cpu (never ask for GPUs)."),
+    max_in_flight: Optional[int] = typer.Option(None, "--max-in-flight", min=1, help="ray: at most this many tasks submitted at once (default: twice the cluster's CPUs + GPUs)."),
+    max_retries: int = typer.Option(2, "--max-retries", min=0, help="ray: times a task whose worker died is submitted again (each try counts in the ledger)."),
     set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
     retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
@@ -102,13 +107,15 @@ def build(
             uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
             if not uris:
                 fail(f"--scenes {' '.join(scenes)}: no scenes found")
-        options = {"address": address, "gpu_policy": gpu_policy} if executor == "ray" else {}
+        options = {"address": address, "gpu_policy": gpu_policy, "max_in_flight": max_in_flight,
+                   "max_retries": max_retries} if executor == "ray" else {}
         runner = make_executor(executor, **options)
+        root = data_root(data, storage_option, cache, drop_cache)
     except (ConfigError, ParaDriveError, ValueError) as exc:
         fail(str(exc))
 
     try:
-        report = _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name,
+        report = _run_with_progress(config, uris, root, stage_list, runner, manifests, build_name,
                                     force, ledger, build_uris=build_uris,
                                     replace=not retry_failed)
     except (ConfigError, ParaDriveError) as exc:
@@ -117,6 +124,31 @@ def build(
     ledger.end_run(report.exit_code)
     _print_report(report, ledger)
     raise typer.Exit(report.exit_code)
+
+
+def data_root(data: str, storage_options: list[str], cache: Optional[Path], drop_cache: bool):
+    """The build's DataRoot from --data and the storage flags (which need a URL --data)."""
+    import json
+
+    from paradrive.storage import DataRoot, is_url
+
+    options = {}
+    for item in storage_options:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--storage-option {item!r}: write KEY=VALUE, e.g. endpoint_url=http://host:9000")
+        try:
+            options[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.strip()] = value
+    if not is_url(data) and (options or drop_cache):
+        raise ConfigError(f"--storage-option and --drop-cache apply to a URL --data (s3://…); "
+                          f"{data!r} is a folder")
+    root = DataRoot.of(data, storage_options=options, cache_dir=str(cache) if cache else None,
+                       drop_cache=drop_cache)
+    if root.remote:
+        root.filesystem()  # a missing backend (s3fs, gcsfs…) is a usage error before any work
+    return root
 
 
 def _open_ledger(manifests: Path, build_name: str):

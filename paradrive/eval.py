@@ -289,7 +289,7 @@ def register(app) -> None:
     @app.command("eval")
     def eval_cmd(
         scene: List[str] = typer.Option([], "--scene", help="Synthetic scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
-        data: Path = typer.Option(Path("data"), "--data", help="Where scenes live (<data>/scenes/<scene_id>)."),
+        data: str = typer.Option("data", "--data", help="Where scenes live (<data>/scenes/<scene_id>): a folder, or the URL a build wrote to (the scene is copied to the cache first)."),
         profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Parameter profile the scene was built with."),
         set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
         out_dir: Optional[Path] = typer.Option(None, "--out", help="Write eval.json / eval.png here (default <scene>/eval; one scene)."),
@@ -300,7 +300,7 @@ def register(app) -> None:
         from rich.console import Console
 
         from paradrive.pipeline import StageRegistry, parse_overrides
-        from paradrive.pipeline.runner import scene_dir_for
+        from paradrive.storage import DataRoot, local_scene
         from paradrive.uri import parse_uri
 
         console, err = Console(), Console(stderr=True)
@@ -322,7 +322,8 @@ def register(app) -> None:
                 failed += 1
                 continue
             try:
-                doc = evaluate_scene(scene_dir_for(data, uri.scene_id), config.params["render"],
+                scene_dir = local_scene(DataRoot.of(data), uri.scene_id)
+                doc = evaluate_scene(scene_dir, config.params["render"],
                                      ingest_params=config.params["ingest"],
                                      cameras=[c.strip() for c in camera.split(",")] if camera else None,
                                      max_frames=frames or None, out_dir=out_dir)
@@ -331,7 +332,7 @@ def register(app) -> None:
                 failed += 1
                 continue
             console.print(eval_table(doc))
-            where = Path(out_dir) if out_dir else scene_dir_for(data, uri.scene_id) / "eval"
+            where = Path(out_dir) if out_dir else scene_dir / "eval"
             console.print(f"wrote {where / 'eval.json'} and {where / 'eval.png'}")
         if failed:
             raise typer.Exit(2 if failed == len(parsed) else 3)

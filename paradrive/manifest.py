@@ -528,6 +528,7 @@ def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: dict, 
                 log.warning("manifest: skipped %s", exc)
             continue
         summary["scene_uri"] = entry.get("scene_uri") or summary["scene_uri"]
+        summary["scene_dir"] = entry.get("scene_location") or summary["scene_dir"]  # a URL root's own
         rows.extend(scene_rows_)
         media.extend(scene_media)
         scenes.append(summary)

@@ -56,3 +56,15 @@ def copy_tree(tmp_path):
         return dst
 
     return _copy
+
+
+@pytest.fixture
+def stage_config(tmp_path):
+    """The stand-in stages (``pipeline_stages``) resolved, with optional overrides by stage."""
+    def _config(overrides=None):
+        import pipeline_stages
+        from paradrive.pipeline import StageRegistry
+
+        folder = pipeline_stages.write_stages(tmp_path / "stages")
+        return StageRegistry(folder).resolve(None, overrides or {})
+    return _config

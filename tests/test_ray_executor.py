@@ -95,14 +95,6 @@ def ray_cluster():
             os.environ["PYTHONPATH"] = saved
 
 
-@pytest.fixture
-def stage_config(tmp_path):
-    def _config(overrides=None):
-        folder = pipeline_stages.write_stages(tmp_path / "stages")
-        return StageRegistry(folder).resolve(None, overrides or {})
-    return _config
-
-
 def build_with(executor, config, root: Path, scenes=SCENES, ledger=True):
     led = Ledger.for_build(root / "manifests", "b") if ledger else None
     if led:
@@ -158,6 +150,28 @@ def test_stages_of_a_scene_run_in_order_and_scenes_in_parallel(ray_cluster, stag
     assert len({r.scene_id for r in streamed[:first_clip]}) > 1
 
 
+def test_max_in_flight_from_the_command_line_bounds_the_tasks_out_at_once(ray_cluster, tmp_path,
+                                                                          monkeypatch):
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+
+    folder = pipeline_stages.write_stages(tmp_path / "stages")
+    monkeypatch.setenv("PARADRIVE_STAGES", str(folder))
+    args = ["build", *[a for uri in SCENES for a in ("--scene", uri)], "--data", str(tmp_path / "data"),
+            "--manifests", str(tmp_path / "manifests"), "--build", "b", "--executor", "ray",
+            "--max-in-flight", "1"]
+    res = CliRunner().invoke(app, args, env={"COLUMNS": "250"})
+    assert res.exit_code == 0, res.output
+    events = [c for c in pipeline_stages.calls(tmp_path / "data") if c[2] != "build"]
+    assert len(events) == 2 * 4 * len(SCENES)
+    # one task at a time: every start is followed by its own end
+    assert all(events[i][0] == "start" and events[i + 1] == ("end",) + events[i][1:]
+               for i in range(0, len(events), 2))
+    res = CliRunner().invoke(app, args[:-1] + ["0"], env={"COLUMNS": "250"})
+    assert res.exit_code == 2 and "--max-in-flight" in res.output
+
+
 def test_a_failed_scene_blocks_only_its_own_later_stages(ray_cluster, stage_config, tmp_path):
     scenes = SCENES[:2] + ["synthetic:street?seed=9&fail=fit"]
     report, _, ledger = build_with(RayExecutor(), stage_config(), tmp_path, scenes=scenes)
@@ -183,6 +197,9 @@ def test_a_worker_that_dies_mid_task_is_retried_and_leaves_nothing_half_written(
     starts = [c for c in pipeline_stages.calls(tmp_path / "data") if c[:2] == ("start", "render")
               and c[2] == crashed]
     assert len(starts) == 2
+    # the driver handed the task out twice, and the ledger counts both tries
+    assert ledger.task(crashed, "render")["attempts"] == 2
+    assert ledger.task(crashed, "fit")["attempts"] == 1
 
 
 def test_a_task_lost_for_good_is_a_failure_and_the_rerun_finishes_only_it(
@@ -223,30 +240,57 @@ REAL_SCENES = [f"synthetic:demo?seed={s}" for s in (1, 2, 3)]
 CORRUPT = "synthetic:demo?seed=4&colour=red"  # an option the synthetic reader does not know
 
 
-def _normalised_index(build_dir: Path, root: Path) -> dict:
+def _normalised_index(build_dir: Path, root: Path) -> str:
     doc = json.loads((build_dir / "index.json").read_text().replace(str(root), "<root>"))
     doc.pop("created_at")
-    return doc
+    return json.dumps(doc, sort_keys=True)
+
+
+@pytest.fixture(scope="module")
+def s3_bucket():
+    """A local S3 endpoint (moto's server) with an empty bucket; yields the --storage-option flags."""
+    pytest.importorskip("s3fs")
+    boto3 = pytest.importorskip("boto3")
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    options = {"endpoint_url": f"http://{host}:{port}", "key": "paradrive", "secret": "paradrive",
+               "client_kwargs": {"region_name": "us-east-1"}}
+    boto3.client("s3", endpoint_url=options["endpoint_url"], aws_access_key_id="paradrive",
+                 aws_secret_access_key="paradrive", region_name="us-east-1").create_bucket(Bucket="builds")
+    try:
+        yield options
+    finally:
+        server.stop()
 
 
 @pytest.mark.slow
 def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_build(
-        ray_cluster, tmp_path, monkeypatch):
+        ray_cluster, s3_bucket, tmp_path, monkeypatch):
+    """Local executor to a folder, Ray to a folder, Ray to S3: the same rows and the same bytes."""
     from typer.testing import CliRunner
 
     from paradrive.cli import app
     from paradrive.manifest import read_pairs
+    from paradrive.storage import DataRoot
 
     monkeypatch.delenv("PARADRIVE_STAGES", raising=False)
     listing = tmp_path / "scenes.txt"
     listing.write_text("# three good scenes and a bad one\n" + "\n".join(REAL_SCENES + [CORRUPT]) + "\n")
     sets = pipeline_stages.tiny_real_sets()
-    for executor in ("local", "ray"):
-        root = tmp_path / executor
+    url = "s3://builds/smoke3"
+    storage = [arg for key, value in s3_bucket.items()
+               for arg in ("--storage-option", f"{key}={json.dumps(value)}")]
+    runs = {"local": ("local", []), "ray": ("ray", []), "ray-s3": ("ray", [
+        "--data", url, *storage, "--cache", str(tmp_path / "cache")])}
+    for name, (executor, where) in runs.items():
+        root = tmp_path / name
         res = CliRunner().invoke(app, ["build", "--scenes", str(listing), "--profile", "smoke", *sets,
                                        "--data", str(root / "data"), "--manifests",
                                        str(root / "manifests"), "--build", "smoke3",
-                                       "--executor", executor], env={"COLUMNS": "250"})
+                                       "--executor", executor, *where], env={"COLUMNS": "250"})
         assert res.exit_code == 3, res.output  # partial: the good scenes landed, the bad one did not
         assert "3 of 4 scenes done; exit code 3 (partial build)" in res.output
         ledger = Ledger.for_build(root / "manifests", "smoke3")
@@ -257,18 +301,33 @@ def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_b
         assert "unknown synthetic option 'colour'" in row["error"]
         assert ledger.runs()[-1]["executor"] == executor
 
-    local, remote = tmp_path / "local", tmp_path / "ray"
+    local = tmp_path / "local"
     rows = read_pairs(local / "manifests" / "smoke3").to_pylist()
     assert {r["scene_id"] for r in rows} == {f"synthetic-demo-s{s}" for s in (1, 2, 3)}
-    assert read_pairs(remote / "manifests" / "smoke3").to_pylist() == rows
-    assert _normalised_index(remote / "manifests" / "smoke3", remote) == \
-        _normalised_index(local / "manifests" / "smoke3", local)
-    # every file byte for byte (checkpoints, renders, videos, shards), but for the clocks in fit.json
+    # the scenes written to S3, fetched back into a folder shaped like the others
+    s3 = DataRoot.of(url, storage_options=s3_bucket)
+    fs, base = s3.filesystem()
+    fetched = tmp_path / "ray-s3" / "data"
+    for name in fs.find(f"{base}/scenes"):
+        target = fetched / name[len(base) + 1:]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(fs.cat_file(name))
     skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
-    assert pipeline_stages.tree_digest(remote, skip) == pipeline_stages.tree_digest(local, skip)
-    for s in (1, 2, 3):
-        rel = Path("data/scenes") / f"synthetic-demo-s{s}" / "gs" / "fit.json"
-        assert _without_clocks(remote / rel) == _without_clocks(local / rel)
+    expected = pipeline_stages.tree_digest(local, skip)
+    for name in ("ray", "ray-s3"):
+        other = tmp_path / name
+        assert read_pairs(other / "manifests" / "smoke3").to_pylist() == rows
+        index = _normalised_index(other / "manifests" / "smoke3", other).replace(url, "<root>/data")
+        assert index == _normalised_index(local / "manifests" / "smoke3", local)
+        # every file byte for byte (checkpoints, renders, videos, shards), but the clocks in fit.json
+        assert pipeline_stages.tree_digest(other, skip) == expected
+        for s in (1, 2, 3):
+            rel = Path("data/scenes") / f"synthetic-demo-s{s}" / "gs" / "fit.json"
+            assert _without_clocks(other / rel) == _without_clocks(local / rel)
+    markers = fs.find(f"{base}/scenes/synthetic-demo-s1/.paradrive")
+    assert sorted(m.rsplit("/", 1)[1] for m in markers) == [
+        "clip.json", "fit.json", "ingest.json", "render.json"]
+    assert not fs.exists(f"{base}/scenes/synthetic-demo-s4-colourred/scene.json")
 
 
 def _without_clocks(path: Path):
@@ -287,3 +346,72 @@ def test_gpu_policy_require_refuses_the_cpu_only_test_cluster_before_running_any
     with pytest.raises(ConfigError, match="stage 'fit' declares gpu: 1 but the Ray cluster has no GPU"):
         build_with(RayExecutor(gpu_policy="require"), stage_config(), tmp_path, ledger=False)
     assert pipeline_stages.calls(tmp_path / "data") == []
+
+
+@pytest.mark.slow
+def test_a_ray_build_killed_midway_resumes_with_only_the_missing_work(tmp_path):
+    """SIGKILL to the driver of a real-stage Ray build (its local cluster goes with it), then the
+    same command again: what had landed is skipped, the rest is done, the result is the same."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    psutil = pytest.importorskip("psutil")
+    scenes = REAL_SCENES[:2]
+    ids = [f"synthetic-demo-s{s}" for s in (1, 2)]
+    listing = tmp_path / "scenes.txt"
+    listing.write_text("\n".join(scenes) + "\n")
+    env = {k: v for k, v in os.environ.items() if k != "PARADRIVE_STAGES"}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+
+    def command(root: Path, executor: str) -> list[str]:
+        return [sys.executable, "-m", "paradrive.cli", "build", "--scenes", str(listing),
+                "--profile", "smoke", *pipeline_stages.tiny_real_sets(), "--data", str(root / "data"),
+                "--manifests", str(root / "manifests"), "--build", "b", "--executor", executor]
+
+    whole = tmp_path / "whole"
+    done = subprocess.run(command(whole, "local"), env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+    killed = tmp_path / "killed"
+    marker = scene_dir_for(killed / "data", ids[0]) / ".paradrive" / "fit.json"
+    proc = subprocess.Popen(command(killed, "ray"), env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 240
+    try:  # kill the build once the first scene's fit has landed, with work still in flight
+        while not marker.is_file():
+            assert proc.poll() is None and time.time() < deadline, "the build ended before the kill"
+            time.sleep(0.05)
+        # SIGKILL to the driver and the local cluster it started (same process group), at once
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        proc.kill()
+    time.sleep(1)
+    left = [p for p in psutil.process_iter(["pid", "status"]) if _process_group(p.pid) == proc.pid
+            and p.info["status"] != psutil.STATUS_ZOMBIE]
+    assert not left, f"processes of the killed build still run: {left}"
+    ledger = Ledger.for_build(killed / "manifests", "b")
+    assert ledger.runs()[-1]["exit_code"] is None  # the dead build never finished its run
+    landed = {(sid, p.stem) for sid in ids
+              for p in (scene_dir_for(killed / "data", sid) / ".paradrive").glob("*.json")}
+    assert (ids[0], "fit") in landed and len(landed) < 8, landed
+
+    resumed = subprocess.run(command(killed, "ray"), env=env, capture_output=True, text=True,
+                             timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    states = {(r["scene_id"], r["stage"]): r["state"] for r in ledger.tasks()
+              if not r["scene_id"].startswith("build:")}
+    assert {k for k, v in states.items() if v == "skipped"} == landed
+    assert {k for k, v in states.items() if v == "done"} == set(states) - landed
+    skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
+    assert pipeline_stages.tree_digest(killed, skip) == pipeline_stages.tree_digest(whole, skip)
+    assert not list((killed / "data").rglob(".*.tmp-*"))
+
+
+def _process_group(pid: int) -> int | None:
+    try:
+        return os.getpgid(pid)
+    except OSError:
+        return None

@@ -16,9 +16,10 @@ from typing import Callable
 from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
 from paradrive.pipeline.runner import (
-    BuildContext, StageResult, fingerprint, load_entry, read_marker, scene_dir_for,
+    MARKER_DIR, BuildContext, StageResult, fingerprint, load_entry, read_marker, scene_dir_for,
 )
 from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.storage import DataRoot
 from paradrive.uri import parse_uri
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
@@ -61,20 +62,37 @@ def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list
     return scene_stages, build_stages
 
 
-def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str], data_dir: Path,
-                    manifests_dir: Path, build: str, *, force: bool = False) -> StageResult:
-    """Run a build-scoped stage over the scenes whose needed stages completed."""
+def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
+                    data_dir: str | Path | DataRoot, manifests_dir: Path, build: str, *,
+                    force: bool = False) -> StageResult:
+    """Run a build-scoped stage over the scenes whose needed stages completed.
+
+    With a URL data root, each scene's markers are read remotely and the files the stage
+    ``reads`` are brought to this machine's cache first.
+    """
+    root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
+    label = f"build:{build}"
     t0 = time.time()
-    scenes, inputs = [], {}
+    scenes, inputs, mirrors = [], {}, []
     for uri in scene_uris:
         sid = parse_uri(uri).scene_id
-        sdir = scene_dir_for(data_dir, sid)
+        sdir = scene_dir_for(root.local, sid)
+        mirror = root.mirror(sid)
+        try:
+            if mirror:
+                mirror.refresh()
+                mirror.pull([f"{MARKER_DIR}/*.json"], prune=True)
+        except OSError as exc:
+            return StageResult(label, stage, "failed",
+                               error=f"build {build}: cannot read scene {sid} at "
+                                     f"{root.scene_location(sid)} ({type(exc).__name__}: {exc})")
         markers = [read_marker(sdir, need) for need in spec.needs]
         if all(markers):
-            scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir)})
+            scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),
+                           "scene_location": root.scene_location(sid)})
             inputs[sid] = ",".join(m["fingerprint"] for m in markers)
-    label = f"build:{build}"
+            mirrors.append(mirror)
     if not scenes:
         return StageResult(label, stage, "failed",
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
@@ -90,17 +108,23 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str], d
             pass
     log = logging.getLogger(f"paradrive.build.{build}")
     try:
+        for mirror in filter(None, mirrors):
+            mirror.pull(spec.reads)  # a URL root: what the stage reads, to this machine
         func = load_entry(spec)
-        ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=Path(data_dir),
+        ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=root.local,
                            scenes=scenes, params=dict(config.params[stage]), log=log, fingerprint=fp)
         summary = func(ctx) or {}
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
     except (ParaDriveError, OSError, ValueError) as exc:
         return StageResult(label, stage, "failed", seconds=time.time() - t0, error=str(exc))
+    finally:
+        if root.drop_cache:
+            for mirror in filter(None, mirrors):
+                mirror.drop()
 
 
-def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path, *,
+def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path | DataRoot, *,
               stages: list[str] | None = None, executor: Executor | None = None,
               manifests_dir: str | Path = "manifests", build: str = "default",
               force: bool = False, build_scene_uris: list[str] | None = None,
@@ -113,7 +137,7 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     build. ``on_start(scene_uri or 'build:<name>', stage)`` and ``on_result(StageResult)`` are
     called on this process as tasks start and finish, whatever the executor.
     """
-    data_dir = Path(data_dir).resolve()  # the same folder for workers with another working dir
+    data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
     seen, uris = set(), []
     for uri in scene_uris:

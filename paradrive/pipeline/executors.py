@@ -7,7 +7,10 @@ as a Ray task with the stage's declared resources.
 
 The contract every executor keeps: ``on_start(scene_uri, stage)`` when a stage is handed to a
 worker and ``on_result(StageResult)`` when it comes back, both called on the driver (so the
-ledger and the progress bar live in one process), and one result per (scene, stage) asked.
+ledger and the progress bar live in one process), and one result per (scene, stage) asked. A
+stage handed out again after its worker died gets another ``on_start`` (the ledger counts
+attempts from them). ``data_dir`` is a :class:`~paradrive.storage.DataRoot`: a folder every
+worker sees, or a URL each worker copies scenes from and back.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from typing import Callable, Protocol
 
 from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.storage import DataRoot
 
 ResultCallback = Callable[[StageResult], None]
 StartCallback = Callable[[str, str], None]
@@ -32,7 +36,7 @@ class SceneTask:
 class Executor(Protocol):
     name: str
 
-    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: Path, *,
+    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None) -> list[StageResult]:
         ...
@@ -47,7 +51,7 @@ def blocked_result(result: StageResult, stage: str) -> StageResult:
 class LocalExecutor:
     name = "local"
 
-    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: Path, *,
+    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None) -> list[StageResult]:
         results: list[StageResult] = []

@@ -19,12 +19,14 @@ declaring ``cpu: 4``). GPUs follow ``gpu_policy``:
 - ``cpu``: never ask for GPUs (every stage runs on CPU, GPUs stay free for others).
 
 Failures. A stage that fails returns a failed result (the runner never raises for bad input);
-the scene's later stages are recorded ``blocked``. A worker that dies mid-task (killed, out of
-memory) is retried by Ray up to ``max_retries`` times (stages write atomically and are
+the scene's later stages are recorded ``blocked``. A task whose worker dies (killed, out of
+memory, node lost) is submitted again by the driver up to ``max_retries`` times, each time with
+a new ``on_start``, so the ledger's attempts count every try (stages write atomically and are
 idempotent, so a retry starts clean); after that the stage is recorded failed with Ray's reason,
 and a re-run of the build finishes only what is missing.
 
-Outputs go to ``data_dir``, which every node must see at the same path (a shared file system).
+Outputs go to the data root: a folder every node sees at the same path (a shared file system),
+or an fsspec URL (``s3://…``) each worker copies a scene from and back (``paradrive.storage``).
 Workers must import the same ``paradrive`` as the driver: installed on every node, or, for a
 local cluster started here, the driver's checkout (put on the workers' ``PYTHONPATH``).
 """
@@ -46,6 +48,7 @@ from paradrive.pipeline.executors import (
 )
 from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.pipeline.specs import ResolvedConfig, Resources
+from paradrive.storage import DataRoot
 from paradrive.uri import parse_uri
 
 log = logging.getLogger("paradrive.ray")
@@ -108,7 +111,7 @@ def task_resources(stage: str, declared: Resources, capacity: Capacity,
     return {"num_cpus": cpu, "num_gpus": gpu, "memory": int(memory)}, warnings
 
 
-def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: str,
+def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
               force: bool) -> tuple[StageResult, dict]:
     """The body of one Ray task (runs on a worker)."""
     started = time.time()
@@ -190,14 +193,14 @@ class RayExecutor:
 
     # -- running ------------------------------------------------------------------------------
 
-    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: Path, *,
+    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None) -> list[StageResult]:
         if not tasks:
             return []
         ray, started_here = self._connect()
         try:
-            return self._run(ray, config, tasks, Path(data_dir), force, on_start, on_result)
+            return self._run(ray, config, tasks, DataRoot.of(data_dir), force, on_start, on_result)
         finally:
             if started_here:
                 ray.shutdown()
@@ -208,28 +211,27 @@ class RayExecutor:
         options = self.plan(config, all_stages, capacity)
         remote = ray.remote(_run_task)
         config_ref = ray.put(config)
-        data = str(Path(data_dir).resolve())
         total = ray.cluster_resources()  # the whole cluster: enough queued to keep every node busy
         window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
 
         results: list[StageResult] = []
         queue = deque(t for t in tasks if t.stages)
-        in_flight: dict[Any, tuple[SceneTask, int]] = {}
+        in_flight: dict[Any, tuple[SceneTask, int, int]] = {}  # ref -> (task, stage index, try)
 
         def emit(result: StageResult) -> None:
             results.append(result)
             if on_result:
                 on_result(result)
 
-        def submit(task: SceneTask, index: int) -> None:
+        def submit(task: SceneTask, index: int, attempt: int = 1) -> None:
             stage = task.stages[index]
             if on_start:
                 on_start(task.scene_uri, stage)
-            ref = remote.options(**options[stage], max_retries=self.max_retries,
-                                 retry_exceptions=False,
+            # Ray does not retry by itself: the driver does, so every try is seen and counted.
+            ref = remote.options(**options[stage], max_retries=0, retry_exceptions=False,
                                  name=f"{stage}:{_scene_id(task.scene_uri)}").remote(
-                config_ref, stage, task.scene_uri, data, force)
-            in_flight[ref] = (task, index)
+                config_ref, stage, task.scene_uri, data_dir, force)
+            in_flight[ref] = (task, index, attempt)
 
         try:
             while queue or in_flight:
@@ -237,12 +239,19 @@ class RayExecutor:
                     submit(queue.popleft(), 0)
                 ready, _ = ray.wait(list(in_flight), num_returns=1)
                 for ref in ready:
-                    task, index = in_flight.pop(ref)
+                    task, index, attempt = in_flight.pop(ref)
                     stage = task.stages[index]
                     try:
                         result, where = ray.get(ref)
                         self.placements[(result.scene_id, stage)] = where
                     except Exception as exc:  # the task was lost: worker died, node gone, ...
+                        if attempt <= self.max_retries:
+                            log.warning("%s of %s lost (%s: %s); try %d of %d", stage,
+                                        _scene_id(task.scene_uri), type(exc).__name__,
+                                        (str(exc).strip().splitlines() or [""])[0], attempt + 1,
+                                        self.max_retries + 1)
+                            submit(task, index, attempt + 1)
+                            continue
                         result = lost_result(task.scene_uri, stage, exc, self.max_retries)
                     emit(result)
                     if result.status == "failed":

@@ -28,6 +28,7 @@ import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
 from paradrive.io import remove_stale_temporaries, write_json
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec
+from paradrive.storage import DataRoot, SceneMirror
 from paradrive.uri import parse_uri
 
 MARKER_DIR = ".paradrive"
@@ -112,13 +113,12 @@ def expand_outputs(patterns: list[str], params: dict) -> list[str]:
     return out
 
 
-def outputs_present(scene_dir: Path, spec: StageSpec, params: dict) -> list[str]:
-    """Declared outputs that are missing (empty list = all there)."""
-    missing = []
-    for rel in expand_outputs(spec.outputs, params):
-        if not glob.glob(str(Path(scene_dir) / rel)):
-            missing.append(rel)
-    return missing
+def outputs_present(scene_dir: Path, spec: StageSpec, params: dict,
+                    exists: Callable[[str], bool] | None = None) -> list[str]:
+    """Declared outputs that are missing (empty list = all there); ``exists(pattern)`` checks
+    somewhere else than the local scene folder (a remote listing)."""
+    exists = exists or (lambda rel: bool(glob.glob(str(Path(scene_dir) / rel))))
+    return [rel for rel in expand_outputs(spec.outputs, params) if not exists(rel)]
 
 
 def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
@@ -185,16 +185,46 @@ def scene_logger(scene_id: str, log_file: Path | None = None) -> Iterator[loggin
             handler.close()
 
 
-def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: str | Path,
-                    *, force: bool = False,
+def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
+                    data_dir: str | Path | DataRoot, *, force: bool = False,
                     progress: Callable[[int, int], None] | None = None) -> StageResult:
-    """Run (or skip) one stage of one scene. Never raises for bad input: the result says failed."""
-    data_dir = Path(data_dir)
-    spec = config.registry().specs[stage]
+    """Run (or skip) one stage of one scene. Never raises for bad input: the result says failed.
+
+    ``data_dir`` is a folder or a :class:`~paradrive.storage.DataRoot` (a URL root runs the
+    stage on this node's copy of the scene and uploads the result, marker last).
+    """
+    root = DataRoot.of(data_dir)
     try:
         scene_id = parse_uri(scene_uri).scene_id
     except ParaDriveError as exc:
         return StageResult(scene_id=scene_uri, stage=stage, status="failed", error=str(exc))
+    mirror = root.mirror(scene_id)
+    if mirror is None:
+        return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, progress)
+    try:
+        mirror.pull_log()
+        mirror.refresh()
+        mirror.pull([f"{MARKER_DIR}/*.json"], prune=True)  # the remote markers are the truth
+    except OSError as exc:
+        return StageResult(scene_id, stage, "failed",
+                           error=f"scene {scene_id}: {stage}: cannot read {mirror.remote} "
+                                 f"({type(exc).__name__}: {exc}); check the data root's URL "
+                                 f"and credentials")
+    try:
+        result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force, progress)
+    finally:
+        with contextlib.suppress(OSError):
+            mirror.push_log()
+        if root.drop_cache:
+            mirror.drop()
+    return result
+
+
+def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str,
+                     root: DataRoot, mirror: SceneMirror | None, force: bool,
+                     progress: Callable[[int, int], None] | None) -> StageResult:
+    data_dir = root.local
+    spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
     with scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log") as log:
         params = config.params[stage]
@@ -202,15 +232,21 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir
         try:
             fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
             marker = read_marker(scene_dir, stage)
+            exists = mirror.exists if mirror else None
             if (not force and marker and marker.get("fingerprint") == fp
-                    and not outputs_present(scene_dir, spec, params)):
+                    and not outputs_present(scene_dir, spec, params, exists)):
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
                 return StageResult(scene_id, stage, "skipped", fingerprint=fp,
                                    summary=marker.get("summary", {}))
             func = load_entry(spec)
             scene_dir.mkdir(parents=True, exist_ok=True)
             marker_path(scene_dir, stage).unlink(missing_ok=True)
+            if mirror:
+                mirror.withdraw(f"{MARKER_DIR}/{stage}.json")
+                pulled = mirror.pull(spec.reads)
+                log.info("%s: %d file(s) brought from %s", stage, pulled, root.scene_location(scene_id))
             remove_stale_temporaries(scene_dir)
+            before = mirror.snapshot() if mirror else {}
             log.info("%s: started (fingerprint %s)", stage, fp)
             ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
                                scene_dir=scene_dir, data_dir=data_dir, params=dict(params), log=log,
@@ -226,6 +262,10 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir
                         "params": params, "inputs": {k: v["fingerprint"] for k, v in upstream.items()},
                         "version": paradrive.__version__, "seconds": round(seconds, 3),
                         "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
+            if mirror:
+                uploaded, deleted = mirror.push(before, last=[f"{MARKER_DIR}/{stage}.json"])
+                log.info("%s: %d file(s) uploaded to %s, %d removed there", stage, uploaded,
+                         root.scene_location(scene_id), deleted)
             log.info("%s: done in %.1f s", stage, seconds)
             return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
                                peak_rss_mb=_peak_rss_mb(), summary=summary)
@@ -240,5 +280,5 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir
             log.error("%s: crashed:\n%s", stage, traceback.format_exc())
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
                                error=f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: {exc} "
-                                     f"(traceback in {data_dir / 'logs' / (scene_id + '.log')})",
+                                     f"(traceback in {root.location}/logs/{scene_id}.log)",
                                peak_rss_mb=_peak_rss_mb())

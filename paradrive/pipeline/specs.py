@@ -8,6 +8,7 @@ A stage file::
     scope: scene                            # or 'build' (runs once over many scenes)
     resources: {cpu: 2, gpu: 1, memory_gb: 16}
     outputs: ["gs/ckpt_{checkpoints:06d}.ply", "gs/fit.json"]
+    reads: ["scene.json", "images"]         # optional: what a URL data root must bring to the worker
     params:
       checkpoints: {default: [100, 500, 1000, 30000], doc: "paper §3: ..."}
 
@@ -59,6 +60,7 @@ class StageSpec(BaseModel):
     description: str = ""
     resources: Resources = Resources()
     outputs: list[str] = []
+    reads: list[str] | None = None   # scene files it reads (globs); None = the whole scene folder
     params: dict[str, Param] = {}
     file: str = ""
 
