@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import fnmatch
+import functools
 import hashlib
 import json
 import os
@@ -38,6 +39,25 @@ from paradrive.io import temporary_name, write_json
 OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"})
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 _FILESYSTEMS: dict[str, tuple[Any, str]] = {}
+
+
+class StorageError(OSError):
+    """A remote data root could not be read or written (network, credentials, bucket, quota)."""
+
+
+def _remote_call(method):
+    """Any failure of a remote operation becomes a StorageError naming the scene's URL."""
+    @functools.wraps(method)
+    def wrapper(self: "SceneMirror", *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except StorageError:
+            raise
+        except Exception as exc:  # fsspec backends raise their own types (botocore, aiohttp…)
+            raise StorageError(f"{method.__name__} of {self.root.scene_location(self.scene_id)} "
+                               f"failed: {type(exc).__name__}: {exc}; check the URL, the "
+                               f"credentials and the network, then re-run") from exc
+    return wrapper
 
 
 def is_url(text: str | os.PathLike) -> bool:
@@ -122,9 +142,8 @@ def local_scene(root: DataRoot, scene_id: str) -> Path:
         try:
             mirror.refresh()
             mirror.pull()
-        except OSError as exc:
-            raise ConfigError(f"cannot read {root.scene_location(scene_id)} ({type(exc).__name__}: "
-                              f"{exc}); check the URL and the credentials") from exc
+        except StorageError as exc:
+            raise ConfigError(f"cannot read the scene: {exc}") from exc
     return root.local / "scenes" / scene_id
 
 
@@ -167,6 +186,7 @@ class SceneMirror:
 
     # -- what is there ------------------------------------------------------------------------
 
+    @_remote_call
     def refresh(self) -> dict[str, dict]:
         """List the remote scene folder: relative path -> fsspec info (temporaries left out)."""
         try:
@@ -190,6 +210,7 @@ class SceneMirror:
 
     # -- down ---------------------------------------------------------------------------------
 
+    @_remote_call
     def pull(self, patterns: list[str] | None = None, *, prune: bool = False) -> int:
         """Bring the listed files (those ``patterns`` name; None = all) whose cached copy is
         missing or older; returns how many were downloaded. ``prune`` also deletes cached files
@@ -223,6 +244,7 @@ class SceneMirror:
                 self._save_record()
         return len(todo)
 
+    @_remote_call
     def pull_log(self) -> None:
         """The scene's log so far (a stage appends to it)."""
         with contextlib.suppress(FileNotFoundError):
@@ -252,6 +274,7 @@ class SceneMirror:
                         out[rel] = (st.st_size, st.st_mtime_ns)
         return out
 
+    @_remote_call
     def withdraw(self, rel: str) -> None:
         """Delete one remote file (a stage's marker before the stage runs again)."""
         with contextlib.suppress(FileNotFoundError):
@@ -259,6 +282,7 @@ class SceneMirror:
         self.listing.pop(rel, None)
         self.record.pop(rel, None)
 
+    @_remote_call
     def push(self, before: dict[str, tuple[int, int]], last: list[str]) -> tuple[int, int]:
         """Upload what changed since ``before``, delete what was removed, then ``last`` (the
         marker). Returns (uploaded, deleted)."""
@@ -278,6 +302,7 @@ class SceneMirror:
         self._save_record()
         return len(changed) + len(last), len(removed)
 
+    @_remote_call
     def push_log(self) -> None:
         if self.log_local.is_file():
             self._put([str(self.log_local)], [self.log_remote])

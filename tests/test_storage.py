@@ -231,3 +231,25 @@ def test_the_cli_takes_a_url_and_storage_options(tmp_path, monkeypatch):
     assert res.exit_code == 2 and "write KEY=VALUE" in res.output
     doc = json.loads((tmp_path / "manifests" / "b" / "index.json").read_text())
     assert doc["rows"] == 2
+
+
+def test_a_scene_of_a_url_root_is_brought_whole_for_local_readers(stage_config, memory_root,
+                                                                  tmp_path):
+    """What ``paradrive eval --data s3://…`` reads: the scene as a folder in the cache."""
+    from paradrive.storage import local_scene
+
+    build(stage_config(), SCENES[:1], memory_root, tmp_path / "manifests")
+    shutil.rmtree(memory_root.local)
+    folder = local_scene(memory_root, IDS[0])
+    assert local_tree(folder) == {k[len(IDS[0]) + 1:]: v for k, v in remote_tree(memory_root).items()}
+
+    unreachable = DataRoot.of("s3://no-such-bucket/x", cache_dir=str(tmp_path / "c"), storage_options={
+        "endpoint_url": "http://127.0.0.1:9", "key": "k", "secret": "s",
+        "config_kwargs": {"retries": {"max_attempts": 1}, "connect_timeout": 1}})
+    with pytest.raises(ConfigError, match="refresh of s3://no-such-bucket/x/scenes/scene failed.*"
+                                          "check the URL, the credentials and the network"):
+        local_scene(unreachable, "scene")
+    # a build to it fails each scene with that reason instead of stopping
+    report = build(stage_config(), SCENES[:1], unreachable, tmp_path / "m2")
+    assert report.exit_code == 1
+    assert "s3://no-such-bucket/x/scenes/synthetic-street-s1" in report.failures()[0].error

@@ -83,10 +83,8 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             if mirror:
                 mirror.refresh()
                 mirror.pull([f"{MARKER_DIR}/*.json"], prune=True)
-        except OSError as exc:
-            return StageResult(label, stage, "failed",
-                               error=f"build {build}: cannot read scene {sid} at "
-                                     f"{root.scene_location(sid)} ({type(exc).__name__}: {exc})")
+        except OSError as exc:  # StorageError: names the URL and the fix
+            return StageResult(label, stage, "failed", error=f"build {build}: {exc}")
         markers = [read_marker(sdir, need) for need in spec.needs]
         if all(markers):
             scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),

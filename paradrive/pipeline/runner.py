@@ -205,11 +205,8 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
         mirror.pull_log()
         mirror.refresh()
         mirror.pull([f"{MARKER_DIR}/*.json"], prune=True)  # the remote markers are the truth
-    except OSError as exc:
-        return StageResult(scene_id, stage, "failed",
-                           error=f"scene {scene_id}: {stage}: cannot read {mirror.remote} "
-                                 f"({type(exc).__name__}: {exc}); check the data root's URL "
-                                 f"and credentials")
+    except OSError as exc:  # StorageError: names the URL and the fix
+        return StageResult(scene_id, stage, "failed", error=f"scene {scene_id}: {stage}: {exc}")
     try:
         result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force, progress)
     finally:
