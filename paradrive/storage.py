@@ -38,7 +38,6 @@ from paradrive.io import temporary_name, write_json
 
 OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"})
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
-_FILESYSTEMS: dict[str, tuple[Any, str]] = {}
 
 
 class StorageError(OSError):
@@ -110,18 +109,15 @@ class DataRoot:
         return Path(self.cache_dir or default_cache()).expanduser().resolve() / "data" / f"{name}-{digest}"
 
     def filesystem(self) -> tuple[Any, str]:
-        """(fsspec filesystem, root path inside it); one instance per process and root."""
-        key = json.dumps([self.location, self.storage_options], sort_keys=True, default=str)
-        if key not in _FILESYSTEMS:
-            import fsspec
+        """(fsspec filesystem, root path inside it); fsspec keeps one instance per options."""
+        import fsspec
 
-            try:
-                fs, path = fsspec.core.url_to_fs(self.location, **self.storage_options)
-            except (ImportError, ValueError) as exc:
-                raise ConfigError(f"data root {self.location}: {exc}; install the fsspec backend "
-                                  f"for it (s3fs for s3://, gcsfs for gs://, adlfs for az://)") from exc
-            _FILESYSTEMS[key] = (fs, path.rstrip("/"))
-        return _FILESYSTEMS[key]
+        try:
+            fs, path = fsspec.core.url_to_fs(self.location, **self.storage_options)
+        except (ImportError, ValueError) as exc:
+            raise ConfigError(f"data root {self.location}: {exc}; install the fsspec backend "
+                              f"for it (s3fs for s3://, gcsfs for gs://, adlfs for az://)") from exc
+        return fs, path.rstrip("/")
 
     def scene_location(self, scene_id: str) -> str:
         return f"{self.location}/scenes/{scene_id}" if self.remote \
@@ -243,6 +239,12 @@ class SceneMirror:
                     t.unlink(missing_ok=True)
                 self._save_record()
         return len(todo)
+
+    def sync(self, patterns: list[str]) -> None:
+        """List the remote folder, then make the cached copies of ``patterns`` equal the remote's:
+        download what changed, delete what the remote no longer has (stage markers)."""
+        self.refresh()
+        self.pull(patterns, prune=True)
 
     @_remote_call
     def pull_log(self) -> None:

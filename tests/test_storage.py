@@ -12,7 +12,6 @@ import shutil
 import uuid
 from pathlib import Path
 
-import fsspec
 import pytest
 
 from paradrive.errors import ConfigError

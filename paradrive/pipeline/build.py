@@ -81,8 +81,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         mirror = root.mirror(sid)
         try:
             if mirror:
-                mirror.refresh()
-                mirror.pull([f"{MARKER_DIR}/*.json"], prune=True)
+                mirror.sync([f"{MARKER_DIR}/*.json"])
         except OSError as exc:  # StorageError: names the URL and the fix
             return StageResult(label, stage, "failed", error=f"build {build}: {exc}")
         markers = [read_marker(sdir, need) for need in spec.needs]
@@ -90,7 +89,8 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),
                            "scene_location": root.scene_location(sid)})
             inputs[sid] = ",".join(m["fingerprint"] for m in markers)
-            mirrors.append(mirror)
+            if mirror:
+                mirrors.append(mirror)
     if not scenes:
         return StageResult(label, stage, "failed",
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
@@ -106,7 +106,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             pass
     log = logging.getLogger(f"paradrive.build.{build}")
     try:
-        for mirror in filter(None, mirrors):
+        for mirror in mirrors:
             mirror.pull(spec.reads)  # a URL root: what the stage reads, to this machine
         func = load_entry(spec)
         ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=root.local,
@@ -118,7 +118,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         return StageResult(label, stage, "failed", seconds=time.time() - t0, error=str(exc))
     finally:
         if root.drop_cache:
-            for mirror in filter(None, mirrors):
+            for mirror in mirrors:
                 mirror.drop()
 
 

@@ -16,7 +16,6 @@ worker sees, or a URL each worker copies scenes from and back.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, Protocol
 
 from paradrive.pipeline.runner import StageResult, run_scene_stage

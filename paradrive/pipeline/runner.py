@@ -203,8 +203,7 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
         return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, progress)
     try:
         mirror.pull_log()
-        mirror.refresh()
-        mirror.pull([f"{MARKER_DIR}/*.json"], prune=True)  # the remote markers are the truth
+        mirror.sync([f"{MARKER_DIR}/*.json"])  # the remote markers are the truth
     except OSError as exc:  # StorageError: names the URL and the fix
         return StageResult(scene_id, stage, "failed", error=f"scene {scene_id}: {stage}: {exc}")
     try:
@@ -238,8 +237,9 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             func = load_entry(spec)
             scene_dir.mkdir(parents=True, exist_ok=True)
             marker_path(scene_dir, stage).unlink(missing_ok=True)
+            marker_rel = marker_path(Path(), stage).as_posix()
             if mirror:
-                mirror.withdraw(f"{MARKER_DIR}/{stage}.json")
+                mirror.withdraw(marker_rel)
                 pulled = mirror.pull(spec.reads)
                 log.info("%s: %d file(s) brought from %s", stage, pulled, root.scene_location(scene_id))
             remove_stale_temporaries(scene_dir)
@@ -260,7 +260,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                         "version": paradrive.__version__, "seconds": round(seconds, 3),
                         "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
             if mirror:
-                uploaded, deleted = mirror.push(before, last=[f"{MARKER_DIR}/{stage}.json"])
+                uploaded, deleted = mirror.push(before, last=[marker_rel])
                 log.info("%s: %d file(s) uploaded to %s, %d removed there", stage, uploaded,
                          root.scene_location(scene_id), deleted)
             log.info("%s: done in %.1f s", stage, seconds)
