@@ -19,6 +19,11 @@ def temporary_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
 
 
+def is_temporary(name: str) -> bool:
+    """A name :func:`temporary_name` made (a write that has not landed)."""
+    return name.startswith(".") and ".tmp-" in name
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success rename it into place, else remove it.

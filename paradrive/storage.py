@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from paradrive.errors import ConfigError
-from paradrive.io import temporary_name, write_json
+from paradrive.io import is_temporary, temporary_name, write_json
 
 OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"})
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
@@ -151,7 +151,7 @@ def _token(info: dict) -> str:
 
 
 def _is_temporary(rel: str) -> bool:
-    return any(part.startswith(".") and ".tmp-" in part for part in rel.split("/"))
+    return any(is_temporary(part) for part in rel.split("/"))
 
 
 def matches(rel: str, patterns: Iterable[str]) -> bool:
@@ -322,8 +322,7 @@ class SceneMirror:
             return
         for parent in sorted({r.rsplit("/", 1)[0] for r in rpaths}):
             self.fs.makedirs(parent, exist_ok=True)
-        temps = [f"{r.rsplit('/', 1)[0]}/{temporary_name(Path(r.rsplit('/', 1)[1])).name}"
-                 for r in rpaths]
+        temps = [temporary_name(r).as_posix() for r in rpaths]
         self.fs.put(lpaths, temps)
         for t, r in zip(temps, rpaths):
             self.fs.mv(t, r)
