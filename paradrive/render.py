@@ -165,14 +165,6 @@ def load_checkpoint(path: str | os.PathLike, *, scene_id: str | None = None) -> 
                          scene_id=scene_id, path=path, fix="re-run the fit stage") from exc
 
 
-def _device(name: str = "auto"):
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 @dataclass(frozen=True)
 class SkyDome:
     """Where a fit keeps its sky: Gaussians farther than ``radius`` metres from ``centre``."""
@@ -202,7 +194,7 @@ def sky_dome_of(scene, scene_dir: Path) -> SkyDome | None:
 
 def render_views(params: dict, c2w: np.ndarray, K: np.ndarray, width: int, height: int, *,
                  depth: bool = False, batch_frames: int = 8, sky: SkyDome | None = None,
-                 device: str = "auto") -> Iterator[dict]:
+                 device: str = "auto", backend: str = "auto") -> Iterator[dict]:
     """Render Gaussians ``params`` from cameras ``c2w`` (N, 4, 4) (camera-to-world, OpenCV),
     ``batch_frames`` cameras per rasterizer call, all with intrinsics ``K`` (3, 3) at
     ``width x height``.
@@ -213,9 +205,11 @@ def render_views(params: dict, c2w: np.ndarray, K: np.ndarray, width: int, heigh
     """
     import torch
 
+    from paradrive.devices import resolve_backend, resolve_device
     from paradrive.gs.model import render, sh_degree_of
 
-    dev = _device(device)
+    dev = resolve_device(device)
+    backend = resolve_backend(backend, dev)
     p = {k: v.to(dev) for k, v in params.items()}
     deg = sh_degree_of(p)
     solid = None
@@ -233,14 +227,14 @@ def render_views(params: dict, c2w: np.ndarray, K: np.ndarray, width: int, heigh
             Ks = Kt.expand(len(vm), 3, 3).contiguous()
             one_pass = depth and solid is None
             out, alpha, _ = render(p, vm, Ks, int(width), int(height), sh_degree=deg,
-                                   render_mode="RGB+ED" if one_pass else "RGB")
+                                   render_mode="RGB+ED" if one_pass else "RGB", backend=backend)
             rgb = (out[..., :3].clamp(0, 1) * 255.0).round().to(torch.uint8).cpu().numpy()
             z = None
             if one_pass:
                 z, z_alpha = out[..., 3], alpha[..., 0]
             elif depth:
                 ed, z_alpha, _ = render(solid, vm, Ks, int(width), int(height), sh_degree=deg,
-                                        render_mode="ED")
+                                        render_mode="ED", backend=backend)
                 z, z_alpha = ed[..., 0], z_alpha[..., 0]
             if z is not None:
                 z = torch.where(z_alpha >= 0.5, z, torch.full_like(z, float("inf")))
@@ -296,7 +290,7 @@ def render_scene(scene_dir: str | os.PathLike, params: dict, *,
     width, height = int(params["width"]), int(params["height"])
     want_depth, want_alpha = bool(params["depth"]), bool(params["alpha"])
     batch = int(params["batch_frames"])
-    device = str(params.get("device", "auto"))
+    device, backend = str(params["device"]), str(params["backend"])
     streams = plan_streams(params)
     sky = sky_dome_of(scene, scene_dir) if want_depth else None
     iterations = sorted({s["iteration"] for s in streams if s["iteration"] is not None})
@@ -368,7 +362,7 @@ def render_scene(scene_dir: str | os.PathLike, params: dict, *,
                     k = 0
                     for result in render_views(cache[it], c2w, out.K, width, height,
                                                depth=want_depth, batch_frames=batch, sky=sky,
-                                               device=device):
+                                               device=device, backend=backend):
                         for j in range(len(result["rgb"])):
                             pos = frames[k]
                             _write_png(folder / f"{pos:06d}.png", result["rgb"][j])

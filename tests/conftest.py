@@ -46,6 +46,21 @@ def smoke_build(smoke_scene):
     return _build(smoke_scene["root"], SMOKE_SCENES)
 
 
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """Synthetic street, 8 frames of 80x48, front camera, with LiDAR and sky masks (ingest only)."""
+    from paradrive.pipeline import StageRegistry, run_build
+
+    root = tmp_path_factory.mktemp("tiny_scene")
+    config = StageRegistry().resolve("smoke", {"ingest": {
+        "synthetic_frames": 8, "synthetic_width": 80, "synthetic_height": 48}})
+    report = run_build(config, ["synthetic:demo?seed=7"], root / "data", stages=["ingest"],
+                       manifests_dir=root / "manifests", build="tiny")
+    assert not report.failures(), [r.error for r in report.failures()]
+    (scene_dir,) = (root / "data" / "scenes").iterdir()
+    return scene_dir
+
+
 @pytest.fixture
 def copy_tree(tmp_path):
     """Copy a built tree into this test's own folder before changing anything in it."""

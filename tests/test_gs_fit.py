@@ -38,21 +38,6 @@ def stage_params(profile: str | None = None, **overrides) -> dict:
     return StageRegistry().resolve(profile, {"fit": overrides} if overrides else None).params["fit"]
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory) -> Path:
-    """Synthetic street, 8 frames of 80x48, front camera, with LiDAR and sky masks."""
-    from paradrive.pipeline import StageRegistry, run_build
-
-    root = tmp_path_factory.mktemp("tiny_scene")
-    config = StageRegistry().resolve("smoke", {"ingest": {
-        "synthetic_frames": 8, "synthetic_width": 80, "synthetic_height": 48}})
-    report = run_build(config, ["synthetic:demo?seed=7"], root / "data", stages=["ingest"],
-                       manifests_dir=root / "manifests", build="tiny")
-    assert not report.failures(), [r.error for r in report.failures()]
-    (scene_dir,) = (root / "data" / "scenes").iterdir()
-    return scene_dir
-
-
 def _copy_scene(src: Path, dst: Path) -> Path:
     import shutil
 

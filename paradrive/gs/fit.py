@@ -34,6 +34,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, remove_stale_temporaries, write_json
 from paradrive.metrics import psnr, ssim
@@ -65,7 +66,7 @@ _REQUIRED = (
     "prune_opa", "refine_start_iter", "refine_stop_iter", "refine_every", "reset_every",
     "max_gaussians", "init", "init_points", "init_opacity", "init_depth_min", "init_depth_max",
     "init_depth_candidates", "lidar_voxel", "lidar_max_points", "sky_points", "sky_radius",
-    "sky_depth_weight", "eval_views", "state_interval", "keep_state",
+    "sky_depth_weight", "eval_views", "state_interval", "keep_state", "backend",
 )
 
 
@@ -204,12 +205,23 @@ def _set_rng_state(gen: torch.Generator, st: dict) -> None:
     random.setstate(st["python"])
 
 
+def _to_cpu(tree: Any) -> Any:
+    """Every tensor of a nested dict / list moved to the CPU: a state file loads on any machine."""
+    if isinstance(tree, torch.Tensor):
+        return tree.detach().cpu()
+    if isinstance(tree, dict):
+        return {k: _to_cpu(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(_to_cpu(v) for v in tree)
+    return tree
+
+
 def _save_state(path: Path, *, step, params, optimizers, strategy_state, gen, order, cursor,
                 metrics, elapsed, fingerprint, extra) -> None:
     doc = {
         "version": STATE_VERSION, "step": int(step), "fingerprint": fingerprint,
         "params": {k: v.detach().cpu().clone() for k, v in params.items()},
-        "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+        "optimizers": {k: _to_cpu(o.state_dict()) for k, o in optimizers.items()},
         "strategy": {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in strategy_state.items()},
         "rng": _rng_state(gen), "order": order.clone(), "cursor": int(cursor),
         "metrics": list(metrics), "elapsed": float(elapsed), "extra": extra,
@@ -229,13 +241,13 @@ def _peak_rss_mb() -> float:
 
 @torch.no_grad()
 def evaluate(params: Params, views: Sequence[View], indices: Sequence[int], sh_degree: int,
-             device: torch.device) -> dict:
+             device: torch.device, backend: str = "auto") -> dict:
     """Mean PSNR (dB) and SSIM of renders against the training images of ``indices``."""
     ps, ss = [], []
     for i in indices:
         v = views[i]
         out, _, _ = render(params, v.viewmat()[None].to(device), v.K[None].to(device), v.width,
-                           v.height, sh_degree=sh_degree)
+                           v.height, sh_degree=sh_degree, backend=backend)
         pred = out[0, ..., :3].clamp(0, 1).cpu()
         gt = v.rgb()
         ps.append(float(psnr(pred, gt)))
@@ -283,10 +295,7 @@ def fit_scene(scene_dir: str | os.PathLike, params: Dict[str, Any], *,
             log.info("fit: %s already complete", scene.scene_id)
             return done
 
-    dev_name = str(p["device"])
-    if dev_name == "auto":
-        dev_name = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(dev_name)
+    device = resolve_device(str(p["device"]))
 
     with deterministic_torch(int(p["threads"])):
         return _fit(scene, gs_dir, p, fp, device, log, progress, stop_after)
@@ -305,7 +314,10 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
                                refine_stop_iter=int(p["refine_stop_iter"]),
                                reset_every=int(p["reset_every"]), refine_every=int(p["refine_every"]),
                                max_gaussians=int(p["max_gaussians"]))
-    gen = torch.Generator().manual_seed(int(p["seed"]) + 1)
+    backend = resolve_backend(str(p["backend"]), device)
+    # the training order and split samples come from a CPU generator on every device, so a fit
+    # resumed on another machine draws the same numbers
+    gen = torch.Generator(device="cpu").manual_seed(int(p["seed"]) + 1)
     state_path = gs_dir / "state.pt"
     saved = None
     if state_path.is_file():
@@ -330,7 +342,7 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
     else:
         raw, is_sky, init_desc = initial_model(scene, views, p, scene_scale, log)
         extra = {"init": init_desc, "scene_scale": scene_scale}
-        strat_state = strategy.initialize_state(len(is_sky), scene_scale, is_sky)
+        strat_state = strategy.initialize_state(len(is_sky), scene_scale, is_sky, device=device)
         step, metrics, elapsed0, cpu0 = 0, [], 0.0, 0.0
         order, cursor = torch.randperm(len(views), generator=gen), 0
 
@@ -343,6 +355,7 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         _set_rng_state(gen, saved["rng"])
         del saved
 
+    densify = extra.setdefault("densify", {})   # running totals, saved with the state
     lr0 = float(p["lr_means"]) * scene_scale
     gamma = (float(p["lr_means_final"]) / float(p["lr_means"])) ** (1.0 / max(total, 1))
     lam = float(p["ssim_lambda"])
@@ -392,7 +405,7 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         deg = min(step // interval, max_deg)
         use_sky = has_sky and view.sky is not None and sky_w > 0
         out, alphas, info = render(params, viewmat, K, view.width, view.height, sh_degree=deg,
-                                   render_mode="RGB+ED" if use_sky else "RGB")
+                                   render_mode="RGB+ED" if use_sky else "RGB", backend=backend)
         pred = out[0, ..., :3]
         gt = view.rgb().to(device)
         loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
@@ -405,17 +418,19 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         for o in optimizers.values():
             o.step()
             o.zero_grad(set_to_none=True)
-        strategy.step_post_backward(params, optimizers, strat_state, step, info, gen)
+        changed = strategy.step_post_backward(params, optimizers, strat_state, step, info, gen)
+        for key, count in changed.items():
+            densify[key] = densify.get(key, 0) + count
         del out, alphas, info, loss, pred
         step += 1
         if step in cps:
             save_ply(checkpoint_path(gs_dir, step), params)
-            m = evaluate(params, views, eval_idx, max_deg, device)
+            m = evaluate(params, views, eval_idx, max_deg, device, backend)
             metrics = [x for x in metrics if x["iteration"] != step]
             metrics.append({"iteration": step, **m, "num_gaussians": int(params["means"].shape[0]),
                             "seconds": round(elapsed(), 3),
                             "cpu_seconds": round(cpu_seconds(), 3), "peak_rss_mb": round(_peak_rss_mb(), 1)})
-            if device.type == "cuda":
+            if device.type == "cuda" and torch.cuda.is_available():
                 metrics[-1]["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
             log.info("fit: %s iteration %d: PSNR %.2f dB, SSIM %.4f, %d Gaussians, %.1f s",
                      scene.scene_id, step, m["psnr"], m["ssim"], params["means"].shape[0], elapsed())
@@ -456,8 +471,7 @@ def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, he
         if ply_path is None:
             raise ValueError("render_checkpoint needs ply_path or params")
         params = load_ply(ply_path)
-    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
-                       ("cpu" if device == "auto" else device))
+    dev = resolve_device(device)
     params = {k: v.to(dev) for k, v in params.items()}
     c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float64)
     if c2w.dim() == 2:

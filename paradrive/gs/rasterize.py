@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from paradrive.devices import gsplat_status, resolve_backend
 from paradrive.gs._tiles import ALPHA_MIN, bin_gaussians, composite
 
 __all__ = ["rasterize", "eval_sh", "cuda_backend_available"]
@@ -181,21 +182,9 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
     return renders, alphas, info
 
 
-_CUDA_OK = None
-
-
 def cuda_backend_available() -> bool:
     """True when gsplat's compiled CUDA extension loads (checked once)."""
-    global _CUDA_OK
-    if _CUDA_OK is None:
-        _CUDA_OK = False
-        if torch.cuda.is_available():
-            try:
-                from gsplat.cuda._backend import _C
-                _CUDA_OK = _C is not None
-            except Exception:  # a missing or broken build means: use the torch backend
-                _CUDA_OK = False
-    return _CUDA_OK
+    return gsplat_status()[0]
 
 
 def _gsplat_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
@@ -234,7 +223,8 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     render_mode: 'RGB' -> (C, H, W, 3); 'RGB+ED' -> (C, H, W, 4), last channel the expected
     depth (alpha-normalised z); 'RGB+D' accumulated depth; 'D' / 'ED' -> (C, H, W, 1).
     backend: 'auto' (gsplat CUDA when the tensors are on CUDA and its extension loads, else
-    torch), 'torch' or 'gsplat'. tile_size is gsplat's; the torch backend uses TORCH_TILE_SIZE.
+    torch, with a warning on CUDA), 'torch' or 'gsplat' (ConfigError when it cannot run); see
+    :func:`paradrive.devices.resolve_backend`. tile_size is gsplat's; the torch backend uses TORCH_TILE_SIZE.
 
     Returns (renders, alphas (C, H, W, 1), info) with info keys 'means2d' (C, N, 2; in the
     autograd graph, retain_grad() called when it requires grad), 'radii' (C, N) int32 (0 = not
@@ -249,13 +239,10 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     if means.dim() != 2 or means.shape[-1] != 3:
         raise ValueError(f"means must be (N, 3), got {tuple(means.shape)}")
     width, height = int(width), int(height)
-    if backend == "auto":
-        backend = "gsplat" if means.is_cuda and cuda_backend_available() else "torch"
+    backend = resolve_backend(backend, means.device)
     args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)
     if backend == "torch":
         return _torch_rasterize(*args[:-1], TORCH_TILE_SIZE)
-    if backend == "gsplat":
-        return _gsplat_rasterize(*args)
-    raise ValueError(f"backend={backend!r}; expected 'auto', 'torch' or 'gsplat'")
+    return _gsplat_rasterize(*args)

@@ -35,6 +35,15 @@ def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
 
 
+def split_noise(generator: torch.Generator, n: int, device: torch.device) -> torch.Tensor:
+    """(2, n, 3) standard normal samples for the two children of n split Gaussians.
+
+    Drawn from ``generator`` on its own device (the fit keeps a CPU generator, so a resumed fit
+    draws the same numbers on any machine), then moved to ``device``.
+    """
+    return torch.randn(2, n, 3, generator=generator, device=generator.device).to(device)
+
+
 @torch.no_grad()
 def remap(params: Dict[str, torch.nn.Parameter], optimizers: Dict[str, torch.optim.Optimizer],
           state: Dict[str, Any], index: torch.Tensor, is_new: torch.Tensor,
@@ -80,11 +89,14 @@ class DensifyStrategy:
     refine_every: int = 100
     max_gaussians: int = 0  # 0: no cap
 
-    def initialize_state(self, n: int, scene_scale: float, is_sky: torch.Tensor | None = None) -> Dict[str, Any]:
+    def initialize_state(self, n: int, scene_scale: float, is_sky: torch.Tensor | None = None,
+                         device: torch.device | str = "cpu") -> Dict[str, Any]:
+        """Accumulators for ``n`` Gaussians on ``device`` (``is_sky``: (n,) bool, moved there)."""
         return {
-            "grad2d": torch.zeros(n),
-            "count": torch.zeros(n),
-            "is_sky": torch.zeros(n, dtype=torch.bool) if is_sky is None else is_sky.clone(),
+            "grad2d": torch.zeros(n, device=device),
+            "count": torch.zeros(n, device=device),
+            "is_sky": (torch.zeros(n, dtype=torch.bool, device=device) if is_sky is None
+                       else is_sky.to(device=device, copy=True)),
             "scene_scale": float(scene_scale),
         }
 
@@ -127,6 +139,7 @@ class DensifyStrategy:
 
     def _grow(self, params, optimizers, state, generator) -> tuple[int, int]:
         n = params["means"].shape[0]
+        dev = params["means"].device
         grads = state["grad2d"] / state["count"].clamp_min(1)
         high = (grads > self.grow_grad2d) & ~state["is_sky"]
         if self.max_gaussians > 0:
@@ -143,20 +156,21 @@ class DensifyStrategy:
         n_dup, n_split = int(dup.sum()), int(spl.sum())
         if n_dup:
             sel = torch.nonzero(dup).squeeze(1)
-            index = torch.cat([torch.arange(n), sel])
-            is_new = torch.cat([torch.zeros(n, dtype=torch.bool), torch.ones(n_dup, dtype=torch.bool)])
+            index = torch.cat([torch.arange(n, device=dev), sel])
+            is_new = torch.cat([torch.zeros(n, dtype=torch.bool, device=dev),
+                                torch.ones(n_dup, dtype=torch.bool, device=dev)])
             remap(params, optimizers, state, index, is_new)
-            spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
+            spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool, device=dev)])
         if n_split:
             n = params["means"].shape[0]
             rest = torch.nonzero(~spl).squeeze(1)
             sel = torch.nonzero(spl).squeeze(1)
             index = torch.cat([rest, sel, sel])
-            is_new = torch.cat([torch.zeros(len(rest), dtype=torch.bool),
-                                torch.ones(2 * n_split, dtype=torch.bool)])
+            is_new = torch.cat([torch.zeros(len(rest), dtype=torch.bool, device=dev),
+                                torch.ones(2 * n_split, dtype=torch.bool, device=dev)])
             scales = torch.exp(params["scales"].data[sel])                     # (S, 3)
             rot = _quat_to_rotmat(params["quats"].data[sel])                    # (S, 3, 3)
-            noise = torch.randn(2, n_split, 3, generator=generator) * scales    # (2, S, 3)
+            noise = split_noise(generator, n_split, dev) * scales               # (2, S, 3)
             offsets = torch.einsum("sij,bsj->bsi", rot, noise).reshape(-1, 3)
             means = torch.cat([params["means"].data[rest],
                                params["means"].data[sel].repeat(2, 1) + offsets])
@@ -174,7 +188,8 @@ class DensifyStrategy:
         n_prune = int(prune.sum())
         if n_prune:
             keep = torch.nonzero(~prune).squeeze(1)
-            remap(params, optimizers, state, keep, torch.zeros(len(keep), dtype=torch.bool))
+            remap(params, optimizers, state, keep,
+                  torch.zeros(len(keep), dtype=torch.bool, device=keep.device))
         return n_prune
 
     def _reset_opacity(self, params, optimizers, state) -> None:

@@ -25,6 +25,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import torch
 import yaml
 
+from paradrive.devices import resolve_device
 from paradrive.io import atomic_path, write_text
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.flow import euler_sample, flow_matching_loss
@@ -118,12 +119,6 @@ def open_dataset(build_dir: str | Path, config: Mapping[str, Any]):
                        output_size=(d["height"], d["width"]))
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 def _matches(name: str, modules: Sequence[str]) -> bool:
     return any(f".{m}." in f".{name}." for m in modules)
 
@@ -152,7 +147,7 @@ def latent_poses(poses: torch.Tensor, groups: Sequence[int]) -> torch.Tensor:
     """One pose per latent frame: poses (B, F, 4, 4) -> (B, f, 4, 4)."""
     if max(groups) >= poses.shape[1]:
         raise ValueError(f"the autoencoder wants the pose of frame {max(groups)}; the clip has {poses.shape[1]}")
-    return poses[:, list(groups)]
+    return poses[:, torch.as_tensor(list(groups), dtype=torch.long, device=poses.device)]
 
 
 def collate(samples: list[dict]) -> dict:

@@ -1,0 +1,153 @@
+"""Every tensor knows its device: the fit, the render and a trainer step on a second device.
+
+Most users fit on CUDA, where a CPU tensor meeting a device tensor is an error; these machines
+have no GPU. The tests run the real code on :mod:`simulated_device` (see its docstring), which
+fails the same way, and, where CUDA is present, on CUDA too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from simulated_device import DEVICE, DeviceMismatch, OnDevice, simulated_device, to_cpu
+from test_gs_fit import TINY_FIT, _copy_scene, stage_params
+
+from paradrive.devices import resolve_backend, resolve_device
+from paradrive.errors import ConfigError
+from paradrive.gs import strategy as strategy_module
+from paradrive.gs.fit import fit_scene, render_checkpoint
+from paradrive.gs.ply import load_ply
+
+# densify at 4, 8, 12, 16; reset at 12; checkpoints at 10 and 20; the kill at 14 lands after both
+FIT = {**TINY_FIT, "checkpoints": [10, 20]}
+DEVICES = ["simulated"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def _on(device: str):
+    """(context, device name for the stage parameters) of a test device."""
+    if device == "simulated":
+        return simulated_device(), str(DEVICE)
+    return contextlib.nullcontext(), device
+
+
+def test_a_cpu_tensor_meeting_a_device_tensor_fails_as_it_does_on_cuda():
+    with simulated_device():
+        a = torch.ones(3, device=DEVICE)
+        assert isinstance(a, OnDevice) and a.device == DEVICE
+        with pytest.raises(DeviceMismatch):
+            a + torch.ones(3)
+        with pytest.raises(DeviceMismatch):
+            torch.cat([a, torch.zeros(2)])
+        with pytest.raises(DeviceMismatch):
+            torch.randn(3, generator=torch.Generator(device="cpu"), device=DEVICE)
+        with pytest.raises(DeviceMismatch):
+            a[torch.tensor([0, 1])] = torch.zeros(2)   # values on the CPU
+        # what CUDA allows: CPU scalars, CPU index tensors, explicit copies between devices
+        b = a * torch.tensor(2.0)
+        c = a[torch.tensor([0, 2])]
+        d = torch.arange(3.0).to(DEVICE) + a
+        a[torch.tensor([True, False, True])] = 5.0
+        assert b.device == c.device == d.device == DEVICE
+        assert d.cpu().device.type == "cpu"
+        assert to_cpu(d).tolist() == [1.0, 2.0, 3.0]
+        assert to_cpu(a).tolist() == [5.0, 1.0, 5.0]
+
+
+def _fit_on(device: str, scene: Path, **kwargs) -> dict:
+    context, name = _on(device)
+    with context:
+        return fit_scene(scene, stage_params("smoke", **FIT, device=name), **kwargs)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, tiny_scene, tmp_path):
+    cpu = _copy_scene(tiny_scene, tmp_path / "cpu")
+    fit_scene(cpu, stage_params("smoke", **FIT, device="cpu"))
+    dev = _copy_scene(tiny_scene, tmp_path / "dev")
+    partial = _fit_on(device, dev, stop_after=14)
+    assert not partial["complete"] and (dev / "gs" / "state.pt").is_file()
+    done = _fit_on(device, dev)
+
+    assert done["complete"] and done["device"].startswith(str(DEVICE if device == "simulated" else device))
+    totals = done["densify"]
+    assert totals["duplicated"] + totals["split"] > 0 and totals["reset"] == 1, totals
+    assert not (dev / "gs" / "state.pt").exists()   # removed once the fit completed
+    for it in FIT["checkpoints"]:
+        name = f"gs/ckpt_{it:06d}.ply"
+        if device == "simulated":   # the same arithmetic on the same host: the same bytes
+            assert (dev / name).read_bytes() == (cpu / name).read_bytes(), name
+        else:                       # gsplat's kernels: the same model up to float noise
+            a, b = load_ply(dev / name), load_ply(cpu / name)
+            assert a["means"].shape == b["means"].shape
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_checkpoint_renders_on_a_device_as_on_the_cpu(device, tiny_scene, tmp_path):
+    scene = _copy_scene(tiny_scene, tmp_path / "scene")
+    fit_scene(scene, stage_params("smoke", **FIT, device="cpu"))
+    cam = json.loads((scene / "scene.json").read_text())["cameras"]["front"]
+    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+    frames = json.loads((scene / "scene.json").read_text())["frames"][:3]
+    c2w = np.stack([np.reshape(f["cameras"]["front"]["c2w"], (4, 4)) for f in frames])
+    ply = scene / "gs" / "ckpt_000020.ply"
+    ref = render_checkpoint(ply, c2w, K, cam["width"], cam["height"], render_depth=True, device="cpu")
+    context, name = _on(device)
+    with context:
+        out = render_checkpoint(ply, c2w, K, cam["width"], cam["height"], render_depth=True,
+                                device=name)
+    for key in ("rgb", "alpha", "depth"):
+        assert isinstance(out[key], np.ndarray)
+        np.testing.assert_allclose(out[key], ref[key], atol=0 if device == "simulated" else 2e-2)
+
+
+def test_a_cpu_tensor_slipped_into_the_fit_fails_on_the_device(tiny_scene, tmp_path, monkeypatch):
+    """The bug this guards against: split samples drawn on the CPU and used on the device."""
+    def cpu_noise(generator, n, device):
+        return torch.randn(2, n, 3, generator=generator)   # forgets to move to ``device``
+
+    monkeypatch.setattr(strategy_module, "split_noise", cpu_noise)
+    scene = _copy_scene(tiny_scene, tmp_path / "scene")
+    fit_scene(scene, stage_params("smoke", **FIT, device="cpu"), stop_after=9)  # fine on the CPU
+    with pytest.raises(DeviceMismatch, match="same device"):
+        _fit_on("simulated", _copy_scene(tiny_scene, tmp_path / "dev"))
+
+
+def test_trainer_steps_on_a_device_compute_what_they_compute_on_the_cpu(tmp_path):
+    from test_train import PairTensors, tiny_config
+
+    from paradrive.train import Trainer
+
+    cpu = Trainer(tiny_config(), 1, tmp_path / "cpu", PairTensors(2)).train(2)
+    with simulated_device():
+        cfg = {**tiny_config(), "device": str(DEVICE)}
+        trainer = Trainer(cfg, 1, tmp_path / "dev", PairTensors(2))
+        losses = trainer.train(2)
+        assert all(p.device == DEVICE for p in trainer.model.parameters())
+    assert losses == cpu
+
+
+def test_device_and_backend_choices_say_what_is_wrong(monkeypatch, caplog):
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    with pytest.raises(ConfigError, match="not a torch device"):
+        resolve_device("gpu0")
+    with pytest.raises(ConfigError, match="needs a CUDA device"):
+        resolve_backend("gsplat", torch.device("cpu"))
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA GPU"):
+            resolve_device("cuda")
+    # a CUDA machine whose gsplat extension does not load: auto warns and says why, gsplat refuses
+    from paradrive import devices
+
+    monkeypatch.setattr(devices, "gsplat_status", lambda: (False, "the extension failed to build"))
+    devices._warn_fallback.cache_clear()
+    with caplog.at_level("WARNING", logger="paradrive.devices"):
+        assert resolve_backend("auto", torch.device("cuda")) == "torch"
+    assert "the extension failed to build" in caplog.text
+    with pytest.raises(ConfigError, match="the extension failed to build"):
+        resolve_backend("gsplat", torch.device("cuda"))
