@@ -143,11 +143,20 @@ def test_clips_json_describes_poses_timing_fit_and_quality(clipped):
                        geometry.lateral_shift(recorded, scene.ego2world()[frames], -4.0))
     rel = geometry.relative_pose(geometry.as_pose(clip["c2w"]), geometry.as_pose(src["c2w"]))
     assert np.allclose(np.linalg.norm(rel[:, :3, 3], axis=1), 4.0)
+    target = np.stack([read_image(scene_dir / "renders/front/target" / f"{i:06d}.png") for i in frames])
+    psnrs = []
     for it in clipped["render"]["condition_checkpoints"]:
         s = clip["streams"][condition_stream(it)]
         assert (s["kind"], s["iteration"]) == ("condition", it)
         q = clip["quality"][condition_stream(it)]
-        assert 8 < q["psnr"] < 60 and 0 < q["ssim"] <= 1
+        # the recorded quality is that of the condition's frames against the target's
+        cond = np.stack([read_image(scene_dir / "renders/front" / condition_stream(it) / f"{i:06d}.png")
+                         for i in frames])
+        mse = ((cond.astype(np.float64) - target) / 255.0) ** 2
+        assert q["psnr"] == pytest.approx(np.mean(10 * np.log10(1 / mse.mean(axis=(1, 2, 3)))), abs=1e-3)
+        assert 0 < q["ssim"] <= 1
+        psnrs.append(q["psnr"])
+    assert psnrs == sorted(psnrs), psnrs   # a longer-fitted condition is closer to the target
     assert clip["streams"]["target"]["kind"] == "target"
 
 

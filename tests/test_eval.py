@@ -57,6 +57,38 @@ def test_conditions_improve_with_the_iteration(evaluated):
     assert cam["recorded"]["psnr"] > psnr[-1]
 
 
+def test_a_shift_to_the_left_renders_what_the_ray_caster_sees_from_the_left(evaluated):
+    """Independent of the shift function that eval and render share: the truth here comes from
+    a pose moved by hand. The world frame is the first ego pose (x forward, y left), so at
+    frame 0 a parallel lane 2 m to the left is the recorded camera moved by +2 m along world y."""
+    from paradrive import geometry
+    from paradrive.ingest.synthetic import street_from_uri
+    from paradrive.render import checkpoint_file, load_checkpoint, render_views
+    from paradrive.scene import load_scene
+    from paradrive.uri import parse_uri
+
+    scene_dir = evaluated["data_dir"] / "scenes" / SID
+    scene = load_scene(scene_dir)
+    rp, ingest = evaluated["config"].params["render"], evaluated["config"].params["ingest"]
+    np.testing.assert_allclose(scene.ego2world()[0], np.eye(4), atol=1e-12)
+    c2w = scene.c2w("front")[0]
+    by_hand = {d: c2w.copy() for d in (2.0, -2.0)}
+    for d, pose in by_hand.items():
+        pose[1, 3] += d
+    street = street_from_uri(parse_uri(SCENE), ingest)
+    w, h = 160, 96
+    cam = scene.cameras["front"]
+    K = np.array([[cam.fx * w / cam.width, 0, cam.cx * w / cam.width],
+                  [0, cam.fy * h / cam.height, cam.cy * h / cam.height], [0, 0, 1]])
+    truth = {d: street.render(pose[None], K, w, h)["rgb"] for d, pose in by_hand.items()}
+    params = load_checkpoint(checkpoint_file(scene_dir, rp["source_checkpoint"]))
+    shifted = geometry.lateral_shift(c2w[None], scene.ego2world()[:1], 2.0)   # what render uses
+    render = next(render_views(params, shifted, K, w, h))["rgb"]
+    left, right = (image_quality(render, truth[d])["psnr"] for d in (2.0, -2.0))
+    assert left > right + 1.0, (left, right)
+    assert left > 15.0, left
+
+
 def test_eval_writes_json_and_plot(evaluated):
     import OpenImageIO as oiio
 
