@@ -36,7 +36,7 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import sha256_file, temporary_name, write_json
+from paradrive.io import check_relative, path_inside, sha256_file, temporary_name, write_json
 
 SCHEMA_VERSION = 1
 CLIPS_SCHEMA_VERSION = 1
@@ -104,6 +104,33 @@ def make_pair_id(dataset: str, scene_id: str, camera: str, clip: str, offset_m: 
 def media_uri(scene_id: str, file: str) -> str:
     """Build-relative URI of a scene file (``clips/...`` relative to the scene folder)."""
     return f"{MEDIA_DIR}/{scene_id}/{file}"
+
+
+URI_COLUMNS = ("source_uri", "condition_uri", "target_uri")
+
+
+def check_row_uris(columns: dict, where: str) -> None:
+    """Every URI of ``columns`` ({pair_id: [...], source_uri: [...], ...}) is a relative,
+    normalised path inside the build; else a PathEscapeError naming ``where``, the row and column."""
+    for column in URI_COLUMNS:
+        for pair_id, uri in zip(columns["pair_id"], columns[column]):
+            check_relative(uri, f"{where}: row {pair_id} column {column}")
+
+
+def build_file(build_dir: str | Path, uri: object, what: str, index: dict) -> Path:
+    """The file a build-relative ``uri`` names, checked to stay inside the build.
+
+    A build published with ``media: symlink`` links each media file to the scene's own clip in
+    the data folder: such a link may lead out, but only to ``<...>/<scene_id>/<file>`` named
+    like the URI, never to an arbitrary file.
+    """
+    linked = (index.get("media") or {}).get("mode") == "symlink"
+    tail = Path(str(uri)).parts[1:] if str(uri).startswith(MEDIA_DIR + "/") else ()
+
+    def scene_clip(resolved: Path) -> bool:
+        return linked and len(tail) >= 2 and resolved.parts[-len(tail):] == tail
+
+    return path_inside(build_dir, uri, what, may_lead_out=scene_clip)
 
 
 # --------------------------------------------------------------------------- clips.json
@@ -402,7 +429,8 @@ def read_index(build_dir: str | Path) -> dict:
 def shard_paths(build_dir: str | Path, index: dict | None = None) -> list[Path]:
     build_dir = Path(build_dir)
     index = index or read_index(build_dir)
-    return [build_dir / s["file"] for s in index["shards"]]
+    return [path_inside(build_dir, s.get("file"), f"{build_dir / INDEX_NAME}: shard {k}")
+            for k, s in enumerate(index["shards"])]
 
 
 def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> pa.Table:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import pathlib
+import re
 import shutil
 
 import pytest
@@ -119,3 +120,194 @@ def test_a_trainer_checkpoint_loads_without_pickle(tmp_path):
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
     assert ckpt["config"] == trainer.config and ckpt["generator"].dtype == torch.uint8
     assert Trainer(_tiny_train_config(), 1, tmp_path / "run", Pairs()).step == 0
+
+
+# --------------------------------------------------------------------------- paths out of a build
+
+OPENED: list[str] = []
+
+
+def _record_opens(event: str, args: tuple) -> None:
+    if event == "open" and isinstance(args[0], (str, pathlib.Path)):
+        OPENED.append(str(args[0]))
+
+
+@pytest.fixture(scope="module")
+def watch_opens():
+    """Every file this process opens from Python code (a real audit hook, sys.addaudithook)."""
+    import sys
+
+    if _record_opens not in getattr(watch_opens, "installed", ()):
+        sys.addaudithook(_record_opens)
+        watch_opens.installed = (_record_opens,)
+    return OPENED
+
+
+@pytest.fixture(scope="module")
+def clip_build(tmp_path_factory):
+    """One scene x 24 pairs (the middle clip), media copied into the build."""
+    from paradrive.manifest import build_manifest
+    from test_manifest import scenes_entry, write_clip_scene
+
+    data = tmp_path_factory.mktemp("data")
+    scene = write_clip_scene(data, "synthetic-a", clips=("middle",))
+    build_dir = tmp_path_factory.mktemp("manifests") / "b"
+    build_manifest(build_dir, [scenes_entry(scene)], {"media": "copy"})
+    return build_dir
+
+
+def _outside_file(tmp_path: pathlib.Path) -> pathlib.Path:
+    secret = tmp_path / "outside" / "secret.mp4"
+    secret.parent.mkdir(parents=True)
+    secret.write_bytes(b"not part of any build")
+    return secret
+
+
+def tampered(build: pathlib.Path, dst: pathlib.Path, row: int, column: str, uri: str) -> str:
+    """A copy of ``build`` whose ``row`` has ``column`` = ``uri`` (index checksums updated, so
+    only the URI is wrong); returns that row's pair_id."""
+    import hashlib
+
+    import pyarrow.parquet as pq
+
+    shutil.copytree(build, dst)
+    index = json.loads((dst / "index.json").read_text())
+    entry = index["shards"][0]
+    table = pq.read_table(dst / entry["file"])
+    values = table.column(column).to_pylist()
+    values[row] = uri
+    table = table.set_column(table.schema.get_field_index(column), column,
+                             pa_array(values, table.schema.field(column).type))
+    pq.write_table(table, dst / entry["file"])
+    data = (dst / entry["file"]).read_bytes()
+    entry.update(bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
+    (dst / "index.json").write_text(json.dumps(index))
+    return table.column("pair_id")[row].as_py()
+
+
+def pa_array(values, type_):
+    import pyarrow as pa
+
+    return pa.array(values, type=type_)
+
+
+@pytest.mark.parametrize("kind", ["absolute", "dotdot"])
+def test_a_uri_out_of_the_build_fails_in_the_adapter_and_verify_without_reading_it(
+        clip_build, tmp_path, kind, watch_opens):
+    from paradrive.data import PairDataset
+    from paradrive.inspect import verify_build
+
+    secret = _outside_file(tmp_path)
+    build = tmp_path / "b"
+    uri = str(secret) if kind == "absolute" else "../outside/secret.mp4"
+    pair_id = tampered(clip_build, build, 3, "target_uri", uri)
+    watch_opens.clear()
+
+    with pytest.raises(PathEscapeError, match=rf"row {re.escape(pair_id)} column target_uri.*must be relative"):
+        PairDataset(build, verify_checksums=True)
+    result = verify_build(build)
+    assert not result["ok"]
+    (problem,) = [p for p in result["problems"] if "target_uri" in p]
+    assert problem.startswith("unsafe:") and pair_id in problem and repr(uri) in problem
+    assert str(secret) not in [str(pathlib.Path(p).resolve()) for p in watch_opens]
+
+
+def test_inspect_verify_exits_1_naming_the_row_of_an_escaping_uri(clip_build, tmp_path):
+    import typer
+    from typer.testing import CliRunner
+
+    from paradrive.inspect import register
+
+    build = tmp_path / "b"
+    pair_id = tampered(clip_build, build, 0, "source_uri", "/etc/hostname")
+    app = typer.Typer()
+    app.callback()(lambda: None)
+    register(app)
+    res = CliRunner().invoke(app, ["inspect", str(build), "--verify"], env={"COLUMNS": "400"})
+    assert res.exit_code == 1
+    assert f"row {pair_id} column source_uri" in res.output and "unsafe" in res.output
+
+
+def test_a_media_link_leading_out_of_the_build_is_refused_when_read(clip_build, tmp_path,
+                                                                   watch_opens):
+    from paradrive.data import PairDataset
+    from paradrive.inspect import verify_build
+
+    secret = _outside_file(tmp_path)
+    build = tmp_path / "b"
+    shutil.copytree(clip_build, build)
+    ds = PairDataset(build)
+    link = build / ds.row(0)["target_uri"]
+    link.unlink()
+    link.symlink_to(secret)
+    watch_opens.clear()
+    with pytest.raises(PathEscapeError, match=rf"row {re.escape(ds.pair_ids[0])} column target_uri.*outside"):
+        ds[0]
+    assert any(p.startswith("unsafe:") and "outside" in p for p in verify_build(build)["problems"])
+    assert str(secret) not in [str(pathlib.Path(p).resolve()) for p in watch_opens]
+
+
+def test_a_symlink_build_reads_its_links_into_the_scene_folder(tmp_path):
+    """``media: symlink`` links lead out of the build by design, to the scene's own clip."""
+    from paradrive.data import PairDataset
+    from paradrive.inspect import verify_build
+    from paradrive.manifest import build_manifest
+    from test_manifest import scenes_entry, write_clip_scene
+
+    scene = write_clip_scene(tmp_path / "data", "synthetic-a", clips=("middle",),
+                             offsets=(1.0,), conditions=(100,))
+    build = tmp_path / "b"
+    build_manifest(build, [scenes_entry(scene)], {"media": "symlink"})
+    ds = PairDataset(build, verify_checksums=True)
+    assert ds[0]["target"].shape[0] == 8
+    assert verify_build(build)["ok"]
+    # a link in that build to a file that is not the scene's own clip is still refused
+    link = build / ds.row(0)["condition_uri"]
+    link.unlink()
+    link.symlink_to(_outside_file(tmp_path))
+    with pytest.raises(PathEscapeError, match="column condition_uri"):
+        ds[0]
+
+
+def test_a_shard_listed_outside_the_build_is_refused(clip_build, tmp_path):
+    from paradrive.data import PairDataset
+
+    build = tmp_path / "b"
+    shutil.copytree(clip_build, build)
+    index = json.loads((build / "index.json").read_text())
+    index["shards"][0]["file"] = "../elsewhere.parquet"
+    (build / "index.json").write_text(json.dumps(index))
+    with pytest.raises(PathEscapeError, match="index.json: shard 0.*'../elsewhere.parquet'"):
+        PairDataset(build)
+
+
+# --------------------------------------------------------------------------- paths out of a scene
+
+def test_eval_refuses_a_scene_whose_image_path_leads_out(tiny_scene, tmp_path):
+    from paradrive.errors import SceneError
+    from paradrive.eval import evaluate_scene
+    from paradrive.pipeline.specs import StageRegistry
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    doc = json.loads((scene / "scene.json").read_text())
+    doc["frames"][2]["cameras"]["front"]["image"] = "../../../outside.jpg"
+    (scene / "scene.json").write_text(json.dumps(doc))
+    render = StageRegistry().resolve("smoke").params["render"]
+    with pytest.raises(SceneError, match=r"frame 2 camera front image: path '../../../outside.jpg' "
+                                         r"must be relative"):
+        evaluate_scene(scene, render)
+
+
+def test_an_image_link_leading_out_of_the_scene_is_refused(tiny_scene, tmp_path):
+    from paradrive.errors import SceneError
+    from paradrive.scene import load_scene
+
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene_dir)
+    scene = load_scene(scene_dir)
+    image = scene.image_path(0, "front")
+    image.unlink()
+    image.symlink_to(_outside_file(tmp_path))
+    with pytest.raises(SceneError, match="frame 0 camera front image.*outside"):
+        scene.load_image(0, "front")
