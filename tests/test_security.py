@@ -311,3 +311,164 @@ def test_an_image_link_leading_out_of_the_scene_is_refused(tiny_scene, tmp_path)
     image.symlink_to(_outside_file(tmp_path))
     with pytest.raises(SceneError, match="frame 0 camera front image.*outside"):
         scene.load_image(0, "front")
+
+
+# --------------------------------------------------------------------------- secrets
+
+SECRET = "SECRETb7f3e1"  # every credential below contains it
+
+
+def _paradrive(*args, env: dict) -> "subprocess.CompletedProcess":
+    """The real command line (the ledger records sys.argv, so CliRunner would not do)."""
+    import os
+    import subprocess
+    import sys
+
+    repo = pathlib.Path(__file__).resolve().parents[1]
+    return subprocess.run([sys.executable, "-m", "paradrive.cli", *map(str, args)], cwd=repo,
+                          capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(repo), "COLUMNS": "250", **env})
+
+
+def _files_holding(text: str, *folders: pathlib.Path) -> list[str]:
+    return [str(p) for folder in folders for p in folder.rglob("*")
+            if p.is_file() and text.encode() in p.read_bytes()]
+
+
+@pytest.mark.slow
+def test_a_build_with_credentials_writes_them_nowhere(s3_bucket, tmp_path):
+    import pipeline_stages
+    from paradrive.storage import DataRoot
+
+    options = {**s3_bucket, "key": f"{SECRET}-key", "secret": f"{SECRET}-secret"}
+    flags = [arg for name, value in options.items()
+             for arg in ("--storage-option", f"{name}={json.dumps(value)}")]
+    env = {"AWS_SESSION_TOKEN": f"{SECRET}-session", "PARADRIVE_CACHE": str(tmp_path / "cache")}
+    url = "s3://builds/secrets"
+    res = _paradrive("build", "--scene", "synthetic:demo?seed=1",
+                     "--scene", "synthetic:demo?seed=4&colour=red", "--profile", "smoke",
+                     *pipeline_stages.tiny_real_sets(), "--data", url, *flags,
+                     "--manifests", tmp_path / "manifests", "--build", "b", env=env)
+    assert res.returncode == 3, res.stdout + res.stderr  # one scene built, one failed
+    # an unreachable endpoint whose URL carries a password: every scene fails naming the URL
+    unreachable = {**options, "endpoint_url": f"http://someone:{SECRET}-pw@127.0.0.1:9",
+                   "config_kwargs": {"retries": {"max_attempts": 1}, "connect_timeout": 1}}
+    bad = _paradrive("build", "--scene", "synthetic:demo?seed=1", "--profile", "smoke",
+                     "--data", "s3://builds/unreachable", "--manifests", tmp_path / "manifests",
+                     "--build", "bad", *[arg for name, value in unreachable.items() for arg in
+                                         ("--storage-option", f"{name}={json.dumps(value)}")],
+                     env=env)
+    assert bad.returncode == 1 and "s3://builds/unreachable/scenes/synthetic-demo-s1" in bad.stdout
+
+    remote = DataRoot.of(url, storage_options=s3_bucket)
+    fs, base = remote.filesystem()
+    fetched = tmp_path / "bucket"
+    for name in fs.find(base):
+        target = fetched / name[len(base) + 1:]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(fs.cat_file(name))
+    written = [fetched / "logs", tmp_path / "cache", tmp_path / "manifests" / "b",
+               tmp_path / "manifests" / "bad"]
+    assert all(any(folder.rglob("*.log")) or folder.name != "logs" for folder in written)
+    assert (tmp_path / "manifests" / "b" / "index.json").is_file()
+    assert any(fetched.rglob(".paradrive/*.json"))  # the markers are among what is searched
+    assert _files_holding(SECRET, fetched, tmp_path / "cache", tmp_path / "manifests") == []
+    assert SECRET not in res.stdout + res.stderr + bad.stdout + bad.stderr
+    # what the ledger recorded still says what ran
+    from paradrive.pipeline.ledger import Ledger
+
+    (run,) = Ledger.for_build(tmp_path / "manifests", "b").runs()
+    assert "--storage-option key=***" in run["command"] and "endpoint_url=" in run["command"]
+
+
+def test_credentials_are_masked_in_urls_options_and_command_lines(monkeypatch):
+    from paradrive.redact import redact, redact_argv, redact_options
+    from paradrive.storage import DataRoot
+
+    assert redact(f"connect to https://me:{SECRET}@minio:9000/b failed") == \
+        "connect to https://***@minio:9000/b failed"
+    assert redact(f"token {SECRET}-abc rejected", {"client_kwargs": {"aws_session_token":
+                                                                   f"{SECRET}-abc"}}) == \
+        "token *** rejected"
+    monkeypatch.setenv("FSSPEC_S3_SECRET", f"{SECRET}-env")
+    assert redact(f"signature of {SECRET}-env") == "signature of ***"
+    assert redact_options({"key": "AKIA1", "endpoint_url": f"http://u:{SECRET}@h",
+                           "client_kwargs": {"region_name": "eu", "password": "p"}}) == \
+        {"key": "***", "endpoint_url": "http://***@h",
+         "client_kwargs": {"region_name": "eu", "password": "***"}}
+    assert redact_argv(["paradrive", "build", "--storage-option", f"secret={SECRET}",
+                        f"--storage-option=token={SECRET}", "--storage-option", "anon=true",
+                        "--data", f"ftp://u:{SECRET}@host/d"]) == \
+        ["paradrive", "build", "--storage-option", "secret=***", "--storage-option=token=***",
+         "--storage-option", "anon=true", "--data", "ftp://***@host/d"]
+    root = DataRoot.of(f"ftp://u:{SECRET}@host/d", storage_options={"password": SECRET})
+    for shown in (str(root), repr(root), root.scene_location("s"), str(root.local)):
+        assert SECRET not in shown, shown
+
+
+# --------------------------------------------------------------------------- scenes out of the data
+
+def test_list_file_lines_leading_out_of_its_folder_are_refused(tmp_path):
+    from paradrive.errors import ConfigError
+    from paradrive.pipeline.scenes import expand_scene_inputs
+
+    outside = tmp_path / "elsewhere" / "segment-9.tfrecord"
+    outside.parent.mkdir()
+    outside.write_bytes(b"")
+    lists = tmp_path / "lists"
+    (lists / "logs").mkdir(parents=True)
+    (lists / "logs" / "segment-1.tfrecord").write_bytes(b"")
+    for number, line in ((2, "../elsewhere/segment-9.tfrecord"), (2, str(outside))):
+        listing = lists / "scenes.txt"
+        listing.write_text(f"logs/segment-1.tfrecord\n{line}\n")
+        with pytest.raises(ConfigError, match=rf"scenes.txt:{number}: '{re.escape(line)}' resolves "
+                                              rf"to {re.escape(str(outside))}, outside {lists}"):
+            expand_scene_inputs([str(listing)])
+    # the same log named by a URI is the user's explicit choice
+    listing.write_text(f"logs/segment-1.tfrecord\nwaymo:{outside}\n")
+    assert expand_scene_inputs([str(listing)]) == [f"waymo:{lists / 'logs' / 'segment-1.tfrecord'}",
+                                                   f"waymo:{outside}"]
+
+
+def test_a_log_linked_into_a_folder_of_logs_from_outside_is_refused(tmp_path):
+    from paradrive.errors import ConfigError
+    from paradrive.pipeline.scenes import expand_scene_inputs
+
+    outside = tmp_path / "elsewhere" / "segment-9.tfrecord"
+    outside.parent.mkdir()
+    outside.write_bytes(b"")
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "segment-1.tfrecord").write_bytes(b"")
+    (logs / "segment-9.tfrecord").symlink_to(outside)
+    with pytest.raises(ConfigError, match=r"segment-9.tfrecord resolves to .*elsewhere.*outside"):
+        expand_scene_inputs([str(logs)])
+
+
+def test_a_drivestudio_folder_linking_out_is_refused_at_ingest(tmp_path):
+    from paradrive.errors import SceneError
+    from paradrive.ingest.drivestudio import read
+    from paradrive.uri import parse_uri
+
+    scene = tmp_path / "processed" / "023"
+    (scene / "images").mkdir(parents=True)
+    (scene / "ego_pose").mkdir()
+    (scene / "extrinsics").mkdir()
+    (scene / "intrinsics").symlink_to(tmp_path)
+    with pytest.raises(SceneError, match=r"scene drivestudio-023: 1 link\(s\) in the scene folder "
+                                         r"lead out of it, e.g. intrinsics"):
+        read(parse_uri(f"drivestudio:{scene}"), tmp_path / "out", {}, "drivestudio-023")
+
+
+@pytest.mark.parametrize("scene_id", ["..", "../x", "a/b", "/etc"])
+def test_a_scene_id_that_is_not_a_file_name_is_refused(tmp_path, scene_id):
+    from paradrive.errors import ConfigError
+    from paradrive.pipeline.runner import scene_dir_for
+    from paradrive.uri import parse_uri
+
+    with pytest.raises(ConfigError, match="not a plain file name"):
+        scene_dir_for(tmp_path, scene_id)
+    # ids derived from URIs never are
+    assert parse_uri("drivestudio:/x/..#../..").scene_id == "drivestudio"
+    assert scene_dir_for(tmp_path, parse_uri("nuscenes:/d#../../etc").scene_id).parent == \
+        tmp_path / "scenes"
