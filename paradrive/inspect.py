@@ -360,7 +360,7 @@ def register(app) -> None:
     @app.command("inspect")
     def inspect_cmd(
         build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
-        verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing or corrupt one."),
+        verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing, corrupt or unsafe (leading out of the build) one."),
         as_json: bool = typer.Option(False, "--json", help="Print a machine-readable summary instead of tables."),
         sheet: Optional[Path] = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and <name>_trajectories.png next to it)."),
         pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),

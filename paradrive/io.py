@@ -21,7 +21,7 @@ class PathEscapeError(ParaDriveError):
 
 
 class UnsafeFileError(ParaDriveError):
-    """A file that only pickle can load: refused, since loading it could run its writer's code."""
+    """A file whose loading could run its writer's code (pickle, a module named to import)."""
 
 
 def temporary_name(path: Path) -> Path:

@@ -36,7 +36,8 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import check_relative, path_inside, sha256_file, temporary_name, write_json
+from paradrive.io import (PathEscapeError, check_relative, path_inside, sha256_file, temporary_name,
+                          write_json)
 
 SCHEMA_VERSION = 1
 CLIPS_SCHEMA_VERSION = 1
@@ -207,9 +208,10 @@ def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True,
     def stream_file(clip: dict, name: str, info: dict) -> MediaFile:
         rel = str(info.get("file", ""))
         where = f"clip {clip['camera']}/{clip['clip']} stream '{name}'"
-        if not rel or Path(rel).is_absolute() or ".." in Path(rel).parts:
-            raise _fail(doc, path, f"{where}: file {rel!r} must be a path inside the scene folder")
-        src = scene_dir / rel
+        try:
+            src = path_inside(scene_dir, rel, f"{where}: file")
+        except PathEscapeError as exc:
+            raise _fail(doc, path, str(exc)) from exc
         if rel in media:
             return media[rel]
         if not src.is_file():

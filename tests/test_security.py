@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from paradrive.io import PathEscapeError, UnsafeFileError
+from test_gs_fit import tiny_scene  # noqa: F401  (fixture: an ingested 8-frame street)
 
 
 class Payload:
@@ -39,21 +40,6 @@ def test_the_crafted_file_runs_its_code_when_unpickled(tmp_path):
 
 
 # --------------------------------------------------------------------------- pickle: fit state
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory) -> pathlib.Path:
-    """Synthetic street, 8 frames of 80x48, ingested only."""
-    from paradrive.pipeline import StageRegistry, run_build
-
-    root = tmp_path_factory.mktemp("tiny_scene")
-    config = StageRegistry().resolve("smoke", {"ingest": {
-        "synthetic_frames": 8, "synthetic_width": 80, "synthetic_height": 48}})
-    report = run_build(config, ["synthetic:demo?seed=7"], root / "data", stages=["ingest"],
-                       manifests_dir=root / "manifests", build="tiny")
-    assert not report.failures(), [r.error for r in report.failures()]
-    (scene_dir,) = (root / "data" / "scenes").iterdir()
-    return scene_dir
-
 
 def _fit_params() -> dict:
     from paradrive.pipeline.specs import StageRegistry
@@ -472,3 +458,22 @@ def test_a_scene_id_that_is_not_a_file_name_is_refused(tmp_path, scene_id):
     assert parse_uri("drivestudio:/x/..#../..").scene_id == "drivestudio"
     assert scene_dir_for(tmp_path, parse_uri("nuscenes:/d#../../etc").scene_id).parent == \
         tmp_path / "scenes"
+
+
+def test_a_trainer_checkpoint_naming_code_to_import_is_refused_for_sampling(tmp_path):
+    from paradrive.train import Trainer, load_for_sampling
+
+    class Pairs(torch.utils.data.Dataset):
+        def __len__(self) -> int:
+            return 2
+
+    Trainer(_tiny_train_config(), 1, tmp_path / "run", Pairs()).save()
+    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    marker = tmp_path / "ran"
+    # plain strings, loadable without pickle, that would call write_text(path=marker) on import
+    ckpt["config"]["autoencoder"] = {"kind": "paradrive.io:write_text",
+                                     "options": {"path": str(marker), "text": "ran"}}
+    torch.save(ckpt, tmp_path / "foreign.pt")
+    with pytest.raises(UnsafeFileError, match="foreign.pt: its autoencoder is code imported by name"):
+        load_for_sampling(tmp_path / "foreign.pt", device="cpu")
+    assert not marker.exists()

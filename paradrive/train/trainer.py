@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import torch
 import yaml
 
-from paradrive.io import atomic_path, load_tensors, write_text
+from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.flow import euler_sample, flow_matching_loss
 from paradrive.train.model import ModelConfig, VideoDiT, is_stage2_parameter, load_stage1_weights
@@ -410,11 +410,21 @@ class Trainer:
 
 
 # -- sampling ------------------------------------------------------------------------------------
-def load_for_sampling(checkpoint: str | Path, device: str = "auto") -> tuple[VideoDiT, VideoEncoder, dict, int]:
-    """(model, autoencoder, config, stage) from a trainer checkpoint, in eval mode."""
+def load_for_sampling(checkpoint: str | Path, device: str = "auto",
+                      autoencoder: Mapping[str, Any] | None = None) -> tuple[VideoDiT, VideoEncoder, dict, int]:
+    """(model, autoencoder, config, stage) from a trainer checkpoint, in eval mode.
+
+    A checkpoint whose autoencoder is imported by name (``kind: "pkg.module:Factory"``) names
+    code to run; it is refused unless ``autoencoder`` (the caller's own config section) says the same.
+    """
     ckpt = load_tensors(checkpoint)
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{checkpoint}: not a paradrive trainer checkpoint")
+    named = ckpt["config"]["autoencoder"]
+    if named.get("kind", "patch") != "patch" and named != autoencoder:
+        raise UnsafeFileError(f"{checkpoint}: its autoencoder is code imported by name "
+                              f"({named.get('kind')!r}); refused unless the caller passes the same "
+                              f"autoencoder config (autoencoder=...)")
     dev = resolve_device(device)
     encoder = make_autoencoder(ckpt["config"]["autoencoder"])
     if isinstance(encoder, torch.nn.Module):
