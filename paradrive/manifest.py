@@ -113,9 +113,12 @@ URI_COLUMNS = ("source_uri", "condition_uri", "target_uri")
 def check_row_uris(columns: dict, where: str) -> None:
     """Every URI of ``columns`` ({pair_id: [...], source_uri: [...], ...}) is a relative,
     normalised path inside the build; else a PathEscapeError naming ``where``, the row and column."""
+    checked: set = set()  # rows share videos: a target serves every offset and checkpoint
     for column in URI_COLUMNS:
         for pair_id, uri in zip(columns["pair_id"], columns[column]):
-            check_relative(uri, f"{where}: row {pair_id} column {column}")
+            if uri not in checked:
+                check_relative(uri, f"{where}: row {pair_id} column {column}")
+                checked.add(uri)
 
 
 def build_file(build_dir: str | Path, uri: object, what: str, index: dict) -> Path:

@@ -179,7 +179,8 @@ class _Redacting(logging.Filter):
         self.options = options
 
     def filter(self, record: logging.LogRecord) -> bool:
-        record.msg, record.args = redact(record.getMessage(), self.options), None
+        with contextlib.suppress(Exception):  # a malformed call is reported by the handler itself
+            record.msg, record.args = redact(record.getMessage(), self.options), None
         return True
 
 
