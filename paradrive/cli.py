@@ -136,7 +136,9 @@ def data_root(data: str, storage_options: list[str], cache: Optional[Path], drop
     for item in storage_options:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"--storage-option {item!r}: write KEY=VALUE, e.g. endpoint_url=http://host:9000")
+            # the argument itself is not repeated: a mistyped one may be a secret
+            raise ConfigError("--storage-option: an argument without KEY= (not shown); write "
+                              "KEY=VALUE, e.g. endpoint_url=http://host:9000")
         try:
             options[key.strip()] = json.loads(value)
         except json.JSONDecodeError:

@@ -35,7 +35,7 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.io import sha256_file
-from paradrive.manifest import read_index
+from paradrive.manifest import build_file, check_row_uris, read_index, shard_paths
 
 __all__ = ["PairDataset", "PairIterableDataset", "decode_frames", "each_frame", "video_info",
            "output_geometry", "recammaster_camera"]
@@ -261,7 +261,7 @@ class PairDataset(Dataset):
         if not dtype.is_floating_point:
             raise ValueError(f"dtype must be a float type (frames are in [-1, 1]), got {dtype}")
         self.dtype = dtype
-        self._shards = [self.build / s["file"] for s in self.index["shards"]]
+        self._shards = shard_paths(self.build, self.index)
         tables = []
         for path, entry in zip(self._shards, self.index["shards"]):
             if not path.is_file():
@@ -272,6 +272,8 @@ class PairDataset(Dataset):
                 raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
                                      f"{entry['rows']}; the build is inconsistent, re-run the "
                                      f"manifest stage")
+            check_row_uris(table.select(["pair_id", "source_uri", "condition_uri",
+                                         "target_uri"]).to_pydict(), str(path))
             tables.append(table)
         self._rows = {name: [v for t in tables for v in t.column(name).to_pylist()] for name in _LIGHT}
         self._starts = np.cumsum([0] + [t.num_rows for t in tables])
@@ -336,8 +338,8 @@ class PairDataset(Dataset):
         return frames
 
     # ------------------------------------------------------------ samples
-    def _video(self, uri: str, sha: str, frames: list[int], geo: dict) -> torch.Tensor:
-        path = self.build / uri
+    def _video(self, uri: str, sha: str, frames: list[int], geo: dict, what: str) -> torch.Tensor:
+        path = build_file(self.build, uri, what, self.index)
         if self.verify_checksums and uri not in self._verified:
             if not path.is_file():
                 raise ParaDriveError(f"{path} is missing; restore it or re-run the manifest stage")
@@ -367,7 +369,8 @@ class PairDataset(Dataset):
         row = self.row(int(i))
         frames = self.frame_indices(int(row["num_frames"]))
         geo = output_geometry(int(row["width"]), int(row["height"]), self.output_size, self.resize)
-        sample = {role: self._video(row[f"{role}_uri"], row[f"{role}_sha256"], frames, geo)
+        sample = {role: self._video(row[f"{role}_uri"], row[f"{role}_sha256"], frames, geo,
+                                    f"{self.build}: row {row['pair_id']} column {role}_uri")
                   for role in ("source", "condition", "target")}
         rel = row["rel_pose"][frames]
         f = len(frames)

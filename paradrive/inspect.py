@@ -18,8 +18,8 @@ from typing import Optional
 import numpy as np
 
 from paradrive.errors import ParaDriveError
-from paradrive.io import sha256_file
-from paradrive.manifest import offset_token, read_index, read_pairs
+from paradrive.io import PathEscapeError, sha256_file
+from paradrive.manifest import build_file, offset_token, read_index, read_pairs, shard_paths
 
 __all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "register"]
 
@@ -103,21 +103,29 @@ def _check_file(path: Path, size: int | None, sha: str | None, what: str) -> str
 def verify_build(build_dir: str | Path, threads: int | None = None) -> dict:
     """Re-hash every shard (against index.json) and every referenced video (against the rows).
 
-    Returns {"ok", "checked_files", "problems": ["missing: <path> …" | "corrupt: <path> …"]}.
+    Returns {"ok", "checked_files", "problems": ["missing: <path> …" | "corrupt: <path> …" |
+    "unsafe: <row> …"]}. A URI that leads out of the build is a problem and is never read.
     """
     build_dir = Path(build_dir)
     index = read_index(build_dir)
-    jobs = [(build_dir / s["file"], s["bytes"], s["sha256"], "shard") for s in index["shards"]]
+    jobs = [(path, s["bytes"], s["sha256"], "shard")
+            for path, s in zip(shard_paths(build_dir, index), index["shards"])]
     problems = [p for p in (_check_file(*j) for j in jobs) if p]
     if problems:  # rows cannot be trusted when a shard is bad
         return {"ok": False, "checked_files": len(jobs), "problems": problems}
-    cols = read_pairs(build_dir, [f"{r}_{k}" for r in ("source", "condition", "target")
-                                  for k in ("uri", "sha256", "bytes")]).to_pydict()
+    cols = read_pairs(build_dir, ["pair_id"] + [f"{r}_{k}" for r in ("source", "condition", "target")
+                                                for k in ("uri", "sha256", "bytes")]).to_pydict()
     files: dict[str, tuple] = {}
     for role in ("source", "condition", "target"):
-        for uri, sha, size in zip(cols[f"{role}_uri"], cols[f"{role}_sha256"], cols[f"{role}_bytes"]):
-            files.setdefault(uri, (size, sha, f"{role} video"))
-    media = [(build_dir / uri, size, sha, what) for uri, (size, sha, what) in sorted(files.items())]
+        for pair_id, uri, sha, size in zip(cols["pair_id"], cols[f"{role}_uri"],
+                                           cols[f"{role}_sha256"], cols[f"{role}_bytes"]):
+            files.setdefault(uri, (size, sha, f"{role} video", f"row {pair_id} column {role}_uri"))
+    media = []
+    for uri, (size, sha, what, where) in sorted(files.items(), key=lambda kv: str(kv[0])):
+        try:
+            media.append((build_file(build_dir, uri, f"{build_dir}: {where}", index), size, sha, what))
+        except PathEscapeError as exc:
+            problems.append(f"unsafe: {exc}")
     with ThreadPoolExecutor(max_workers=threads or min(8, os.cpu_count() or 2)) as pool:
         problems += [p for p in pool.map(lambda j: _check_file(*j), media) if p]
     return {"ok": not problems, "checked_files": len(jobs) + len(media), "problems": problems}
@@ -164,6 +172,7 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
                                   "source_iteration", "num_frames", "width", "height",
                                   "source_uri", "condition_uri", "target_uri", "condition_psnr",
                                   "condition_ssim", "frame_indices"]).to_pylist()
+    index = read_index(build_dir)
     chosen = _pick_pairs(cols, pairs)
     if not chosen:
         raise ParaDriveError(f"{build_dir}: the build has no pairs to draw")
@@ -193,7 +202,9 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
                   ("condition", "recorded path", f"ckpt {row['condition_iteration']}"),
                   ("target", "recorded camera", "")]
         for (role, line2, line3) in labels:
-            pixels = decode_frames(build_dir / row[f"{role}_uri"], picks, size=(th, tw))
+            video = build_file(build_dir, row[f"{role}_uri"],
+                               f"{build_dir}: row {row['pair_id']} column {role}_uri", index)
+            pixels = decode_frames(video, picks, size=(th, tw))
             draw.text((pad, y + 4), role, fill=(0, 0, 0), font=font)
             draw.text((pad, y + 24), line2, fill=(70, 70, 70), font=small)
             draw.text((pad, y + 40), line3, fill=(70, 70, 70), font=small)
@@ -349,7 +360,7 @@ def register(app) -> None:
     @app.command("inspect")
     def inspect_cmd(
         build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
-        verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing or corrupt one."),
+        verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing, corrupt or unsafe (leading out of the build) one."),
         as_json: bool = typer.Option(False, "--json", help="Print a machine-readable summary instead of tables."),
         sheet: Optional[Path] = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and <name>_trajectories.png next to it)."),
         pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),
@@ -374,7 +385,7 @@ def register(app) -> None:
                 err.print(f"[green]verified[/] {result['checked_files']} files")
             else:
                 err.print(f"[bold red]{len(result['problems'])} of {result['checked_files']} files "
-                          f"missing or corrupt[/]")
+                          f"missing, corrupt or unsafe[/]")
                 code = 1
         if sheet is not None:
             try:

@@ -10,7 +10,18 @@ import os
 import shutil
 import uuid
 from pathlib import Path
-from typing import Iterator
+import posixpath
+from typing import Any, Callable, Iterator
+
+from paradrive.errors import ParaDriveError
+
+
+class PathEscapeError(ParaDriveError):
+    """A path read from a file (a manifest URI, a scene's image) that could lead out of its folder."""
+
+
+class UnsafeFileError(ParaDriveError):
+    """A file whose loading could run its writer's code (pickle, a module named to import)."""
 
 
 def temporary_name(path: Path) -> Path:
@@ -85,3 +96,49 @@ def remove_stale_temporaries(directory: str | os.PathLike) -> int:
             p.unlink(missing_ok=True)
         count += 1
     return count
+
+
+def load_tensors(path: str | os.PathLike, map_location: Any = "cpu") -> Any:
+    """``torch.load`` of tensors and plain containers only (``weights_only=True``).
+
+    A file on shared storage is written by whoever can write there; one that needs pickle to
+    load (Python objects, an old format) is refused with :class:`UnsafeFileError`, never run.
+    """
+    import pickle
+
+    import torch
+
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UnsafeFileError(f"{path}: holds Python objects that only pickle can load ({first}); "
+                              f"refused, since loading it could run code. Delete it (it was made "
+                              f"by an older version or by someone else) and run again") from exc
+
+
+def check_relative(rel: object, what: str) -> str:
+    """``rel`` when it is a relative, normalised POSIX path with no ``..`` (``a/b.mp4``).
+
+    Paths read from shared files decide what gets opened: an absolute one or one with ``..``
+    would open any file on the reader's machine. ``what`` names the row and column in the error.
+    """
+    text = rel if isinstance(rel, str) else ""
+    if (not text or "\\" in text or "\0" in text or text.startswith("/")
+            or posixpath.normpath(text) != text or ".." in text.split("/")):
+        raise PathEscapeError(f"{what}: path {rel!r} must be relative, normalised and inside its "
+                              f"folder (no '..', not absolute); the file was damaged or not written "
+                              f"by paradrive: re-create it")
+    return text
+
+
+def path_inside(root: str | os.PathLike, rel: object, what: str, *,
+                may_lead_out: Callable[[Path], bool] | None = None) -> Path:
+    """``root / rel`` after :func:`check_relative`, when it also stays inside ``root`` with every
+    symlink resolved; ``may_lead_out(resolved)`` may allow a link that leads elsewhere."""
+    path = Path(root) / check_relative(rel, what)
+    resolved = path.resolve()
+    if resolved.is_relative_to(Path(root).resolve()) or (may_lead_out and may_lead_out(resolved)):
+        return path
+    raise PathEscapeError(f"{what}: {rel!r} is a link to {resolved}, outside {root}; replace it "
+                          f"with the file itself or re-create the folder")

@@ -36,7 +36,8 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import sha256_file, temporary_name, write_json
+from paradrive.io import (PathEscapeError, check_relative, path_inside, sha256_file, temporary_name,
+                          write_json)
 
 SCHEMA_VERSION = 1
 CLIPS_SCHEMA_VERSION = 1
@@ -104,6 +105,36 @@ def make_pair_id(dataset: str, scene_id: str, camera: str, clip: str, offset_m: 
 def media_uri(scene_id: str, file: str) -> str:
     """Build-relative URI of a scene file (``clips/...`` relative to the scene folder)."""
     return f"{MEDIA_DIR}/{scene_id}/{file}"
+
+
+URI_COLUMNS = ("source_uri", "condition_uri", "target_uri")
+
+
+def check_row_uris(columns: dict, where: str) -> None:
+    """Every URI of ``columns`` ({pair_id: [...], source_uri: [...], ...}) is a relative,
+    normalised path inside the build; else a PathEscapeError naming ``where``, the row and column."""
+    checked: set = set()  # rows share videos: a target serves every offset and checkpoint
+    for column in URI_COLUMNS:
+        for pair_id, uri in zip(columns["pair_id"], columns[column]):
+            if uri not in checked:
+                check_relative(uri, f"{where}: row {pair_id} column {column}")
+                checked.add(uri)
+
+
+def build_file(build_dir: str | Path, uri: object, what: str, index: dict) -> Path:
+    """The file a build-relative ``uri`` names, checked to stay inside the build.
+
+    A build published with ``media: symlink`` links each media file to the scene's own clip in
+    the data folder: such a link may lead out, but only to ``<...>/<scene_id>/<file>`` named
+    like the URI, never to an arbitrary file.
+    """
+    linked = (index.get("media") or {}).get("mode") == "symlink"
+    tail = Path(str(uri)).parts[1:] if str(uri).startswith(MEDIA_DIR + "/") else ()
+
+    def scene_clip(resolved: Path) -> bool:
+        return linked and len(tail) >= 2 and resolved.parts[-len(tail):] == tail
+
+    return path_inside(build_dir, uri, what, may_lead_out=scene_clip)
 
 
 # --------------------------------------------------------------------------- clips.json
@@ -180,9 +211,10 @@ def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True,
     def stream_file(clip: dict, name: str, info: dict) -> MediaFile:
         rel = str(info.get("file", ""))
         where = f"clip {clip['camera']}/{clip['clip']} stream '{name}'"
-        if not rel or Path(rel).is_absolute() or ".." in Path(rel).parts:
-            raise _fail(doc, path, f"{where}: file {rel!r} must be a path inside the scene folder")
-        src = scene_dir / rel
+        try:
+            src = path_inside(scene_dir, rel, f"{where}: file")
+        except PathEscapeError as exc:
+            raise _fail(doc, path, str(exc)) from exc
         if rel in media:
             return media[rel]
         if not src.is_file():
@@ -402,7 +434,8 @@ def read_index(build_dir: str | Path) -> dict:
 def shard_paths(build_dir: str | Path, index: dict | None = None) -> list[Path]:
     build_dir = Path(build_dir)
     index = index or read_index(build_dir)
-    return [build_dir / s["file"] for s in index["shards"]]
+    return [path_inside(build_dir, s.get("file"), f"{build_dir / INDEX_NAME}: shard {k}")
+            for k, s in enumerate(index["shards"])]
 
 
 def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> pa.Table:

@@ -19,7 +19,7 @@ import numpy as np
 
 from paradrive import geometry
 from paradrive.errors import SceneError
-from paradrive.io import atomic_path, write_json
+from paradrive.io import PathEscapeError, atomic_path, check_relative, path_inside, write_json
 
 SCHEMA_VERSION = 1
 CAMERA_NAMES = ("front", "front_left", "front_right", "side_left", "side_right",
@@ -158,7 +158,14 @@ class Scene:
         return self.root
 
     def image_path(self, frame_index: int, camera: str) -> Path:
-        return self._require_root() / self.frames[frame_index].cameras[camera].image
+        """The image file, checked to stay inside the scene folder (scene.json may be shared)."""
+        root = self._require_root()
+        frame = self.frames[frame_index]
+        try:
+            return path_inside(root, frame.cameras[camera].image,
+                               f"{root / 'scene.json'}: frame {frame.index} camera {camera} image")
+        except PathEscapeError as exc:
+            raise SceneError(str(exc), scene_id=self.scene_id) from exc
 
     def load_image(self, frame_index: int, camera: str) -> np.ndarray:
         """uint8 (H, W, 3) of frame ``frame_index`` (position in ``frames``) and ``camera``."""
@@ -309,6 +316,10 @@ def validate_scene(scene: Scene, *, check_files: bool = True) -> None:
                 problem = "has NaN" if not np.isfinite(fc.c2w).all() else "is not rigid"
                 raise SceneError(f"{label} camera {cam_name} pose {problem}", scene_id=sid,
                                  path=where, fix="fix or drop the frame in the log")
+            try:
+                check_relative(fc.image, f"{label} camera {cam_name} image")
+            except PathEscapeError as exc:
+                raise SceneError(str(exc), scene_id=sid, path=where) from exc
             if check_files and root is not None and not (root / fc.image).is_file():
                 raise SceneError(f"{label} camera {cam_name} image is missing", scene_id=sid,
                                  path=root / fc.image, fix="re-run ingest for this scene")

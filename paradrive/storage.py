@@ -35,6 +35,7 @@ from typing import Any, Iterable
 
 from paradrive.errors import ConfigError
 from paradrive.io import is_temporary, temporary_name, write_json
+from paradrive.redact import redact, redact_options
 
 OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"})
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
@@ -53,9 +54,10 @@ def _remote_call(method):
         except StorageError:
             raise
         except Exception as exc:  # fsspec backends raise their own types (botocore, aiohttp…)
-            raise StorageError(f"{method.__name__} of {self.root.scene_location(self.scene_id)} "
-                               f"failed: {type(exc).__name__}: {exc}; check the URL, the "
-                               f"credentials and the network, then re-run") from exc
+            raise StorageError(redact(f"{method.__name__} of {self.root.scene_location(self.scene_id)} "
+                                      f"failed: {type(exc).__name__}: {exc}; check the URL, the "
+                                      f"credentials and the network, then re-run",
+                                      self.root.storage_options)) from exc
     return wrapper
 
 
@@ -105,7 +107,7 @@ class DataRoot:
         if not self.remote:
             return Path(self.location)
         digest = hashlib.sha256(self.location.encode()).hexdigest()[:12]
-        name = re.sub(r"[^A-Za-z0-9_.-]+", "-", self.location.split("://", 1)[1]).strip("-")[:48]
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "-", str(self).split("://", 1)[1]).strip("-")[:48]
         return Path(self.cache_dir or default_cache()).expanduser().resolve() / "data" / f"{name}-{digest}"
 
     def filesystem(self) -> tuple[Any, str]:
@@ -115,20 +117,25 @@ class DataRoot:
         try:
             fs, path = fsspec.core.url_to_fs(self.location, **self.storage_options)
         except (ImportError, ValueError) as exc:
-            raise ConfigError(f"data root {self.location}: {exc}; install the fsspec backend "
-                              f"for it (s3fs for s3://, gcsfs for gs://, adlfs for az://)") from exc
+            raise ConfigError(redact(f"data root {self.location}: {exc}; install the fsspec backend "
+                                     f"for it (s3fs for s3://, gcsfs for gs://, adlfs for az://)",
+                                     self.storage_options)) from exc
         return fs, path.rstrip("/")
 
     def scene_location(self, scene_id: str) -> str:
-        return f"{self.location}/scenes/{scene_id}" if self.remote \
-            else str(self.local / "scenes" / scene_id)
+        """Where the scene lives, to show or record (a URL without its credentials)."""
+        return f"{self}/scenes/{scene_id}" if self.remote else str(self.local / "scenes" / scene_id)
 
     def mirror(self, scene_id: str) -> "SceneMirror | None":
         """The scene's remote/local pair for a URL root; None for a local folder."""
         return SceneMirror(self, scene_id) if self.remote else None
 
     def __str__(self) -> str:
-        return self.location
+        return redact(self.location, self.storage_options)
+
+    def __repr__(self) -> str:  # options and URLs may hold credentials
+        return (f"DataRoot({str(self)!r}, storage_options={redact_options(self.storage_options)!r}, "
+                f"cache_dir={self.cache_dir!r}, drop_cache={self.drop_cache!r})")
 
 
 def local_scene(root: DataRoot, scene_id: str) -> Path:

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError, SceneError
-from paradrive.io import atomic_path, remove_stale_temporaries, write_json
+from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries, write_json
 from paradrive.metrics import psnr, ssim
 
 from . import init as gsinit
@@ -49,7 +49,7 @@ from .strategy import DensifyStrategy
 __all__ = ["run_stage", "fit_scene", "render_checkpoint", "load_ply", "checkpoint_path",
            "load_views"]
 
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: RNG states as tensors and plain lists, loaded without pickle
 log_default = logging.getLogger("paradrive.gs.fit")
 
 
@@ -194,15 +194,23 @@ def _make_optimizers(params: Dict[str, torch.nn.Parameter], p: Dict[str, Any],
 # --------------------------------------------------------------------------- state
 
 def _rng_state(gen: torch.Generator) -> dict:
+    """Every RNG the fit draws from, as tensors and plain numbers (loadable without pickle)."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
     return {"train": gen.get_state(), "torch": torch.get_rng_state(),
-            "numpy": np.random.get_state(), "python": random.getstate()}
+            "numpy": {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
+                      "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+            "python": {"version": int(version), "internal": [int(x) for x in internal],
+                       "gauss_next": gauss_next}}
 
 
 def _set_rng_state(gen: torch.Generator, st: dict) -> None:
     gen.set_state(st["train"])
     torch.set_rng_state(st["torch"])
-    np.random.set_state(st["numpy"])
-    random.setstate(st["python"])
+    n, py = st["numpy"], st["python"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"],
+                         n["cached_gaussian"]))
+    random.setstate((py["version"], tuple(py["internal"]), py["gauss_next"]))
 
 
 def _to_cpu(tree: Any) -> Any:
@@ -322,9 +330,12 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
     saved = None
     if state_path.is_file():
         try:
-            saved = torch.load(state_path, map_location="cpu", weights_only=False)
-        except Exception as exc:  # a state from an older version or a foreign file
-            log.warning("fit: %s unreadable (%s); starting over", state_path, exc)
+            saved = load_tensors(state_path)
+        except Exception as exc:  # an older version's state, a foreign file, one that needs pickle
+            log.warning("fit: %s not loaded (%s); starting over", state_path, exc)
+        if saved is not None and not isinstance(saved, dict):
+            log.warning("fit: %s is not a resume state; starting over", state_path)
+            saved = None
         if saved is not None and (saved.get("version") != STATE_VERSION or saved.get("fingerprint") != fp):
             log.warning("fit: %s was made with other parameters; starting over", state_path)
             saved = None

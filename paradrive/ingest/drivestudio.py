@@ -104,6 +104,13 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     if not folder.is_dir():
         raise SceneError("DriveStudio scene folder does not exist", scene_id=scene_id, path=folder,
                          fix="check the path in the scene URI")
+    outside = [p for p in sorted(folder.rglob("*"))
+               if p.is_symlink() and not p.resolve().is_relative_to(folder.resolve())]
+    if outside:
+        raise SceneError(f"{len(outside)} link(s) in the scene folder lead out of it, e.g. "
+                         f"{outside[0].relative_to(folder)} -> {outside[0].resolve()}",
+                         scene_id=scene_id, path=folder,
+                         fix="copy the files into the folder instead of linking them")
     flavour = flavour_of(folder, uri, scene_id)
     fps = _fps(folder, uri, flavour, scene_id)
     ids = WAYMO_CAMERAS if flavour == "waymo" else NUSCENES_CAMERAS

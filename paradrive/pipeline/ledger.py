@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from paradrive.errors import ConfigError
+from paradrive.redact import redact, redact_argv
 from paradrive.uri import parse_uri
 
 SCHEMA_VERSION = 1
@@ -186,7 +187,7 @@ class Ledger:
         return self._ids[scene]
 
     def begin_run(self, executor: str = "", scenes: int = 0, command: str | None = None) -> int:
-        command = " ".join(sys.argv) if command is None else command
+        command = " ".join(redact_argv(sys.argv)) if command is None else redact(command)
         with self._write() as c:
             cur = c.execute("INSERT INTO runs (started_at, executor, scenes, command) VALUES (?, ?, ?, ?)",
                             (time.time(), executor, scenes, command))
@@ -252,6 +253,7 @@ class Ledger:
     def record(self, result) -> None:
         """A :class:`~paradrive.pipeline.runner.StageResult` came back."""
         sid, stage, state, now = result.scene_id, result.stage, result.status, time.time()
+        error = redact(result.error or "")
         if state not in STATES:
             raise ValueError(f"ledger: unknown state {state!r} for {sid}/{stage}")
         with self._write() as c:
@@ -269,15 +271,15 @@ class Ledger:
                            now, now, sid, stage))
             elif state == "blocked":
                 c.execute("UPDATE tasks SET state = 'blocked', error = ?, updated_at = ? "
-                          "WHERE scene_id = ? AND stage = ?", (result.error, now, sid, stage))
+                          "WHERE scene_id = ? AND stage = ?", (error, now, sid, stage))
             else:
                 seconds = float(result.seconds or 0.0)
                 c.execute("UPDATE tasks SET state = ?, error = ?, fingerprint = ?, seconds = ?, "
                           "peak_rss_mb = ?, started_at = ?, finished_at = ?, updated_at = ?, "
                           "attempts = MAX(attempts, 1) WHERE scene_id = ? AND stage = ?",
-                          (state, result.error or "", result.fingerprint or "", seconds,
+                          (state, error, result.fingerprint or "", seconds,
                            float(result.peak_rss_mb or 0.0), now - seconds, now, now, sid, stage))
-            self._event(c, sid, stage, state, now, result.seconds, result.error or "")
+            self._event(c, sid, stage, state, now, result.seconds, error)
 
     def _event(self, c, sid: str, stage: str, state: str, at: float, seconds: float | None = None,
                error: str = "") -> None:

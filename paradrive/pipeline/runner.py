@@ -28,8 +28,9 @@ import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
 from paradrive.io import remove_stale_temporaries, write_json
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec
+from paradrive.redact import redact
 from paradrive.storage import DataRoot, SceneMirror
-from paradrive.uri import parse_uri
+from paradrive.uri import parse_uri, safe_name
 
 MARKER_DIR = ".paradrive"
 
@@ -122,6 +123,11 @@ def outputs_present(scene_dir: Path, spec: StageSpec, params: dict,
 
 
 def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
+    """``<data>/scenes/<scene_id>``; an id that is not a plain file name (``..``, ``a/b``) could
+    lead out of the data root and is refused."""
+    if safe_name(scene_id) != scene_id:
+        raise ConfigError(f"scene id {scene_id!r} is not a plain file name (letters, digits, "
+                          f"'-', '_', '.'); scene ids come from scene URIs, never from paths")
     return Path(data_dir) / "scenes" / scene_id
 
 
@@ -165,9 +171,24 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+class _Redacting(logging.Filter):
+    """Masks credentials (``paradrive.redact``) in every line before it reaches the log file."""
+
+    def __init__(self, options: dict | None):
+        super().__init__()
+        self.options = options
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        with contextlib.suppress(Exception):  # a malformed call is reported by the handler itself
+            record.msg, record.args = redact(record.getMessage(), self.options), None
+        return True
+
+
 @contextlib.contextmanager
-def scene_logger(scene_id: str, log_file: Path | None = None) -> Iterator[logging.Logger]:
-    """The scene's logger, appending to ``log_file`` while the stage runs (then closed)."""
+def scene_logger(scene_id: str, log_file: Path | None = None,
+                 storage_options: dict | None = None) -> Iterator[logging.Logger]:
+    """The scene's logger, appending to ``log_file`` while the stage runs (then closed); lines
+    lose the credentials of ``storage_options`` and the environment."""
     log = logging.getLogger(f"paradrive.scene.{scene_id}")
     log.setLevel(logging.INFO)
     log.propagate = False  # the console shows results; the per-scene file has the details
@@ -176,6 +197,7 @@ def scene_logger(scene_id: str, log_file: Path | None = None) -> Iterator[loggin
         log_file.parent.mkdir(parents=True, exist_ok=True)
         handler = logging.FileHandler(os.path.abspath(log_file))
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        handler.addFilter(_Redacting(storage_options))
         log.addHandler(handler)
     try:
         yield log
@@ -222,7 +244,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
     data_dir = root.local
     spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
-    with scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log") as log:
+    with scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log", root.storage_options) as log:
         params = config.params[stage]
         t0 = time.time()
         try:
@@ -270,12 +292,14 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             message = str(exc)
             if not isinstance(exc, ParaDriveError):
                 message = f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
+            message = redact(message, root.storage_options)
             log.error("%s: failed: %s", stage, message)
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
                                peak_rss_mb=_peak_rss_mb())
         except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
             log.error("%s: crashed:\n%s", stage, traceback.format_exc())
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
-                               error=f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: {exc} "
-                                     f"(traceback in {root.location}/logs/{scene_id}.log)",
+                               error=redact(f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: "
+                                            f"{exc} (traceback in {root}/logs/{scene_id}.log)",
+                                            root.storage_options),
                                peak_rss_mb=_peak_rss_mb())

@@ -4,8 +4,8 @@
 
 - a scene URI (``waymo:…``, ``nuscenes:…``, ``drivestudio:…``, ``synthetic:…``): kept as is;
 - a list file: one URI or path per line; blank lines and lines starting with ``#`` are ignored,
-  as is a trailing `` # comment`` (a ``#`` glued to a URI is its scene fragment); relative paths
-  are relative to the list file;
+  as is a trailing `` # comment`` (a ``#`` glued to a URI is its scene fragment); paths are
+  relative to the list file and must stay inside its folder (a log elsewhere is named by a URI);
 - a ``.tfrecord`` file: one ``waymo:`` scene;
 - a folder:
   - a nuScenes dataroot (``v1.0-*/scene.json``): one ``nuscenes:<root>?version=<v>#<name>`` per
@@ -13,7 +13,8 @@
   - a DriveStudio processed scene (``images/`` plus ``ego_pose/`` or ``extrinsics/``), or a folder
     of them: one ``drivestudio:`` scene each;
   - otherwise every ``*.tfrecord`` below it (one ``waymo:`` scene each), together with any
-    DriveStudio scenes among its sub-folders.
+    DriveStudio scenes among its sub-folders; a link among them that leads out of the folder is
+    refused.
 
 Paths in the URIs are absolute, so a build reads the same logs whatever the working folder of a
 worker. Duplicates are dropped, first occurrence wins.
@@ -41,12 +42,20 @@ def expand_scene_inputs(items: list[str]) -> list[str]:
     """Scene URIs from URIs, list files and folders of logs (see the module doc)."""
     uris: list[str] = []
     for item in items:
-        uris.extend(_expand(str(item).strip(), base=Path.cwd(), depth=0))
+        uris.extend(_expand(str(item).strip(), base=Path.cwd(), depth=0, within=None))
     seen: set[str] = set()
     return [u for u in uris if not (u in seen or seen.add(u))]
 
 
-def _expand(item: str, base: Path, depth: int) -> list[str]:
+def _inside(path: Path, folder: Path, what: str) -> None:
+    """Refuse ``path`` when it resolves (links followed) outside ``folder``."""
+    resolved = path.resolve()
+    if not resolved.is_relative_to(folder.resolve()):
+        raise ConfigError(f"{what} resolves to {resolved}, outside {folder}; move it there, or "
+                          f"name it by a scene URI (waymo:/…, drivestudio:/…)")
+
+
+def _expand(item: str, base: Path, depth: int, within: Path | None) -> list[str]:
     if not item:
         return []
     if is_uri(item):
@@ -54,6 +63,8 @@ def _expand(item: str, base: Path, depth: int) -> list[str]:
     path = Path(item).expanduser()
     if not path.is_absolute():
         path = base / path
+    if within is not None:  # a line of a list file: the list's folder is what was given
+        _inside(path, within, f"{item!r}")
     if path.is_dir():
         return scenes_in_folder(path)
     if path.is_file():
@@ -77,7 +88,7 @@ def _read_list(path: Path, depth: int) -> list[str]:
         if not line or line.startswith("#"):
             continue
         try:
-            uris.extend(_expand(line, base=path.parent, depth=depth + 1))
+            uris.extend(_expand(line, base=path.parent, depth=depth + 1, within=path.parent))
         except ConfigError as exc:
             raise ConfigError(f"{path}:{number}: {exc}") from exc
     return uris
@@ -114,10 +125,12 @@ def scenes_in_folder(folder: Path) -> list[str]:
         return nuscenes_scene_uris(folder)
     if is_drivestudio_scene(folder):
         return [f"drivestudio:{folder}"]
-    uris = [f"waymo:{p}" for p in sorted(folder.rglob("*"))
-            if p.is_file() and p.suffix in WAYMO_SUFFIXES and not p.name.startswith(".")]
-    uris += [f"drivestudio:{p}" for p in sorted(folder.iterdir())
-             if p.is_dir() and is_drivestudio_scene(p)]
+    found = [p for p in sorted(folder.rglob("*"))
+             if p.is_file() and p.suffix in WAYMO_SUFFIXES and not p.name.startswith(".")]
+    scenes = [p for p in sorted(folder.iterdir()) if p.is_dir() and is_drivestudio_scene(p)]
+    for p in found + scenes:
+        _inside(p, folder, f"{p}")
+    uris = [f"waymo:{p}" for p in found] + [f"drivestudio:{p}" for p in scenes]
     if not uris:
         raise ConfigError(f"{folder}: no scenes found; expected *.tfrecord files (Waymo), a "
                           f"nuScenes dataroot (v1.0-*/scene.json) or DriveStudio processed "

@@ -9,6 +9,8 @@ A run lives in one folder (``<out>/stage<k>``)::
 
 Running again in the same folder resumes from ``last.pt`` and computes exactly what an
 uninterrupted run would (fixed thread count, data order from (seed, epoch), saved RNG states).
+Checkpoints hold tensors and plain data only (the config as parsed YAML, RNG states as byte
+tensors) and are loaded without pickle: a file that needs it is refused.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import torch
 import yaml
 
 from paradrive.devices import resolve_device
-from paradrive.io import atomic_path, write_text
+from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.flow import euler_sample, flow_matching_loss
 from paradrive.train.model import ModelConfig, VideoDiT, is_stage2_parameter, load_stage1_weights
@@ -225,7 +227,7 @@ class Trainer:
     def _init_from(self, path: Path) -> None:
         if not path.is_file():
             raise FileNotFoundError(f"--init {path}: no such checkpoint")
-        ckpt = torch.load(path, map_location=self.device, weights_only=False)
+        ckpt = load_tensors(path, map_location=self.device)
         state = ckpt.get("model", ckpt) if isinstance(ckpt, dict) else ckpt
         if isinstance(ckpt, dict) and "config" in ckpt:
             for key in ("model", "autoencoder"):
@@ -239,8 +241,8 @@ class Trainer:
         log.info("initialised from %s", path)
 
     def _load(self, path: Path) -> None:
-        ckpt = torch.load(path, map_location=self.device, weights_only=False)
-        if ckpt.get("format") != CHECKPOINT_FORMAT or ckpt.get("stage") != self.stage:
+        ckpt = load_tensors(path, map_location=self.device)
+        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT or ckpt.get("stage") != self.stage:
             raise ValueError(f"{path}: not a stage-{self.stage} trainer checkpoint; use another --out "
                              f"or delete it to start over")
         for key in ("model", "autoencoder", "seed"):
@@ -403,11 +405,21 @@ class Trainer:
 
 
 # -- sampling ------------------------------------------------------------------------------------
-def load_for_sampling(checkpoint: str | Path, device: str = "auto") -> tuple[VideoDiT, VideoEncoder, dict, int]:
-    """(model, autoencoder, config, stage) from a trainer checkpoint, in eval mode."""
-    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+def load_for_sampling(checkpoint: str | Path, device: str = "auto",
+                      autoencoder: Mapping[str, Any] | None = None) -> tuple[VideoDiT, VideoEncoder, dict, int]:
+    """(model, autoencoder, config, stage) from a trainer checkpoint, in eval mode.
+
+    A checkpoint whose autoencoder is imported by name (``kind: "pkg.module:Factory"``) names
+    code to run; it is refused unless ``autoencoder`` (the caller's own config section) says the same.
+    """
+    ckpt = load_tensors(checkpoint)
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{checkpoint}: not a paradrive trainer checkpoint")
+    named = ckpt["config"]["autoencoder"]
+    if named.get("kind", "patch") != "patch" and named != autoencoder:
+        raise UnsafeFileError(f"{checkpoint}: its autoencoder is code imported by name "
+                              f"({named.get('kind')!r}); refused unless the caller passes the same "
+                              f"autoencoder config (autoencoder=...)")
     dev = resolve_device(device)
     encoder = make_autoencoder(ckpt["config"]["autoencoder"])
     if isinstance(encoder, torch.nn.Module):
