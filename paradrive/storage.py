@@ -154,6 +154,21 @@ def _is_temporary(rel: str) -> bool:
     return any(is_temporary(part) for part in rel.split("/"))
 
 
+def file_stats(folder: Path) -> dict[str, tuple[int, int]]:
+    """Files under ``folder`` (temporaries left out): relative path -> (size, mtime_ns)."""
+    out = {}
+    if folder.is_dir():
+        for dirpath, _, files in os.walk(folder):
+            for f in files:
+                p = Path(dirpath) / f
+                rel = p.relative_to(folder).as_posix()
+                if not _is_temporary(rel):
+                    with contextlib.suppress(FileNotFoundError):  # removed while walking
+                        st = p.stat()
+                        out[rel] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
 def matches(rel: str, patterns: Iterable[str]) -> bool:
     """``rel`` is one of the files ``patterns`` name (a glob, or a folder and everything in it)."""
     return any(fnmatch.fnmatchcase(rel, p) or fnmatch.fnmatchcase(rel, p.rstrip("/") + "/*")
@@ -265,16 +280,7 @@ class SceneMirror:
 
     def snapshot(self) -> dict[str, tuple[int, int]]:
         """Local files of the scene: relative path -> (size, mtime_ns)."""
-        out = {}
-        if self.local.is_dir():
-            for dirpath, _, files in os.walk(self.local):
-                for f in files:
-                    p = Path(dirpath) / f
-                    rel = p.relative_to(self.local).as_posix()
-                    if not _is_temporary(rel):
-                        st = p.stat()
-                        out[rel] = (st.st_size, st.st_mtime_ns)
-        return out
+        return file_stats(self.local)
 
     @_remote_call
     def withdraw(self, rel: str) -> None:
