@@ -144,15 +144,15 @@ def written_outputs(folder: Path, before: dict[str, tuple[int, int]], declared: 
     return out
 
 
-def damaged_outputs(marker: dict, size_of: Callable[[str], int | None]) -> list[str]:
-    """The recorded outputs of ``marker`` that are missing or changed size, described."""
-    problems = []
+def damaged_outputs(marker: dict, size_of: Callable[[str], int | None]) -> dict[str, str]:
+    """The recorded outputs of ``marker`` that are missing or changed size: rel -> what is wrong."""
+    problems = {}
     for rel, info in marker.get("outputs", {}).items():
         size = size_of(rel)
         if size is None:
-            problems.append(f"{rel} is missing")
+            problems[rel] = f"{rel} is missing"
         elif size != info["bytes"]:
-            problems.append(f"{rel} is {size} bytes, {info['bytes']} when written")
+            problems[rel] = f"{rel} is {size} bytes, {info['bytes']} when written"
     return problems
 
 
@@ -176,7 +176,7 @@ def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
         if marker.get("upstream_runs", {}).get(need) != up.get("run"):
             return f"'{need}' was redone since"
     if "outputs" in marker:
-        damaged = damaged_outputs(marker, size_of)
+        damaged = list(damaged_outputs(marker, size_of).values())
         return f"{damaged[0]}" + (f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else "") \
             if damaged else ""
     missing = missing_declared()
@@ -210,7 +210,7 @@ def check_inputs(scene_id: str, stage: str, upstream: dict[str, dict],
                  size_of: Callable[[str], int | None]) -> None:
     """Refuse to run on damaged inputs, naming the stage a plain re-run redoes first."""
     for need, marker in upstream.items():
-        damaged = damaged_outputs(marker, size_of)
+        damaged = list(damaged_outputs(marker, size_of).values())
         if damaged:
             raise SceneError(f"{stage} needs the outputs of {need}, and {damaged[0]}",
                              scene_id=scene_id,
@@ -340,6 +340,10 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                 mirror.withdraw(marker_rel)
                 pulled = mirror.pull(spec.reads)
                 log.info("%s: %d file(s) brought from %s", stage, pulled, root.scene_location(scene_id))
+            # A stage may keep what it finds in place (a complete fit): never a damaged output,
+            # nor, on a URL root, a cached copy of one the remote lost.
+            for rel in damaged_outputs(marker or {}, size_of):
+                (scene_dir / rel).unlink(missing_ok=True)
             remove_stale_temporaries(scene_dir)
             before = file_stats(scene_dir)
             log.info("%s: started (fingerprint %s)", stage, fp)
