@@ -68,3 +68,23 @@ def stage_config(tmp_path):
         folder = pipeline_stages.write_stages(tmp_path / "stages")
         return StageRegistry(folder).resolve(None, overrides or {})
     return _config
+
+
+@pytest.fixture(scope="module")
+def s3_bucket():
+    """A local S3 endpoint (moto's server) with an empty bucket "builds"; yields fsspec's options."""
+    pytest.importorskip("s3fs")
+    boto3 = pytest.importorskip("boto3")
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    options = {"endpoint_url": f"http://{host}:{port}", "key": "paradrive", "secret": "paradrive",
+               "client_kwargs": {"region_name": "us-east-1"}}
+    boto3.client("s3", endpoint_url=options["endpoint_url"], aws_access_key_id="paradrive",
+                 aws_secret_access_key="paradrive", region_name="us-east-1").create_bucket(Bucket="builds")
+    try:
+        yield options
+    finally:
+        server.stop()

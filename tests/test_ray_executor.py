@@ -246,26 +246,6 @@ def _normalised_index(build_dir: Path, root: Path) -> str:
     return json.dumps(doc, sort_keys=True)
 
 
-@pytest.fixture(scope="module")
-def s3_bucket():
-    """A local S3 endpoint (moto's server) with an empty bucket; yields the --storage-option flags."""
-    pytest.importorskip("s3fs")
-    boto3 = pytest.importorskip("boto3")
-    from moto.server import ThreadedMotoServer
-
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    options = {"endpoint_url": f"http://{host}:{port}", "key": "paradrive", "secret": "paradrive",
-               "client_kwargs": {"region_name": "us-east-1"}}
-    boto3.client("s3", endpoint_url=options["endpoint_url"], aws_access_key_id="paradrive",
-                 aws_secret_access_key="paradrive", region_name="us-east-1").create_bucket(Bucket="builds")
-    try:
-        yield options
-    finally:
-        server.stop()
-
-
 @pytest.mark.slow
 def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_build(
         ray_cluster, s3_bucket, tmp_path, monkeypatch):
