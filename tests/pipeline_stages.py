@@ -201,6 +201,17 @@ def tree_digest(root: Path, skip=(".paradrive", "logs", "calls.log", "crashed-",
     return out
 
 
+def scenes_digest(root) -> dict[str, str]:
+    """:func:`tree_digest` of a data root's ``scenes/``, a folder or a URL
+    (:class:`~paradrive.storage.DataRoot`), markers left out."""
+    if not root.remote:
+        return tree_digest(root.local / "scenes")
+    fs, base = root.filesystem()
+    prefix = f"{base}/scenes/".lstrip("/")
+    return {name.lstrip("/")[len(prefix):]: hashlib.sha256(fs.cat_file(name)).hexdigest()
+            for name in sorted(fs.find(f"{base}/scenes")) if "/.paradrive/" not in name}
+
+
 # The real stages' smoke profile made tinier still, for the few tests that run the real pipeline:
 # 10 frames of 64x48, a 4-iteration fit, two offsets, one clip.
 TINY_REAL = {

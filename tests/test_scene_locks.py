@@ -72,21 +72,6 @@ def data_root(request, tmp_path):
             "flags": ["--data", url, *storage_flags(options), "--cache", str(cache)]}
 
 
-def remote_digest(root: DataRoot) -> dict[str, str]:
-    """Every scene file of a data root (folder or URL): relative path -> sha256, bookkeeping out."""
-    import hashlib
-
-    if not root.remote:
-        return pipeline_stages.tree_digest(root.local / "scenes")
-    fs, base = root.filesystem()
-    out = {}
-    for name in sorted(fs.find(f"{base}/scenes")):
-        rel = name.lstrip("/")[len(f"{base}/scenes/".lstrip("/")):]
-        if ".paradrive" not in rel.split("/"):
-            out[rel] = hashlib.sha256(fs.cat_file(name)).hexdigest()
-    return out
-
-
 # -- waiting, giving up, status ------------------------------------------------------------------
 
 @pytest.fixture(params=["folder", "memory"])
@@ -217,7 +202,7 @@ def test_two_builds_started_together_share_the_scenes_and_run_each_stage_once(da
     report = run_build(StageRegistry(stand_in).resolve(), SCENES, alone, manifests_dir=tmp_path / "am",
                        build="b")
     assert report.exit_code == 0
-    assert remote_digest(root) == remote_digest(alone)
+    assert pipeline_stages.scenes_digest(root) == pipeline_stages.scenes_digest(alone)
     rows = {b: {json.loads(line)["pair_id"]: line for line in
                 (tmp_path / "m" / b / "pairs.jsonl").read_text().splitlines()} for b in lists}
     shared = [f"{IDS[i]}/{o}" for i in (1, 2) for o in ("+1.0", "-1.0")]
