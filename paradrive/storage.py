@@ -5,7 +5,7 @@ With a URL as the data root, each (scene, stage) runs on a local copy of the sce
 node's cache, ``$PARADRIVE_CACHE`` or ``~/.cache/paradrive``) and the remote folder is the truth:
 
 1. list the remote scene folder and fetch its stage markers; a stage whose marker matches and
-   whose declared outputs are listed is skipped without downloading anything else;
+   whose recorded outputs are listed with their sizes is skipped without downloading anything else;
 2. otherwise withdraw the stage's remote marker, then download what the stage reads
    (``reads`` in its YAML, default the whole scene folder) that the cache lacks or holds an older
    version of;

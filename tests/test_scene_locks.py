@@ -7,6 +7,7 @@ and over a URL root (moto's local S3 server; ``memory://`` within this process).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -145,6 +146,28 @@ def test_an_expired_lease_is_taken_over_and_a_live_one_is_not(tmp_path, stand_in
         assert not fs.exists(f"{base}/locks/{IDS[0]}.json")  # released after the stage
     finally:
         fs.rm(base.rsplit("/", 1)[0], recursive=True)
+
+
+def test_a_lease_is_renewed_while_its_holder_works(monkeypatch, tmp_path):
+    from paradrive.pipeline import locks
+
+    monkeypatch.setattr(locks, "LEASE_SECONDS", 1.5)  # renewed every 0.5 s
+    root = DataRoot.of(f"memory://renew-{uuid.uuid4().hex[:8]}/data", cache_dir=str(tmp_path))
+    fs, base = root.filesystem()
+    lease = f"{base}/locks/{IDS[0]}.json"
+    try:
+        with scene_lock(root, IDS[0], LockOptions("b1")):
+            first = json.loads(fs.cat_file(lease))["expires_at"]
+            time.sleep(3.5)  # past the first expiry: only renewals keep it
+            later = json.loads(fs.cat_file(lease))["expires_at"]
+            assert later > first
+            with pytest.raises(locks.SceneLocked, match="locked by build b1"):
+                with scene_lock(root, IDS[0], LockOptions("b2", timeout=0)):
+                    pass
+        assert not fs.exists(lease)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm(base.rsplit("/", 1)[0], recursive=True)
 
 
 # -- a holder killed with SIGKILL -----------------------------------------------------------------

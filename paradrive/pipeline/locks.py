@@ -323,7 +323,7 @@ def _wait(scene_id: str, options: LockOptions, log: logging.Logger, attempt, hol
             raise SceneLocked(scene_id, holder(), waited)
         if not told:
             found = holder()
-            log.info("scene %s is locked by %s; waiting up to %.0f s", scene_id,
+            log.warning("scene %s is locked by %s; waiting up to %.0f s", scene_id,
                      found.describe() if found else "another build", options.timeout)
             told = True
         time.sleep(POLL_SECONDS)
