@@ -8,7 +8,8 @@ it after the first one finished; two builds never write one scene at once.
 - A folder root (local, NFS, a FUSE mount): ``<data>/locks/<scene_id>.lock``, held with
   ``flock``; the holder's build, host, pid and start time are written inside. The kernel drops
   the lock of a process that dies (even by SIGKILL), so the next build takes it at once; the
-  record the dead holder left behind tells it to note a takeover.
+  record the dead holder left behind tells it to note a takeover. A mount without locks
+  (``ENOLCK``) fails the stage with that reason rather than running unguarded.
 - A URL root: a lease object ``<root>/locks/<scene_id>.json`` created with the store's
   exclusive create (fsspec mode ``"xb"``: ``If-None-Match`` on S3, ``O_EXCL`` on ``local://``),
   then read back to be sure it is ours. The holder renews its expiry from a background thread
@@ -161,9 +162,9 @@ def _file_lock(root: DataRoot, scene_id: str, options: LockOptions,
         os.close(fd)
 
 
-def _try_flock(fd: int) -> bool:
+def _try_flock(fd: int, mode: int = fcntl.LOCK_EX) -> bool:
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
         return True
     except OSError as exc:
         if exc.errno in (errno.EAGAIN, errno.EACCES):
@@ -182,22 +183,12 @@ def _file_holder(path: Path) -> Holder | None:
     """The holder of a folder root's lock file, or None when nobody holds it."""
     fd = os.open(path, os.O_RDONLY)
     try:
-        if _try_flock_shared(fd):
+        if _try_flock(fd, fcntl.LOCK_SH):
             fcntl.flock(fd, fcntl.LOCK_UN)
             return None
         return _read_record(path)
     finally:
         os.close(fd)
-
-
-def _try_flock_shared(fd: int) -> bool:
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        return True
-    except OSError as exc:
-        if exc.errno in (errno.EAGAIN, errno.EACCES):
-            return False
-        raise
 
 
 # -- a URL root: a lease object ---------------------------------------------------------------
@@ -262,10 +253,11 @@ def _lease_lock(root: DataRoot, scene_id: str, options: LockOptions,
         if lease.create(mine):
             return True
         found = lease.read()
-        if found is not None and (found.dead() or found.expired()) and lease.remove_if(found):
+        if found is not None and (found.dead() or found.expired()) and lease.remove_if(found) \
+                and lease.create(mine):
             took_over.append(found.describe() + (" (lease expired)" if found.expired()
                                                  else " (process gone)"))
-            return lease.create(mine)
+            return True
         return False
 
     _wait(scene_id, options, log, attempt, lease.read)
