@@ -22,10 +22,12 @@ from paradrive.pipeline.runner import (
     load_entry, local_size, marker_path, read_marker, scene_dir_for, written_outputs,
 )
 from paradrive.pipeline.specs import ResolvedConfig
-from paradrive.storage import DataRoot, file_stats
+from paradrive.pipeline.ledger import LEDGER_FILE
+from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+NOT_OWNED = (f"{LEDGER_FILE}*", "logs")  # in a build folder, but no build stage's output
 
 
 @dataclass
@@ -118,9 +120,11 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
                            scenes=scenes, params=dict(config.params[stage]), log=log, fingerprint=fp)
         summary = func(ctx) or {}
         declared = expand_outputs(spec.outputs, config.params[stage])
+        outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
+                   if not matches(rel, NOT_OWNED)}
         write_json(marker_path(build_dir, stage),
                    {"stage": stage, "build": build, "fingerprint": fp, "scene_runs": runs,
-                    "outputs": written_outputs(build_dir, before, declared)})
+                    "outputs": outputs})
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
     except (ParaDriveError, OSError, ValueError) as exc:

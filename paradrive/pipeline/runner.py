@@ -177,8 +177,9 @@ def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
             return f"'{need}' was redone since"
     if "outputs" in marker:
         damaged = list(damaged_outputs(marker, size_of).values())
-        return f"{damaged[0]}" + (f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else "") \
-            if damaged else ""
+        if not damaged:
+            return ""
+        return damaged[0] + (f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else "")
     missing = missing_declared()
     return f"declared output {missing[0]} is missing" if missing else ""
 
