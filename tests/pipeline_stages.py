@@ -190,7 +190,7 @@ def run_manifest(ctx) -> dict:
     return {"rows": len(rows)}
 
 
-def tree_digest(root: Path, skip=(".paradrive", "logs", "calls.log", "crashed-", "broken-",
+def tree_digest(root: Path, skip=(".paradrive", "logs", "locks", "calls.log", "crashed-", "broken-",
                                   "ledger.sqlite")) -> dict[str, str]:
     """sha256 of every file under ``root`` (relative path -> digest), minus bookkeeping files."""
     out = {}

@@ -292,7 +292,7 @@ def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_b
         target = fetched / name[len(base) + 1:]
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(fs.cat_file(name))
-    skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
+    skip = (".paradrive", "logs", "locks", "ledger.sqlite", "index.json", "fit.json")
     expected = pipeline_stages.tree_digest(local, skip)
     for name in ("ray", "ray-s3"):
         other = tmp_path / name
@@ -383,9 +383,12 @@ def test_a_ray_build_killed_midway_resumes_with_only_the_missing_work(tmp_path):
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     states = {(r["scene_id"], r["stage"]): r["state"] for r in ledger.tasks()
               if not r["scene_id"].startswith("build:")}
-    assert {k for k, v in states.items() if v == "skipped"} == landed
-    assert {k for k, v in states.items() if v == "done"} == set(states) - landed
-    skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
+    # A worker of the killed cluster may still finish the stage it had begun: it holds that
+    # scene's lock, so the new build waits for it and then finds the stage done, not redoing it.
+    skipped = {k for k, v in states.items() if v == "skipped"}
+    assert landed <= skipped and len(skipped - landed) <= 1, (landed, skipped)
+    assert {k for k, v in states.items() if v == "done"} == set(states) - skipped
+    skip = (".paradrive", "logs", "locks", "ledger.sqlite", "index.json", "fit.json")
     assert pipeline_stages.tree_digest(killed, skip) == pipeline_stages.tree_digest(whole, skip)
     assert not list((killed / "data").rglob(".*.tmp-*"))
 
