@@ -65,12 +65,14 @@ def data_root(request, tmp_path):
     """Where the builds write: a folder, or a fresh prefix of the local S3 bucket (both builds of
     a test share one cache folder, as two builds on one machine would)."""
     if request.param == "folder":
-        return {"root": DataRoot.of(tmp_path / "data"), "flags": ["--data", str(tmp_path / "data")]}
+        return {"root": DataRoot.of(tmp_path / "data"), "flags": ["--data", str(tmp_path / "data")],
+                "status_flags": []}
     options = request.getfixturevalue("s3_bucket")
     url = f"s3://builds/{uuid.uuid4().hex[:8]}"
     cache = tmp_path / "cache"
     return {"root": DataRoot.of(url, storage_options=options, cache_dir=str(cache)),
-            "flags": ["--data", url, *storage_flags(options), "--cache", str(cache)]}
+            "flags": ["--data", url, *storage_flags(options), "--cache", str(cache)],
+            "status_flags": storage_flags(options)}
 
 
 # -- waiting, giving up, status ------------------------------------------------------------------
@@ -183,7 +185,11 @@ def test_a_build_killed_holding_a_lock_is_taken_over_at_once(data_root, stand_in
         while ("start", "fit", IDS[0]) not in pipeline_stages.calls(root.local):
             assert first.poll() is None and time.time() < deadline, "b1 never reached fit"
             time.sleep(0.1)
-        assert held_locks(root)[IDS[0]].pid == first.pid
+        status = CliRunner().invoke(app, ["status", "b1", "--manifests", str(tmp_path / "m"), "--json",
+                                          *data_root["status_flags"]])
+        assert status.exit_code == 0, status.output
+        assert [(lock["scene_id"], lock["build"], lock["pid"])
+                for lock in json.loads(status.output)["locks"]] == [(IDS[0], "b1", first.pid)]
         first.send_signal(signal.SIGKILL)
         first.wait(30)
     finally:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+from typing import List
 
 import typer
 from rich import box
@@ -20,7 +21,6 @@ from rich.table import Table
 from paradrive.errors import ConfigError
 from paradrive.pipeline.ledger import LEDGER_FILE, Ledger, dumps
 from paradrive.pipeline.locks import held_locks
-from paradrive.storage import DataRoot
 
 STATE_STYLE = {"done": "green", "skipped": "green", "failed": "red", "blocked": "yellow",
                "running": "cyan", "pending": "dim"}
@@ -36,13 +36,15 @@ def open_ledger(build: str, manifests: Path) -> Ledger:
     return Ledger.open_existing(manifests, build)
 
 
-def scene_locks(ledger: Ledger, data: str | None = None) -> list[dict]:
+def scene_locks(ledger: Ledger, data: str | None = None, storage_options: list[str] = ()) -> list[dict]:
     """The build's scenes locked now: scene_id and the holder's build, host, pid, start."""
+    from paradrive.cli import data_root
+
     location = data or ledger.meta().get("data_root")
     if not location:
         return []
     ids = {r["scene_id"] for r in ledger.tasks() if not r["scene_id"].startswith("build:")}
-    held = held_locks(DataRoot.of(location))
+    held = held_locks(data_root(location, list(storage_options), None, False))
     return [{"scene_id": sid, "build": h.build, "host": h.host, "pid": h.pid,
              "since": h.started_at, "holder": h.describe()}
             for sid, h in sorted(held.items()) if sid in ids]
@@ -152,6 +154,7 @@ def status(
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
     all_scenes: bool = typer.Option(False, "--scenes", help="Also list every scene's stage states."),
     data: str = typer.Option(None, "--data", help="Data root whose scene locks to show (default: the one the build last ran with)."),
+    storage_option: List[str] = typer.Option([], "--storage-option", help="fsspec option for a URL data root, KEY=VALUE, as for 'paradrive build'. Repeatable."),
 ) -> None:
     """Show a build's ledger: scenes done / failed / pending, time per stage, failures with
     reasons, and which of its scenes are locked now and by whom."""
@@ -160,8 +163,8 @@ def status(
         summary = ledger.summary()
         summary["takeovers"] = [{k: t[k] for k in ("scene_id", "stage", "at", "error")}
                                 for t in ledger.takeovers()]
-        summary["locks"] = scene_locks(ledger, data)
-    except ConfigError as exc:
+        summary["locks"] = scene_locks(ledger, data, storage_option)
+    except (ConfigError, OSError) as exc:
         Console(stderr=True).print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(2)
     if as_json:
