@@ -175,6 +175,7 @@ def test_a_lease_is_renewed_while_its_holder_works(monkeypatch, tmp_path):
 # -- a holder killed with SIGKILL -----------------------------------------------------------------
 
 def test_a_build_killed_holding_a_lock_is_taken_over_at_once(data_root, stand_in, tmp_path):
+    psutil = pytest.importorskip("psutil")
     root, where = data_root["root"], data_root["flags"]
     env = environment(stand_in)
     first = subprocess.Popen(command(SCENES[:1], "b1", where, tmp_path / "m", "--set",
@@ -191,12 +192,15 @@ def test_a_build_killed_holding_a_lock_is_taken_over_at_once(data_root, stand_in
         assert [(lock["scene_id"], lock["build"], lock["pid"])
                 for lock in json.loads(status.output)["locks"]] == [(IDS[0], "b1", first.pid)]
         first.send_signal(signal.SIGKILL)
-        first.wait(30)
+        # not reaped yet (a zombie until this test waits for it): gone all the same
+        while psutil.Process(first.pid).status() != psutil.STATUS_ZOMBIE:
+            time.sleep(0.05)
+        # --lock-timeout 0: the build succeeds only if it takes the dead build's lock at once
+        second = subprocess.run(command(SCENES[:1], "b2", where, tmp_path / "m", "--lock-timeout",
+                                        "0"), env=env, capture_output=True, text=True, timeout=300)
     finally:
         first.kill()
-    # --lock-timeout 0: the build succeeds only if it takes the dead build's lock without waiting
-    second = subprocess.run(command(SCENES[:1], "b2", where, tmp_path / "m", "--lock-timeout", "0"),
-                            env=env, capture_output=True, text=True, timeout=300)
+        first.wait(30)
     assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
     ledger = Ledger.for_build(tmp_path / "m", "b2")
     assert ledger.task(IDS[0], "ingest")["state"] == "skipped"  # b1 had finished it

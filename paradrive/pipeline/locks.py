@@ -64,16 +64,19 @@ class LockOptions:
     timeout: float = DEFAULT_LOCK_TIMEOUT_S
 
 
-def _process_start(pid: int) -> str:
-    """When process ``pid`` started (clock ticks since boot, from /proc); '' where unknown.
-
-    With the pid it names one process: a pid the system gave again to another one differs here.
-    """
+def _proc_stat(pid: int) -> list[str]:
+    """Fields 3… of ``/proc/<pid>/stat`` (state, ppid, …); [] where there is none."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[-1].split()
     except OSError:
-        return ""
-    return stat.rsplit(")", 1)[-1].split()[19]
+        return []
+
+
+def _process_start(pid: int) -> str:
+    """When process ``pid`` started (clock ticks since boot); '' where unknown. With the pid it
+    names one process: a pid the system gave again to another one differs here."""
+    fields = _proc_stat(pid)
+    return fields[19] if len(fields) > 19 else ""
 
 
 @dataclass(frozen=True)
@@ -119,6 +122,9 @@ class Holder:
             return True
         except PermissionError:
             pass
+        fields = _proc_stat(self.pid)
+        if fields and fields[0] == "Z":  # exited, not yet reaped by its parent
+            return True
         return bool(self.process_start) and _process_start(self.pid) not in ("", self.process_start)
 
     def expired(self, now: float | None = None) -> bool:
