@@ -15,6 +15,7 @@ from rich.table import Table
 
 from paradrive import __version__
 from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Build parallel-trajectory video pairs from single-pass driving logs.")
@@ -79,6 +80,7 @@ def build(
     set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
     retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
+    lock_timeout: float = typer.Option(DEFAULT_LOCK_TIMEOUT_S, "--lock-timeout", min=0, help="Seconds to wait for a scene another build holds locked; after that the scene is left for this run (reported failed, naming that build)."),
 ) -> None:
     """Run the pipeline on one or many scenes; stages that are up to date are skipped.
 
@@ -117,7 +119,7 @@ def build(
     try:
         report = _run_with_progress(config, uris, root, stage_list, runner, manifests, build_name,
                                     force, ledger, build_uris=build_uris,
-                                    replace=not retry_failed)
+                                    replace=not retry_failed, lock_timeout=lock_timeout)
     except (ConfigError, ParaDriveError) as exc:
         ledger.end_run(2)
         fail(str(exc))
@@ -160,7 +162,7 @@ def _open_ledger(manifests: Path, build_name: str):
 
 
 def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name, force, ledger,
-                       *, build_uris=None, replace=True):
+                       *, build_uris=None, replace=True, lock_timeout=DEFAULT_LOCK_TIMEOUT_S):
     """Run the build with a progress bar over scenes (done / failed, ETA) and the ledger updated."""
     from paradrive.pipeline.build import run_build, split_stages
     from paradrive.uri import parse_uri
@@ -197,11 +199,13 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
 
     ledger.register(uris, scene_stages, build_stages, replace=replace)
     ledger.begin_run(getattr(runner, "name", ""), len(uris))
+    ledger.set_data_root(str(data))
     with progress:
         task = progress.add_task(describe("starting"), total=len(uris) if scene_stages else None)
         return run_build(config, uris, data, stages=stage_list, executor=runner,
                          manifests_dir=manifests, build=build_name, force=force,
-                         build_scene_uris=build_uris, on_start=on_start, on_result=on_result)
+                         build_scene_uris=build_uris, on_start=on_start, on_result=on_result,
+                         lock_timeout=lock_timeout)
 
 
 def _print_report(report, ledger=None, max_rows: int = 20) -> None:

@@ -262,6 +262,12 @@ def _under(tmp_root: Path, rel: Path) -> Path:
 
 
 def run_stage(ctx) -> dict:
-    """Stage entry (``stages/clip.yaml``)."""
-    return write_clips(ctx.scene_dir, ctx.params, log=getattr(ctx, "log", None),
-                       progress=getattr(ctx, "progress", None))
+    """Stage entry (``stages/clip.yaml``). The videos' sha256, computed while encoding, go to the
+    runner (``ctx.hashes``), which records them in the stage's marker."""
+    summary = write_clips(ctx.scene_dir, ctx.params, log=getattr(ctx, "log", None),
+                          progress=getattr(ctx, "progress", None))
+    hashes = getattr(ctx, "hashes", None)
+    if hashes is not None:
+        doc = json.loads((Path(ctx.scene_dir) / "clips" / "clips.json").read_text())
+        hashes.update({e["file"]: e["sha256"] for c in doc["clips"] for e in c["streams"].values()})
+    return summary

@@ -5,7 +5,7 @@ With a URL as the data root, each (scene, stage) runs on a local copy of the sce
 node's cache, ``$PARADRIVE_CACHE`` or ``~/.cache/paradrive``) and the remote folder is the truth:
 
 1. list the remote scene folder and fetch its stage markers; a stage whose marker matches and
-   whose declared outputs are listed is skipped without downloading anything else;
+   whose recorded outputs are listed with their sizes is skipped without downloading anything else;
 2. otherwise withdraw the stage's remote marker, then download what the stage reads
    (``reads`` in its YAML, default the whole scene folder) that the cache lacks or holds an older
    version of;
@@ -161,6 +161,21 @@ def _is_temporary(rel: str) -> bool:
     return any(is_temporary(part) for part in rel.split("/"))
 
 
+def file_stats(folder: Path) -> dict[str, tuple[int, int]]:
+    """Files under ``folder`` (temporaries left out): relative path -> (size, mtime_ns)."""
+    out = {}
+    if folder.is_dir():
+        for dirpath, _, files in os.walk(folder):
+            for f in files:
+                p = Path(dirpath) / f
+                rel = p.relative_to(folder).as_posix()
+                if not _is_temporary(rel):
+                    with contextlib.suppress(FileNotFoundError):  # removed while walking
+                        st = p.stat()
+                        out[rel] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
 def matches(rel: str, patterns: Iterable[str]) -> bool:
     """``rel`` is one of the files ``patterns`` name (a glob, or a folder and everything in it)."""
     return any(fnmatch.fnmatchcase(rel, p) or fnmatch.fnmatchcase(rel, p.rstrip("/") + "/*")
@@ -272,16 +287,7 @@ class SceneMirror:
 
     def snapshot(self) -> dict[str, tuple[int, int]]:
         """Local files of the scene: relative path -> (size, mtime_ns)."""
-        out = {}
-        if self.local.is_dir():
-            for dirpath, _, files in os.walk(self.local):
-                for f in files:
-                    p = Path(dirpath) / f
-                    rel = p.relative_to(self.local).as_posix()
-                    if not _is_temporary(rel):
-                        st = p.stat()
-                        out[rel] = (st.st_size, st.st_mtime_ns)
-        return out
+        return file_stats(self.local)
 
     @_remote_call
     def withdraw(self, rel: str) -> None:

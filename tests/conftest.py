@@ -87,7 +87,7 @@ def stage_config(tmp_path):
 
 @pytest.fixture(scope="module")
 def s3_bucket():
-    """A local S3 endpoint (moto's server) with an empty bucket; yields the --storage-option flags."""
+    """A local S3 endpoint (moto's server) with an empty bucket "builds"; yields fsspec's options."""
     pytest.importorskip("s3fs")
     boto3 = pytest.importorskip("boto3")
     from moto.server import ThreadedMotoServer

@@ -190,7 +190,7 @@ def run_manifest(ctx) -> dict:
     return {"rows": len(rows)}
 
 
-def tree_digest(root: Path, skip=(".paradrive", "logs", "calls.log", "crashed-", "broken-",
+def tree_digest(root: Path, skip=(".paradrive", "logs", "locks", "calls.log", "crashed-", "broken-",
                                   "ledger.sqlite")) -> dict[str, str]:
     """sha256 of every file under ``root`` (relative path -> digest), minus bookkeeping files."""
     out = {}
@@ -199,6 +199,17 @@ def tree_digest(root: Path, skip=(".paradrive", "logs", "calls.log", "crashed-",
         if p.is_file() and not any(part.startswith(skip) for part in rel.split("/")):
             out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
     return out
+
+
+def scenes_digest(root) -> dict[str, str]:
+    """:func:`tree_digest` of a data root's ``scenes/``, a folder or a URL
+    (:class:`~paradrive.storage.DataRoot`), markers left out."""
+    if not root.remote:
+        return tree_digest(root.local / "scenes")
+    fs, base = root.filesystem()
+    prefix = f"{base}/scenes/".lstrip("/")
+    return {name.lstrip("/")[len(prefix):]: hashlib.sha256(fs.cat_file(name)).hexdigest()
+            for name in sorted(fs.find(f"{base}/scenes")) if "/.paradrive/" not in name}
 
 
 # The real stages' smoke profile made tinier still, for the few tests that run the real pipeline:

@@ -98,14 +98,52 @@ def test_a_changed_parameter_then_reverted_is_redone_again(build):
     assert {k: v for k, v in after.items() if k in first} == first
 
 
-def test_a_missing_output_is_redone_and_downstream_stays_valid(build):
+def test_a_missing_output_redoes_its_stage_and_the_later_ones_of_that_scene_only(build):
     build()
+    digest = pipeline_stages.tree_digest(build.data)
     (scene_dir_for(build.data, IDS[0]) / "gs" / "fit.json").unlink()
     result = build()
-    assert result[(IDS[0], "fit")] == "done"
-    # same inputs and parameters give the same fingerprint: render still matches
-    assert result[(IDS[0], "render")] == "skipped"
-    assert statuses(result, "fit") == {"done", "skipped"}
+    assert {k for k, s in result.items() if s == "done"} == {
+        (IDS[0], "fit"), (IDS[0], "render"), (IDS[0], "clip"), ("build:fp", "manifest")}
+    assert pipeline_stages.tree_digest(build.data) == digest
+
+
+def test_a_truncated_output_is_redone_though_its_name_is_there(build):
+    build()
+    ckpt = scene_dir_for(build.data, IDS[1]) / "gs" / "ckpt_000001.txt"
+    whole = ckpt.read_bytes()
+    ckpt.write_bytes(whole[:3])
+    result = build()
+    assert result[(IDS[1], "ingest")] == "skipped" and result[(IDS[1], "fit")] == "done"
+    assert ckpt.read_bytes() == whole
+
+
+def test_markers_list_the_files_their_stage_wrote_with_sizes(build):
+    build()
+    scene = scene_dir_for(build.data, IDS[0])
+    ingest = read_marker(scene, "ingest")["outputs"]
+    assert sorted(ingest) == ["images/000000.txt", "images/000001.txt", "images/000002.txt",
+                              "images/000003.txt", "scene.json"]
+    assert ingest["scene.json"]["bytes"] == (scene / "scene.json").stat().st_size
+    # render declares only renders.json; the files it wrote beside it are recorded too
+    assert sorted(read_marker(scene, "render")["outputs"]) == [
+        "renders/+1m.txt", "renders/-1m.txt", "renders/renders.json"]
+
+
+def test_an_old_marker_without_outputs_counts_while_its_declared_outputs_exist(build):
+    build()
+    scene = scene_dir_for(build.data, IDS[0])
+    for stage in STAGES:
+        marker = read_marker(scene, stage)
+        for key in ("outputs", "run", "upstream_runs"):
+            marker.pop(key)
+        (scene / ".paradrive" / f"{stage}.json").write_text(json.dumps(marker))
+    (build.build_dir / ".paradrive" / "manifest.json").unlink()  # builds had none either
+    result = build()
+    assert {k for k, s in result.items() if s == "done"} == {("build:fp", "manifest")}  # once
+    (scene / "clips" / "clips.json").unlink()
+    result = build()
+    assert {k for k, s in result.items() if s == "done"} == {(IDS[0], "clip"), ("build:fp", "manifest")}
 
 
 def test_marker_records_params_inputs_and_version(build):
@@ -131,11 +169,11 @@ def test_force_redoes_everything(build):
 def test_a_stage_killed_before_its_marker_is_redone(build):
     """No marker (the process died before writing it) means not done, whatever files exist."""
     build()
+    pairs = (build.build_dir / "pairs.jsonl").read_bytes()
     (scene_dir_for(build.data, IDS[1]) / ".paradrive" / "clip.json").unlink()
     result = build()
-    assert result[(IDS[1], "clip")] == "done"
-    assert [k for k, s in result.items() if s == "done"] == [(IDS[1], "clip")]
-    assert result[("build:fp", "manifest")] == "skipped"  # same clip fingerprint: same manifest
+    assert [k for k, s in result.items() if s == "done"] == [(IDS[1], "clip"), ("build:fp", "manifest")]
+    assert (build.build_dir / "pairs.jsonl").read_bytes() == pairs
 
 
 @pytest.mark.slow

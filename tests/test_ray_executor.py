@@ -292,7 +292,7 @@ def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_b
         target = fetched / name[len(base) + 1:]
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(fs.cat_file(name))
-    skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
+    skip = (".paradrive", "logs", "locks", "ledger.sqlite", "index.json", "fit.json")
     expected = pipeline_stages.tree_digest(local, skip)
     for name in ("ray", "ray-s3"):
         other = tmp_path / name
@@ -383,9 +383,12 @@ def test_a_ray_build_killed_midway_resumes_with_only_the_missing_work(tmp_path):
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     states = {(r["scene_id"], r["stage"]): r["state"] for r in ledger.tasks()
               if not r["scene_id"].startswith("build:")}
-    assert {k for k, v in states.items() if v == "skipped"} == landed
-    assert {k for k, v in states.items() if v == "done"} == set(states) - landed
-    skip = (".paradrive", "logs", "ledger.sqlite", "index.json", "fit.json")
+    # A worker of the killed cluster may still finish the stage it had begun: it holds that
+    # scene's lock, so the new build waits for it and then finds the stage done, not redoing it.
+    skipped = {k for k, v in states.items() if v == "skipped"}
+    assert landed <= skipped and len(skipped - landed) <= 1, (landed, skipped)
+    assert {k for k, v in states.items() if v == "done"} == set(states) - skipped
+    skip = (".paradrive", "logs", "locks", "ledger.sqlite", "index.json", "fit.json")
     assert pipeline_stages.tree_digest(killed, skip) == pipeline_stages.tree_digest(whole, skip)
     assert not list((killed / "data").rglob(".*.tmp-*"))
 
@@ -395,3 +398,45 @@ def _process_group(pid: int) -> int | None:
         return os.getpgid(pid)
     except OSError:
         return None
+
+
+@pytest.mark.parametrize("where", ["folder", "s3"])
+def test_two_ray_builds_at_once_over_shared_scenes_run_each_stage_once(ray_cluster, stage_config,
+                                                                      where, tmp_path, request):
+    """Two builds started together on one cluster (threads of one driver), scene lists that
+    overlap in opposite orders, into one data root: each (scene, stage) runs once, the files are
+    those of a build of the scenes alone."""
+    import threading
+
+    from paradrive.storage import DataRoot
+
+    config = stage_config({"fit": {"sleep_s": 0.5}})
+    if where == "folder":
+        root = DataRoot.of(tmp_path / "data")
+    else:
+        root = DataRoot.of(f"s3://builds/ray-{where}-{os.getpid()}", cache_dir=str(tmp_path / "cache"),
+                           storage_options=request.getfixturevalue("s3_bucket"))
+    lists = {"b1": SCENES, "b2": SCENES[::-1]}
+    reports = {}
+
+    def run(build):
+        reports[build] = run_build(config, lists[build], root, executor=RayExecutor(),
+                                   manifests_dir=tmp_path / "m", build=build)
+
+    threads = [threading.Thread(target=run, args=(b,)) for b in lists]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(300)
+    assert {b: r.exit_code for b, r in reports.items()} == {"b1": 0, "b2": 0}, \
+        [f.error for r in reports.values() for f in r.failures()]
+    ran = [k for k in pipeline_stages.finished(root.local) if k[1] != "build"]
+    assert sorted(ran) == sorted((st, f"synthetic-street-s{s}") for s in (1, 2, 3)
+                                 for st in ("ingest", "fit", "render", "clip"))
+    alone, _, _ = build_with(LocalExecutor(), stage_config({"fit": {"sleep_s": 0.5}}),
+                             tmp_path / "alone", ledger=False)
+    assert alone.exit_code == 0
+    assert pipeline_stages.scenes_digest(root) == \
+        pipeline_stages.tree_digest(tmp_path / "alone" / "data" / "scenes")
+    rows = {b: sorted((tmp_path / "m" / b / "pairs.jsonl").read_text().splitlines()) for b in lists}
+    assert rows["b1"] == rows["b2"] and len(rows["b1"]) == 3 * 2  # in their own scene order

@@ -148,7 +148,7 @@ def test_outputs_without_their_marker_are_not_done(stage_config, memory_root, tm
     assert [(r.stage, r.status) for r in report.results][2:4] == [("render", "skipped"),
                                                                   ("clip", "done")]
     assert [c[:2] for c in pipeline_stages.calls(memory_root.local)[n:]] == [
-        ("start", "clip"), ("end", "clip")]
+        ("start", "clip"), ("end", "clip"), ("end", "manifest")]
     assert fs.exists(f"{base}/scenes/{IDS[0]}/.paradrive/clip.json")
 
 

@@ -14,15 +14,20 @@ from pathlib import Path
 from typing import Callable
 
 from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
+from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
+from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions
 from paradrive.pipeline.runner import (
-    MARKER_DIR, BuildContext, StageResult, fingerprint, load_entry, read_marker, scene_dir_for,
+    MARKER_DIR, BuildContext, StageResult, damaged_outputs, expand_outputs, fingerprint,
+    load_entry, local_size, marker_path, read_marker, scene_dir_for, written_outputs,
 )
 from paradrive.pipeline.specs import ResolvedConfig
-from paradrive.storage import DataRoot
+from paradrive.pipeline.ledger import LEDGER_FILE
+from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+NOT_OWNED = (f"{LEDGER_FILE}*", "logs")  # in a build folder, but no build stage's output
 
 
 @dataclass
@@ -68,13 +73,16 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     """Run a build-scoped stage over the scenes whose needed stages completed.
 
     With a URL data root, each scene's markers are read remotely and the files the stage
-    ``reads`` are brought to this machine's cache first.
+    ``reads`` are brought to this machine's cache first. The stage is up to date when the
+    published index carries its fingerprint, its marker (``<build>/.paradrive/<stage>.json``)
+    says no scene's needed stage was redone since, and every file it wrote is there with its
+    size (a build published before these markers existed is published once more).
     """
     root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
     label = f"build:{build}"
     t0 = time.time()
-    scenes, inputs, mirrors = [], {}, []
+    scenes, inputs, runs, mirrors = [], {}, {}, []
     for uri in scene_uris:
         sid = parse_uri(uri).scene_id
         sdir = scene_dir_for(root.local, sid)
@@ -89,6 +97,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),
                            "scene_location": root.scene_location(sid)})
             inputs[sid] = ",".join(m["fingerprint"] for m in markers)
+            runs[sid] = {need: m.get("run") for need, m in zip(spec.needs, markers)}
             if mirror:
                 mirrors.append(mirror)
     if not scenes:
@@ -98,20 +107,24 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     fp = fingerprint(stage, config.params[stage], inputs)
     build_dir = Path(manifests_dir) / build
     index = build_dir / "index.json"
-    if not force and index.is_file():
-        try:
-            if json.loads(index.read_text()).get("config_fingerprint") == fp:
-                return StageResult(label, stage, "skipped", fingerprint=fp)
-        except json.JSONDecodeError:
-            pass
+    if not force and _published(index, fp) and _intact(read_marker(build_dir, stage), runs, build_dir):
+        return StageResult(label, stage, "skipped", fingerprint=fp)
     log = logging.getLogger(f"paradrive.build.{build}")
     try:
         for mirror in mirrors:
             mirror.pull(spec.reads)  # a URL root: what the stage reads, to this machine
         func = load_entry(spec)
+        marker_path(build_dir, stage).unlink(missing_ok=True)
+        before = file_stats(build_dir)
         ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=root.local,
                            scenes=scenes, params=dict(config.params[stage]), log=log, fingerprint=fp)
         summary = func(ctx) or {}
+        declared = expand_outputs(spec.outputs, config.params[stage])
+        outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
+                   if not matches(rel, NOT_OWNED)}
+        write_json(marker_path(build_dir, stage),
+                   {"stage": stage, "build": build, "fingerprint": fp, "scene_runs": runs,
+                    "outputs": outputs})
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
     except (ParaDriveError, OSError, ValueError) as exc:
@@ -122,18 +135,33 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
                 mirror.drop()
 
 
+def _published(index: Path, fp: str) -> bool:
+    try:
+        return json.loads(index.read_text()).get("config_fingerprint") == fp
+    except (FileNotFoundError, json.JSONDecodeError):
+        return False
+
+
+def _intact(marker: dict | None, runs: dict, build_dir: Path) -> bool:
+    """A build stage's marker agrees with its scenes and files."""
+    return (marker is not None and marker.get("scene_runs") == runs
+            and not damaged_outputs(marker, local_size(build_dir)))
+
+
 def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path | DataRoot, *,
               stages: list[str] | None = None, executor: Executor | None = None,
               manifests_dir: str | Path = "manifests", build: str = "default",
               force: bool = False, build_scene_uris: list[str] | None = None,
               on_start: Callable[[str, str], None] | None = None,
-              on_result: Callable[[StageResult], None] | None = None) -> BuildReport:
+              on_result: Callable[[StageResult], None] | None = None,
+              lock_timeout: float = DEFAULT_LOCK_TIMEOUT_S) -> BuildReport:
     """Scene stages of ``scene_uris`` through ``executor``, then the build stages (manifest).
 
     The build stages read every scene of ``build_scene_uris`` (default: ``scene_uris``) that
     finished their needs, so a run over a subset (``--retry-failed``) still publishes the whole
     build. ``on_start(scene_uri or 'build:<name>', stage)`` and ``on_result(StageResult)`` are
-    called on this process as tasks start and finish, whatever the executor.
+    called on this process as tasks start and finish, whatever the executor. A scene another
+    build holds is waited for up to ``lock_timeout`` seconds (:mod:`paradrive.pipeline.locks`).
     """
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
@@ -155,7 +183,8 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     if scene_stages:
         tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
         report.results.extend(executor.run(config, tasks, data_dir, force=force,
-                                           on_start=on_start, on_result=on_result))
+                                           on_start=on_start, on_result=on_result,
+                                           locks=LockOptions(build, lock_timeout)))
     for stage in build_stages:
         if on_start:
             on_start(f"build:{build}", stage)

@@ -10,7 +10,9 @@ worker and ``on_result(StageResult)`` when it comes back, both called on the dri
 ledger and the progress bar live in one process), and one result per (scene, stage) asked. A
 stage handed out again after its worker died gets another ``on_start`` (the ledger counts
 attempts from them). ``data_dir`` is a :class:`~paradrive.storage.DataRoot`: a folder every
-worker sees, or a URL each worker copies scenes from and back.
+worker sees, or a URL each worker copies scenes from and back. ``locks`` (the build's name and
+how long to wait for a scene another build holds) goes to every
+:func:`~paradrive.pipeline.runner.run_scene_stage`.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
+from paradrive.pipeline.locks import LockOptions
 from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.storage import DataRoot
@@ -37,7 +40,8 @@ class Executor(Protocol):
 
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
-            on_result: ResultCallback | None = None) -> list[StageResult]:
+            on_result: ResultCallback | None = None,
+            locks: LockOptions | None = None) -> list[StageResult]:
         ...
 
 
@@ -52,7 +56,8 @@ class LocalExecutor:
 
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
-            on_result: ResultCallback | None = None) -> list[StageResult]:
+            on_result: ResultCallback | None = None,
+            locks: LockOptions | None = None) -> list[StageResult]:
         results: list[StageResult] = []
         for task in tasks:
             failed: StageResult | None = None
@@ -62,7 +67,8 @@ class LocalExecutor:
                 else:
                     if on_start:
                         on_start(task.scene_uri, stage)
-                    result = run_scene_stage(config, stage, task.scene_uri, data_dir, force=force)
+                    result = run_scene_stage(config, stage, task.scene_uri, data_dir, force=force,
+                                             locks=locks)
                     if result.status == "failed":
                         failed = result
                 results.append(result)

@@ -4,7 +4,8 @@ One SQLite file in WAL mode, so the driver and any number of worker processes ma
 same time (each write is one short ``BEGIN IMMEDIATE`` transaction; a writer waits up to
 ``timeout`` seconds for the lock). Tables (``SCHEMA_VERSION`` = 1)::
 
-    meta(key PRIMARY KEY, value)                 schema_version, build, created_at
+    meta(key PRIMARY KEY, value)                 schema_version, build, created_at, data_root
+                                                 (where the last run wrote its scenes)
     scenes(scene_id PRIMARY KEY, scene_uri, position, active, registered_at)
         active = 1: the scene belongs to the build as last registered (a run over a
         different scene list retires the others; --retry-failed keeps the list)
@@ -16,7 +17,8 @@ same time (each write is one short ``BEGIN IMMEDIATE`` transaction; a writer wai
                   Ray's own retries after a worker died count within one attempt)
         seconds / peak_rss_mb: of the run that produced the outputs (a later skip keeps them)
     events(id PRIMARY KEY, run_id, scene_id, stage, state, at, seconds, error)
-        every transition, for the history of a scene
+        every transition, for the history of a scene; state 'takeover' (error: the holder)
+        when the stage took over the scene lock of a build that died holding it
     runs(run_id PRIMARY KEY, started_at, finished_at, executor, scenes, command, exit_code)
 
 Build-scoped stages (the manifest) are rows with ``scene_id = scene_uri = 'build:<name>'``.
@@ -194,6 +196,16 @@ class Ledger:
             self.run_id = int(cur.lastrowid)
         return self.run_id
 
+    def set_data_root(self, location: str) -> None:
+        """Where the build writes its scenes (``paradrive status`` looks there for scene locks)."""
+        with self._write() as c:
+            c.execute("INSERT INTO meta VALUES ('data_root', ?) ON CONFLICT (key) DO UPDATE SET "
+                      "value = excluded.value", (location,))
+
+    def takeovers(self) -> list[dict]:
+        """Every scene lock this build took over from a dead or expired holder."""
+        return [e for e in self.events() if e["state"] == "takeover"]
+
     def end_run(self, exit_code: int) -> None:
         if self.run_id is None:
             return
@@ -280,6 +292,9 @@ class Ledger:
                           (state, error, result.fingerprint or "", seconds,
                            float(result.peak_rss_mb or 0.0), now - seconds, now, now, sid, stage))
             self._event(c, sid, stage, state, now, result.seconds, error)
+            if getattr(result, "took_over", ""):
+                self._event(c, sid, stage, "takeover", now,
+                            error=f"took over the scene lock of {result.took_over}")
 
     def _event(self, c, sid: str, stage: str, state: str, at: float, seconds: float | None = None,
                error: str = "") -> None:

@@ -46,6 +46,7 @@ from paradrive.errors import ConfigError
 from paradrive.pipeline.executors import (
     ResultCallback, SceneTask, StartCallback, blocked_result,
 )
+from paradrive.pipeline.locks import LockOptions
 from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.pipeline.specs import ResolvedConfig, Resources
 from paradrive.storage import DataRoot
@@ -112,10 +113,10 @@ def task_resources(stage: str, declared: Resources, capacity: Capacity,
 
 
 def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
-              force: bool) -> tuple[StageResult, dict]:
+              force: bool, locks: LockOptions | None = None) -> tuple[StageResult, dict]:
     """The body of one Ray task (runs on a worker)."""
     started = time.time()
-    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force)
+    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force, locks=locks)
     return result, {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
 
 
@@ -195,17 +196,20 @@ class RayExecutor:
 
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
-            on_result: ResultCallback | None = None) -> list[StageResult]:
+            on_result: ResultCallback | None = None,
+            locks: LockOptions | None = None) -> list[StageResult]:
         if not tasks:
             return []
         ray, started_here = self._connect()
         try:
-            return self._run(ray, config, tasks, DataRoot.of(data_dir), force, on_start, on_result)
+            return self._run(ray, config, tasks, DataRoot.of(data_dir), force, on_start, on_result,
+                             locks)
         finally:
             if started_here:
                 ray.shutdown()
 
-    def _run(self, ray, config, tasks, data_dir, force, on_start, on_result) -> list[StageResult]:
+    def _run(self, ray, config, tasks, data_dir, force, on_start, on_result,
+             locks) -> list[StageResult]:
         capacity = Capacity.of_nodes(ray.nodes())
         all_stages = sorted({s for t in tasks for s in t.stages})
         options = self.plan(config, all_stages, capacity)
@@ -230,7 +234,7 @@ class RayExecutor:
             # Ray does not retry by itself: the driver does, so every try is seen and counted.
             ref = remote.options(**options[stage], max_retries=0, retry_exceptions=False,
                                  name=f"{stage}:{_scene_id(task.scene_uri)}").remote(
-                config_ref, stage, task.scene_uri, data_dir, force)
+                config_ref, stage, task.scene_uri, data_dir, force, locks)
             in_flight[ref] = (task, index, attempt)
 
         try:

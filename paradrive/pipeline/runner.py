@@ -1,9 +1,14 @@
-"""Run one (scene, stage): fingerprint, skip-if-done, call the stage, record completion.
+"""Run one (scene, stage): lock the scene, skip if up to date, call the stage, record completion.
 
 A stage knows only its work (``run_stage(ctx)``); where it runs is an executor's business. A
 completed stage leaves a marker ``<scene_dir>/.paradrive/<stage>.json`` holding the fingerprint
-of its parameters, its inputs' fingerprints and the package version; a re-run whose fingerprint
-matches (and whose declared outputs exist) is skipped.
+of its parameters, its inputs' fingerprints and the package version, a run id, the run ids of
+the markers it needed, and the files it wrote with their sizes (``outputs``; sha256 where the
+stage computed one). A stage is up to date when its fingerprint matches, the stages it needs
+were not redone since, and every recorded output is there with its size; otherwise it runs
+again, and so does every stage after it. (A marker from before ``outputs`` were recorded counts
+as up to date while its declared outputs exist.) The whole decision and run happen under the
+scene's lock (:mod:`paradrive.pipeline.locks`), so concurrent builds never write a scene at once.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import resource
 import re
 import time
 import traceback
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -27,9 +33,10 @@ from typing import Any, Callable, Iterator
 import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
 from paradrive.io import remove_stale_temporaries, write_json
+from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec
 from paradrive.redact import redact
-from paradrive.storage import DataRoot, SceneMirror
+from paradrive.storage import DataRoot, SceneMirror, file_stats, matches
 from paradrive.uri import parse_uri, safe_name
 
 MARKER_DIR = ".paradrive"
@@ -48,6 +55,7 @@ class StageContext:
     log: logging.Logger
     progress: Callable[[int, int], None] = lambda done, total: None
     upstream: dict[str, dict] = field(default_factory=dict)  # markers of the stages it needs
+    hashes: dict[str, str] = field(default_factory=dict)  # sha256 of outputs the stage computed
 
 
 @dataclass
@@ -75,6 +83,7 @@ class StageResult:
     fingerprint: str = ""
     peak_rss_mb: float = 0.0
     summary: dict = field(default_factory=dict)
+    took_over: str = ""          # the dead or expired lock holder this run replaced
 
 
 def _canonical(obj: Any) -> str:
@@ -122,6 +131,60 @@ def outputs_present(scene_dir: Path, spec: StageSpec, params: dict,
     return [rel for rel in expand_outputs(spec.outputs, params) if not exists(rel)]
 
 
+def written_outputs(folder: Path, before: dict[str, tuple[int, int]], declared: list[str],
+                    hashes: dict[str, str] | None = None) -> dict[str, dict]:
+    """What a stage wrote under ``folder``: files new or changed since ``before`` and files its
+    declared outputs name, as relative path -> {"bytes"[, "sha256"]} (markers left out)."""
+    out: dict[str, dict] = {}
+    for rel, stat in sorted(file_stats(folder).items()):
+        if rel.startswith(MARKER_DIR + "/") or (before.get(rel) == stat and not matches(rel, declared)):
+            continue
+        out[rel] = {"bytes": stat[0]}
+        if hashes and rel in hashes:
+            out[rel]["sha256"] = hashes[rel]
+    return out
+
+
+def damaged_outputs(marker: dict, size_of: Callable[[str], int | None]) -> dict[str, str]:
+    """The recorded outputs of ``marker`` that are missing or changed size: rel -> what is wrong."""
+    problems = {}
+    for rel, info in marker.get("outputs", {}).items():
+        size = size_of(rel)
+        if size is None:
+            problems[rel] = f"{rel} is missing"
+        elif size != info["bytes"]:
+            problems[rel] = f"{rel} is {size} bytes, {info['bytes']} when written"
+    return problems
+
+
+def local_size(folder: Path) -> Callable[[str], int | None]:
+    def size_of(rel: str) -> int | None:
+        try:
+            return (Path(folder) / rel).stat().st_size
+        except (FileNotFoundError, NotADirectoryError):
+            return None
+    return size_of
+
+
+def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
+                 size_of: Callable[[str], int | None], missing_declared: Callable[[], list[str]]) -> str:
+    """Why a stage is not up to date ('' when it is): see the module doc."""
+    if marker is None:
+        return "not run yet"
+    if marker.get("fingerprint") != fp:
+        return "parameters or inputs changed"
+    for need, up in upstream.items():
+        if marker.get("upstream_runs", {}).get(need) != up.get("run"):
+            return f"'{need}' was redone since"
+    if "outputs" in marker:
+        damaged = list(damaged_outputs(marker, size_of).values())
+        if not damaged:
+            return ""
+        return damaged[0] + (f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else "")
+    missing = missing_declared()
+    return f"declared output {missing[0]} is missing" if missing else ""
+
+
 def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
     """``<data>/scenes/<scene_id>``; an id that is not a plain file name (``..``, ``a/b``) could
     lead out of the data root and is refused."""
@@ -148,6 +211,18 @@ def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str, scene_
         inputs[need] = marker["fingerprint"]
     extra = scene_uri if spec.needs == [] else ""
     return fingerprint(stage, config.params[stage], inputs, extra), upstream
+
+
+def check_inputs(scene_id: str, stage: str, upstream: dict[str, dict],
+                 size_of: Callable[[str], int | None]) -> None:
+    """Refuse to run on damaged inputs, naming the stage a plain re-run redoes first."""
+    for need, marker in upstream.items():
+        damaged = list(damaged_outputs(marker, size_of).values())
+        if damaged:
+            raise SceneError(f"{stage} needs the outputs of {need}, and {damaged[0]}",
+                             scene_id=scene_id,
+                             fix=f"re-run the build with every stage (a plain re-run redoes "
+                                 f"{need}, then {stage})")
 
 
 def load_entry(spec: StageSpec) -> Callable:
@@ -209,17 +284,36 @@ def scene_logger(scene_id: str, log_file: Path | None = None,
 
 def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                     data_dir: str | Path | DataRoot, *, force: bool = False,
-                    progress: Callable[[int, int], None] | None = None) -> StageResult:
+                    progress: Callable[[int, int], None] | None = None,
+                    locks: LockOptions | None = None) -> StageResult:
     """Run (or skip) one stage of one scene. Never raises for bad input: the result says failed.
 
     ``data_dir`` is a folder or a :class:`~paradrive.storage.DataRoot` (a URL root runs the
-    stage on this node's copy of the scene and uploads the result, marker last).
+    stage on this node's copy of the scene and uploads the result, marker last). The scene's
+    lock is held throughout; ``locks`` names the build and how long to wait for it.
     """
     root = DataRoot.of(data_dir)
     try:
         scene_id = parse_uri(scene_uri).scene_id
     except ParaDriveError as exc:
         return StageResult(scene_id=scene_uri, stage=stage, status="failed", error=str(exc))
+    with contextlib.ExitStack() as stack:
+        try:
+            held = stack.enter_context(scene_lock(root, scene_id, locks))
+        except SceneLocked as exc:
+            return StageResult(scene_id, stage, "failed", error=str(exc))
+        except Exception as exc:  # the lock folder or the lease store (fsspec backends' own errors)
+            return StageResult(scene_id, stage, "failed",
+                               error=f"scene {scene_id}: {stage}: cannot lock "
+                                     f"{root.scene_location(scene_id)}: {type(exc).__name__}: "
+                                     f"{exc}; check the data root and re-run")
+        result = _run_locked(config, stage, scene_uri, scene_id, root, force, progress)
+        result.took_over = held.took_over
+        return result
+
+
+def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str, root: DataRoot,
+                force: bool, progress: Callable[[int, int], None] | None) -> StageResult:
     mirror = root.mirror(scene_id)
     if mirror is None:
         return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, progress)
@@ -250,12 +344,17 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
         try:
             fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
             marker = read_marker(scene_dir, stage)
-            exists = mirror.exists if mirror else None
-            if (not force and marker and marker.get("fingerprint") == fp
-                    and not outputs_present(scene_dir, spec, params, exists)):
+            size_of = (lambda rel: mirror.listing.get(rel, {}).get("size")) if mirror \
+                else local_size(scene_dir)
+            reason = "--force" if force else stale_reason(
+                marker, fp, upstream, size_of,
+                lambda: outputs_present(scene_dir, spec, params, mirror.exists if mirror else None))
+            if not reason:
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
                 return StageResult(scene_id, stage, "skipped", fingerprint=fp,
                                    summary=marker.get("summary", {}))
+            log.info("%s: to run: %s", stage, reason)
+            check_inputs(scene_id, stage, upstream, size_of)
             func = load_entry(spec)
             scene_dir.mkdir(parents=True, exist_ok=True)
             marker_path(scene_dir, stage).unlink(missing_ok=True)
@@ -264,8 +363,12 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                 mirror.withdraw(marker_rel)
                 pulled = mirror.pull(spec.reads)
                 log.info("%s: %d file(s) brought from %s", stage, pulled, root.scene_location(scene_id))
+            # A stage may keep what it finds in place (a complete fit): never a damaged output,
+            # nor, on a URL root, a cached copy of one the remote lost.
+            for rel in damaged_outputs(marker or {}, size_of):
+                (scene_dir / rel).unlink(missing_ok=True)
             remove_stale_temporaries(scene_dir)
-            before = mirror.snapshot() if mirror else {}
+            before = file_stats(scene_dir)
             log.info("%s: started (fingerprint %s)", stage, fp)
             ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
                                scene_dir=scene_dir, data_dir=data_dir, params=dict(params), log=log,
@@ -280,7 +383,11 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                        {"stage": stage, "scene_id": scene_id, "scene_uri": scene_uri, "fingerprint": fp,
                         "params": params, "inputs": {k: v["fingerprint"] for k, v in upstream.items()},
                         "version": paradrive.__version__, "seconds": round(seconds, 3),
-                        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
+                        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary,
+                        "run": uuid.uuid4().hex,
+                        "upstream_runs": {k: v.get("run") for k, v in upstream.items()},
+                        "outputs": written_outputs(scene_dir, before,
+                                                   expand_outputs(spec.outputs, params), ctx.hashes)})
             if mirror:
                 uploaded, deleted = mirror.push(before, last=[marker_rel])
                 log.info("%s: %d file(s) uploaded to %s, %d removed there", stage, uploaded,

@@ -1,14 +1,17 @@
 """``paradrive status BUILD``: what the ledger of a build says, for a person or (``--json``) a script.
 
 Shows how many scenes are done / failed / running / pending, time and memory per stage, the
-slowest scenes and every failure with its reason. Reads ``<manifests>/<build>/ledger.sqlite``
-while a build may still be writing it (WAL readers never block the writers).
+slowest scenes, every failure with its reason, the build's scenes that are locked now and by
+which build (read from the data root's scene locks), and the locks the build took over from a
+holder that died. Reads ``<manifests>/<build>/ledger.sqlite`` while a build may still be
+writing it (WAL readers never block the writers).
 """
 
 from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+from typing import List
 
 import typer
 from rich import box
@@ -17,6 +20,7 @@ from rich.table import Table
 
 from paradrive.errors import ConfigError
 from paradrive.pipeline.ledger import LEDGER_FILE, Ledger, dumps
+from paradrive.pipeline.locks import held_locks
 
 STATE_STYLE = {"done": "green", "skipped": "green", "failed": "red", "blocked": "yellow",
                "running": "cyan", "pending": "dim"}
@@ -30,6 +34,20 @@ def open_ledger(build: str, manifests: Path) -> Ledger:
     if (path / LEDGER_FILE).is_file():
         return Ledger(path / LEDGER_FILE, path.name)
     return Ledger.open_existing(manifests, build)
+
+
+def scene_locks(ledger: Ledger, data: str | None = None, storage_options: list[str] = ()) -> list[dict]:
+    """The build's scenes locked now: scene_id and the holder's build, host, pid, start."""
+    from paradrive.cli import data_root
+
+    location = data or ledger.meta().get("data_root")
+    if not location:
+        return []
+    ids = {r["scene_id"] for r in ledger.tasks() if not r["scene_id"].startswith("build:")}
+    held = held_locks(data_root(location, list(storage_options), None, False))
+    return [{"scene_id": sid, "build": h.build, "host": h.host, "pid": h.pid,
+             "since": h.started_at, "holder": h.describe()}
+            for sid, h in sorted(held.items()) if sid in ids]
 
 
 def _when(ts: float | None) -> str:
@@ -110,6 +128,16 @@ def render(summary: dict, console: Console, *, all_scenes: bool = False) -> None
         console.print(table)
         console.print(f"retry them: paradrive build --build {summary['build']} --retry-failed "
                       f"(with the same --data, --manifests and --profile)")
+    if summary.get("locks"):
+        table = Table(title="locked scenes [dim](a stage of them runs now)[/]", title_justify="left",
+                      box=box.SIMPLE_HEAD)
+        table.add_column("scene")
+        table.add_column("held by", overflow="fold")
+        for lock in summary["locks"]:
+            table.add_row(lock["scene_id"], lock["holder"])
+        console.print(table)
+    for t in summary.get("takeovers", []):
+        console.print(f"[yellow]{t['scene_id']} {t['stage']}[/] at {_when(t['at'])}: {t['error']}")
     for b in summary["build_stages"]:
         style = STATE_STYLE.get(b["state"], "dim")
         console.print(f"{b['stage']}: [{style}]{b['state']}[/]"
@@ -125,12 +153,18 @@ def status(
     manifests: Path = typer.Option(Path("manifests"), "--manifests", help="Where builds are written."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
     all_scenes: bool = typer.Option(False, "--scenes", help="Also list every scene's stage states."),
+    data: str = typer.Option(None, "--data", help="Data root whose scene locks to show (default: the one the build last ran with)."),
+    storage_option: List[str] = typer.Option([], "--storage-option", help="fsspec option for a URL data root, KEY=VALUE, as for 'paradrive build'. Repeatable."),
 ) -> None:
-    """Show a build's ledger: scenes done / failed / pending, time per stage, failures with reasons."""
+    """Show a build's ledger: scenes done / failed / pending, time per stage, failures with
+    reasons, and which of its scenes are locked now and by whom."""
     try:
         ledger = open_ledger(build, manifests)
         summary = ledger.summary()
-    except ConfigError as exc:
+        summary["takeovers"] = [{k: t[k] for k in ("scene_id", "stage", "at", "error")}
+                                for t in ledger.takeovers()]
+        summary["locks"] = scene_locks(ledger, data, storage_option)
+    except (ConfigError, OSError) as exc:
         Console(stderr=True).print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(2)
     if as_json:
@@ -143,4 +177,4 @@ def register(app: typer.Typer) -> None:
     app.command("status")(status)
 
 
-__all__ = ["register", "status", "render", "open_ledger"]
+__all__ = ["register", "status", "render", "open_ledger", "scene_locks"]

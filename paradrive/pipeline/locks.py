@@ -1,0 +1,358 @@
+"""Scene locks: while a stage of a scene runs, no other build works on that scene.
+
+Several builds (other names, retries, Ray jobs) may share one data root. Each (scene, stage)
+decides whether it is up to date, runs and writes its marker while holding its scene's lock, so
+a second build that meets the scene either waits for it and then finds the stage done, or runs
+it after the first one finished; two builds never write one scene at once.
+
+- A folder root (local, NFS, a FUSE mount): ``<data>/locks/<scene_id>.lock``, held with
+  ``flock``; the holder's build, host, pid and start time are written inside. The kernel drops
+  the lock of a process that dies (even by SIGKILL), so the next build takes it at once; the
+  record the dead holder left behind tells it to note a takeover. A mount without locks
+  (``ENOLCK``) fails the stage with that reason rather than running unguarded.
+- A URL root: a lease object ``<root>/locks/<scene_id>.json`` created with the store's
+  exclusive create (fsspec mode ``"xb"``: ``If-None-Match`` on S3, ``O_EXCL`` on ``local://``),
+  then read back to be sure it is ours. The holder renews its expiry from a background thread
+  every ``LEASE_SECONDS / 3``; a lease past its expiry, or one whose holder is a dead process
+  on this host, is taken over.
+
+A build that meets a held lock polls for it up to ``timeout`` seconds (``--lock-timeout``),
+then gives up on that scene for this run with :class:`SceneLocked`, naming the holder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import json
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+from paradrive.errors import ParaDriveError
+from paradrive.storage import DataRoot
+
+LOCK_DIR = "locks"
+DEFAULT_LOCK_TIMEOUT_S = 3600.0  # a waiting build gives up on a held scene after this long
+LEASE_SECONDS = 60.0             # a URL root's lease lives this long unless its holder renews it
+POLL_SECONDS = 0.25              # how often a waiting build looks at the lock again
+
+
+class SceneLocked(ParaDriveError):
+    """The scene stayed locked by another build for the whole ``--lock-timeout``."""
+
+    def __init__(self, scene_id: str, holder: "Holder | None", waited: float):
+        self.holder = holder
+        who = holder.describe() if holder else "another build"
+        super().__init__(f"scene {scene_id}: locked by {who}; waited {waited:.0f} s "
+                         f"(--lock-timeout) and left it for this run; re-run once that build "
+                         f"finished it")
+
+
+@dataclass(frozen=True)
+class LockOptions:
+    """Who takes the locks (the build's name goes into every record) and how long to wait."""
+
+    build: str = "default"
+    timeout: float = DEFAULT_LOCK_TIMEOUT_S
+
+
+def _proc_stat(pid: int) -> list[str]:
+    """Fields 3… of ``/proc/<pid>/stat`` (state, ppid, …); [] where there is none."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[-1].split()
+    except OSError:
+        return []
+
+
+def _process_start(pid: int) -> str:
+    """When process ``pid`` started (clock ticks since boot); '' where unknown. With the pid it
+    names one process: a pid the system gave again to another one differs here."""
+    fields = _proc_stat(pid)
+    return fields[19] if len(fields) > 19 else ""
+
+
+@dataclass(frozen=True)
+class Holder:
+    """What a lock records about the process that holds it."""
+
+    build: str
+    host: str
+    pid: int
+    started_at: float
+    process_start: str = ""
+    expires_at: float | None = None  # leases only
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)
+
+    @classmethod
+    def me(cls, build: str) -> "Holder":
+        pid = os.getpid()
+        return cls(build=build, host=socket.gethostname(), pid=pid, started_at=time.time(),
+                   process_start=_process_start(pid))
+
+    @classmethod
+    def parse(cls, text: str | bytes) -> "Holder | None":
+        try:
+            doc = json.loads(text)
+            return cls(**{k: doc[k] for k in cls.__dataclass_fields__ if k in doc})
+        except (ValueError, TypeError, KeyError):
+            return None
+
+    def dumps(self) -> str:
+        return json.dumps(asdict(self))
+
+    def describe(self) -> str:
+        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(self.started_at))
+        return f"build {self.build} (host {self.host}, pid {self.pid}, since {since})"
+
+    def dead(self) -> bool:
+        """True only when certain: a process of this host that is gone (or whose pid was reused)."""
+        if self.host != socket.gethostname():
+            return False
+        try:
+            os.kill(self.pid, 0)
+        except ProcessLookupError:
+            return True
+        except PermissionError:
+            pass
+        fields = _proc_stat(self.pid)
+        if fields and fields[0] == "Z":  # exited, not yet reaped by its parent
+            return True
+        return bool(self.process_start) and _process_start(self.pid) not in ("", self.process_start)
+
+    def expired(self, now: float | None = None) -> bool:
+        return self.expires_at is not None and (now or time.time()) > self.expires_at
+
+
+@dataclass
+class HeldLock:
+    """A lock this process holds; ``took_over`` describes a dead or expired holder it replaced."""
+
+    scene_id: str
+    holder: Holder
+    took_over: str = ""
+
+
+# -- a folder root: flock ---------------------------------------------------------------------
+
+def _lock_file(root: DataRoot, scene_id: str) -> Path:
+    return root.local / LOCK_DIR / f"{scene_id}.lock"
+
+
+@contextlib.contextmanager
+def _file_lock(root: DataRoot, scene_id: str, options: LockOptions,
+               log: logging.Logger) -> Iterator[HeldLock]:
+    path = _lock_file(root, scene_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        _wait(scene_id, options, log, lambda: _try_flock(fd), lambda: _read_record(path))
+        previous = Holder.parse(os.pread(fd, 1 << 16, 0))
+        me = Holder.me(options.build)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, me.dumps().encode(), 0)
+        took_over = previous.describe() if previous else ""  # it ended without letting go
+        try:
+            yield HeldLock(scene_id, me, took_over)
+        finally:
+            os.ftruncate(fd, 0)  # an empty record: let go cleanly
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def _try_flock(fd: int, mode: int = fcntl.LOCK_EX) -> bool:
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+        return True
+    except OSError as exc:
+        if exc.errno in (errno.EAGAIN, errno.EACCES):
+            return False
+        raise
+
+
+def _read_record(path: Path) -> Holder | None:
+    try:
+        return Holder.parse(path.read_bytes())
+    except OSError:
+        return None
+
+
+def _file_holder(path: Path) -> Holder | None:
+    """The holder of a folder root's lock file, or None when nobody holds it."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        if _try_flock(fd, fcntl.LOCK_SH):
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        return _read_record(path)
+    finally:
+        os.close(fd)
+
+
+# -- a URL root: a lease object ---------------------------------------------------------------
+
+class _Lease:
+    """The lease object of one scene on a URL root."""
+
+    def __init__(self, root: DataRoot, scene_id: str):
+        self.fs, base = root.filesystem()
+        self.path = f"{base}/{LOCK_DIR}/{scene_id}.json"
+
+    def read(self) -> Holder | None:
+        try:
+            return Holder.parse(self.fs.cat_file(self.path))
+        except FileNotFoundError:
+            return None
+
+    def create(self, holder: Holder) -> bool:
+        """Write ``holder`` if no lease exists; True when it is ours afterwards."""
+        data = holder.dumps().encode()
+        try:
+            with self.fs.open(self.path, "xb") as f:
+                f.write(data)
+        except FileExistsError:
+            return False
+        except (ValueError, NotImplementedError):  # a backend without exclusive create
+            if self.fs.exists(self.path):
+                return False
+            self.fs.pipe_file(self.path, data)
+        # Read back: of two racing creators on a store without a true conditional put, the one
+        # whose record is there holds it.
+        found = self.read()
+        return found is not None and found.token == holder.token
+
+    def renew(self, holder: Holder) -> Holder | None:
+        """A later expiry for our lease; None when it is no longer ours."""
+        found = self.read()
+        if found is None or found.token != holder.token:
+            return None
+        renewed = Holder(**{**asdict(holder), "expires_at": time.time() + LEASE_SECONDS})
+        self.fs.pipe_file(self.path, renewed.dumps().encode())
+        return renewed
+
+    def remove_if(self, holder: Holder) -> bool:
+        """Delete the lease if it still holds exactly ``holder`` (an expired or dead one, or ours)."""
+        found = self.read()
+        if found is None or found.token != holder.token:
+            return False
+        with contextlib.suppress(FileNotFoundError):
+            self.fs.rm_file(self.path)
+        return True
+
+
+@contextlib.contextmanager
+def _lease_lock(root: DataRoot, scene_id: str, options: LockOptions,
+                log: logging.Logger) -> Iterator[HeldLock]:
+    lease = _Lease(root, scene_id)
+    mine = Holder(**{**asdict(Holder.me(options.build)), "expires_at": time.time() + LEASE_SECONDS})
+    took_over: list[str] = []
+
+    def attempt() -> bool:
+        if lease.create(mine):
+            return True
+        found = lease.read()
+        if found is not None and (found.dead() or found.expired()) and lease.remove_if(found) \
+                and lease.create(mine):
+            took_over.append(found.describe() + (" (lease expired)" if found.expired()
+                                                 else " (process gone)"))
+            return True
+        return False
+
+    _wait(scene_id, options, log, attempt, lease.read)
+    stop = threading.Event()
+    current = [mine]
+
+    def keep_alive() -> None:
+        while not stop.wait(LEASE_SECONDS / 3):
+            try:
+                renewed = lease.renew(current[0])
+            except Exception as exc:  # the store hiccuped: try again at the next beat
+                log.warning("lease of scene %s: renewal failed: %s", scene_id, exc)
+                continue
+            if renewed is None:
+                log.error("lease of scene %s was taken by another build", scene_id)
+                return
+            current[0] = renewed
+
+    thread = threading.Thread(target=keep_alive, name=f"lease-{scene_id}", daemon=True)
+    thread.start()
+    try:
+        yield HeldLock(scene_id, mine, took_over[-1] if took_over else "")
+    finally:
+        stop.set()
+        thread.join()
+        with contextlib.suppress(Exception):
+            lease.remove_if(current[0])
+
+
+def _lease_holders(root: DataRoot) -> dict[str, Holder]:
+    fs, base = root.filesystem()
+    try:
+        names = fs.find(f"{base}/{LOCK_DIR}")
+    except FileNotFoundError:
+        return {}
+    out = {}
+    for name in names:
+        if name.endswith(".json"):
+            with contextlib.suppress(FileNotFoundError):
+                holder = Holder.parse(fs.cat_file(name))
+                if holder is not None and not holder.expired() and not holder.dead():
+                    out[name.rsplit("/", 1)[1][:-len(".json")]] = holder
+    return out
+
+
+# -- both ---------------------------------------------------------------------------------------
+
+def _wait(scene_id: str, options: LockOptions, log: logging.Logger, attempt, holder) -> None:
+    """Call ``attempt()`` until it takes the lock; SceneLocked after ``options.timeout`` seconds."""
+    t0 = time.monotonic()
+    told = False
+    while not attempt():
+        waited = time.monotonic() - t0
+        if waited >= options.timeout:
+            raise SceneLocked(scene_id, holder(), waited)
+        if not told:
+            found = holder()
+            log.warning("scene %s is locked by %s; waiting up to %.0f s", scene_id,
+                     found.describe() if found else "another build", options.timeout)
+            told = True
+        time.sleep(POLL_SECONDS)
+
+
+@contextlib.contextmanager
+def scene_lock(root: DataRoot, scene_id: str, options: LockOptions | None = None,
+               log: logging.Logger | None = None) -> Iterator[HeldLock]:
+    """Hold the scene's lock for the ``with`` block (see the module doc)."""
+    options = options or LockOptions()
+    log = log or logging.getLogger("paradrive.locks")
+    lock = _lease_lock if root.remote else _file_lock
+    with lock(root, scene_id, options, log) as held:
+        if held.took_over:
+            log.warning("scene %s: took over the lock of %s, which ended without releasing it",
+                        scene_id, held.took_over)
+        yield held
+
+
+def held_locks(root: DataRoot) -> dict[str, Holder]:
+    """scene_id -> holder, for every scene of ``root`` locked now (``paradrive status``)."""
+    if root.remote:
+        return _lease_holders(root)
+    out = {}
+    for path in sorted((root.local / LOCK_DIR).glob("*.lock")):
+        with contextlib.suppress(FileNotFoundError):
+            holder = _file_holder(path)
+            if holder is not None:
+                out[path.stem] = holder
+    return out
+
+
+__all__ = ["DEFAULT_LOCK_TIMEOUT_S", "Holder", "HeldLock", "LockOptions", "SceneLocked",
+           "held_locks", "scene_lock"]
