@@ -1,5 +1,6 @@
 """Every log format, exported from a synthetic street, goes through the whole pipeline."""
 
+import json
 from collections import Counter
 
 import pytest
@@ -7,6 +8,10 @@ from typer.testing import CliRunner
 
 from paradrive.cli import app
 from paradrive.manifest import read_pairs
+from paradrive.uri import parse_uri
+
+FRONT3 = ["front", "front_left", "front_right"]
+SIX = FRONT3 + ["back_left", "back_right", "back"]
 
 
 @pytest.mark.slow
@@ -27,6 +32,12 @@ def test_waymo_nuscenes_and_drivestudio_logs_build_72_pairs_each(tmp_path):
     assert result.exit_code == 0, result.output
     rows = read_pairs(tmp_path / "manifests" / "formats").to_pylist()
     assert Counter(r["dataset"] for r in rows) == {"waymo": 72, "nuscenes": 72, "drivestudio": 72}
+    # the fit sees the dataset's fit set (ingest.cameras: auto); the pairs come from the front camera
+    assert {r["camera"] for r in rows} == {"front"}
+    for uri, cameras in zip(uris, (FRONT3, SIX, FRONT3)):
+        scene_dir = tmp_path / "data" / "scenes" / parse_uri(uri).scene_id
+        assert sorted(json.loads((scene_dir / "scene.json").read_text())["cameras"]) == sorted(cameras)
+        assert json.loads((scene_dir / "gs" / "fit.json").read_text())["cameras"] == sorted(cameras)
 
 
 def test_export_refuses_a_non_synthetic_scene(tmp_path):

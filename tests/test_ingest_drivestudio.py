@@ -15,7 +15,7 @@ from paradrive.scene import load_scene
 from paradrive.uri import parse_uri
 from synthetic_logs import street_log
 
-CAMS = ("front", "front_left")
+CAMS = ("front", "front_left", "front_right")
 FRAMES = 4
 DIST = (-0.08, 0.02, 0.0005, 0.0, 0.0)
 

@@ -14,7 +14,7 @@ from paradrive.scene import load_scene
 from paradrive.uri import parse_uri
 from synthetic_logs import street_log
 
-CAMS = ("front", "front_left")
+CAMS = ("front", "front_left", "front_right")
 FRAMES = 7
 
 
@@ -55,7 +55,7 @@ def test_tables_have_the_v1_schema(dataroot):
     cs = json.loads((meta / "calibrated_sensor.json").read_text())[0]
     assert set(cs) == {"token", "sensor_token", "translation", "rotation", "camera_intrinsic"}
     assert {s["channel"] for s in json.loads((meta / "sensor.json").read_text())} == {
-        "CAM_FRONT", "CAM_FRONT_LEFT", "LIDAR_TOP"}
+        "CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "LIDAR_TOP"}
 
 
 def test_keyframes_and_sweeps_are_all_frames(scene, source):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 
 import numpy as np
@@ -16,7 +17,7 @@ from paradrive.ingest import waymo
 from paradrive.scene import load_scene
 from paradrive.uri import parse_uri
 
-CAMS = ("front", "front_left")
+CAMS = ("front", "front_left", "front_right")
 DIST = {"front": (-0.12, 0.03, 0.0008, -0.0006, 0.002)}
 SEGMENT = "segment-1234_with_camera_labels.tfrecord"
 
@@ -218,3 +219,6 @@ def test_waymo_segment_builds_through_ingest_and_fit(source, tmp_path):
     scene_dir = tmp_path / "data" / "scenes" / "waymo-1234"
     assert (scene_dir / "scene.json").is_file() and (scene_dir / "lidar" / "000000.npy").is_file()
     assert (scene_dir / "gs" / "ckpt_000020.ply").is_file()
+    # ingest.cameras: auto, the Waymo fit set (the three front cameras), all of them fitted
+    fitted = json.loads((scene_dir / "gs" / "fit.json").read_text())
+    assert fitted["cameras"] == sorted(CAMS) and fitted["n_views"] == 4 * len(CAMS)

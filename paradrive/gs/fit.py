@@ -397,6 +397,7 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         doc = {"scene_id": scene.scene_id, "complete": complete, "fingerprint": fp,
                "iterations": total, "checkpoints": metrics, "eval_views": len(eval_idx),
                "resolution": [views[0].width, views[0].height], "n_views": len(views),
+               "cameras": sorted({v.camera for v in views}),
                "device": str(device), **extra}
         write_json(gs_dir / "fit.json", doc)
         return doc

@@ -60,13 +60,39 @@ def run_stage(ctx) -> dict:
     return ingest(ctx.scene_uri, ctx.scene_dir, ctx.params)
 
 
-def select_cameras(available, wanted, *, scene_id: str, where) -> list[str]:
-    """The cameras to ingest: ``wanted`` (or all when None), each of which must be available."""
+def requested_cameras(params: dict, dataset: str, *, scene_id: str) -> list[str] | None:
+    """The cameras ``ingest.cameras`` asks for in a log of ``dataset`` (None = all the log has).
+
+    ``auto`` is the dataset's fit set, ``ingest.camera_sets[dataset]`` (stages/ingest.yaml).
+    """
+    wanted = params.get("cameras")
+    if wanted is None or isinstance(wanted, (list, tuple)):
+        return None if wanted is None else list(wanted)
+    if wanted != "auto":
+        raise SceneError(f"ingest.cameras = {wanted!r} is neither auto, null nor a list of cameras",
+                         scene_id=scene_id, fix="set ingest.cameras to auto or e.g. [front]")
+    sets = params.get("camera_sets") or {}
+    if dataset not in sets:
+        raise SceneError(f"ingest.cameras is auto but ingest.camera_sets has no {dataset} entry "
+                         f"(has: {', '.join(sets) or 'none'})", scene_id=scene_id,
+                         fix=f"add camera_sets.{dataset} to stages/ingest.yaml or list the "
+                             f"cameras in ingest.cameras")
+    return list(sets[dataset])
+
+
+def select_cameras(available, params: dict, dataset: str, *, scene_id: str, where) -> list[str]:
+    """The cameras to ingest (``requested_cameras``), each of which must be in ``available``."""
+    wanted = requested_cameras(params, dataset, scene_id=scene_id)
     if wanted is None:
         return list(available)
     missing = [c for c in wanted if c not in available]
     if missing:
+        asked = (f"ingest.cameras is auto, the {dataset} fit set (ingest.camera_sets.{dataset})"
+                 if params.get("cameras") == "auto" else "ingest.cameras asks for them")
+        keep = [c for c in wanted if c in available] or list(available)
         raise SceneError(f"calibration missing for camera(s) {', '.join(missing)} "
-                         f"(log has: {', '.join(available) or 'none'})", scene_id=scene_id,
-                         path=where, fix="choose cameras the log has with ingest.cameras")
+                         f"(log has: {', '.join(available) or 'none'}; {asked})",
+                         scene_id=scene_id, path=where,
+                         fix=f"ingest the cameras the log has, e.g. --set "
+                             f"ingest.cameras=[{','.join(keep)}]")
     return list(wanted)

@@ -122,7 +122,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
         available = [name for cid, name in ids.items()
                      if (folder / "extrinsics" / f"000_{cid}.txt").is_file()]
         numbers = _frame_numbers(folder, "extrinsics", r"(\d+)_0\.txt")
-    chosen = select_cameras(available, params.get("cameras"), scene_id=scene_id,
+    chosen = select_cameras(available, params, flavour, scene_id=scene_id,
                             where=folder / "extrinsics")
     if not numbers:
         raise SceneError("scene folder has no frames", scene_id=scene_id, path=folder,

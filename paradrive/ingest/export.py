@@ -22,11 +22,12 @@ import shutil
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, List
 
 import numpy as np
 
 from paradrive import geometry
+from paradrive.errors import SceneError
 from paradrive.ingest import waymo_proto as wp
 from paradrive.ingest.common import OPENCV_TO_FLU, encode_jpeg, transform_points
 from paradrive.ingest.protowire import encode
@@ -454,15 +455,39 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
 
 # --------------------------------------------------------------------------- command line
 
+# what each format's log is ingested as (DriveStudio folders are written in the Waymo flavour),
+# and the cameras the format can hold
+EXPORT_DATASETS = {"waymo": "waymo", "nuscenes": "nuscenes", "drivestudio": "waymo"}
+EXPORT_CAMERAS = {"waymo": tuple(n.lower() for n in wp.CAMERA_IDS if n != "UNKNOWN"),
+                  "nuscenes": tuple(NUSCENES_CHANNELS),
+                  "drivestudio": tuple(DRIVESTUDIO_WAYMO_IDS)}
+
+
+def export_cameras(fmt: str, ingest_params: dict, scene_id: str) -> list[str]:
+    """The rig cameras a log in format ``fmt`` carries: those its ingest asks for with
+    ``ingest_params`` (``auto``: the dataset's fit set), or, for every camera, all the format holds."""
+    from paradrive.ingest import requested_cameras
+    from paradrive.synthetic.street import CAMERA_NAMES
+
+    wanted = requested_cameras(ingest_params, EXPORT_DATASETS[fmt], scene_id=scene_id)
+    return wanted if wanted is not None else [c for c in CAMERA_NAMES if c in EXPORT_CAMERAS[fmt]]
+
+
 def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: dict) -> str:
-    """Write the synthetic scene ``scene_uri`` in format ``fmt`` under ``out``; returns its URI."""
+    """Write the synthetic scene ``scene_uri`` in format ``fmt`` under ``out``; returns its URI.
+
+    The log carries the cameras that ingesting it with ``ingest_params`` keeps (``export_cameras``).
+    """
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.uri import parse_uri
 
     uri = parse_uri(scene_uri)
     if uri.kind != "synthetic":
         raise ValueError(f"export writes synthetic scenes only, got {scene_uri!r}")
-    street = street_from_uri(uri, ingest_params)
+    if fmt not in EXPORT_DATASETS:
+        raise ValueError(f"unknown format {fmt!r}; use waymo, nuscenes or drivestudio")
+    cameras = export_cameras(fmt, ingest_params, uri.scene_id)
+    street = street_from_uri(uri, {**ingest_params, "cameras": cameras})
     out = Path(out).resolve()
     name = uri.scene_id
     if fmt == "waymo":
@@ -472,9 +497,7 @@ def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: dict)
     if fmt == "nuscenes":
         export_nuscenes(street, out, scene_name=name)
         return f"nuscenes:{out}?version=v1.0-mini#{name}"
-    if fmt == "drivestudio":
-        return f"drivestudio:{export_drivestudio(street, out / name)}"
-    raise ValueError(f"unknown format {fmt!r}; use waymo, nuscenes or drivestudio")
+    return f"drivestudio:{export_drivestudio(street, out / name)}"
 
 
 def register(app) -> None:
@@ -485,14 +508,17 @@ def register(app) -> None:
         fmt: str = typer.Argument(..., help="waymo, nuscenes or drivestudio"),
         out: Path = typer.Argument(..., help="Folder to write the log into."),
         scene: str = typer.Option("synthetic:demo?seed=7", "--scene", help="A synthetic scene URI."),
-        profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes apply."),
+        profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes and cameras apply."),
+        set_: List[str] = typer.Option([], "--set", help="Override an ingest parameter: ingest.param=value (e.g. ingest.cameras=[front]). Repeatable."),
     ) -> None:
-        """Write a synthetic scene as a real log (known answers) and print the URI that ingests it."""
-        from paradrive.pipeline import StageRegistry
+        """Write a synthetic scene as a real log (known answers) and print the URI that ingests it.
 
-        params = StageRegistry().resolve(profile).params["ingest"]
+        The log carries the cameras its ingest keeps with these parameters (ingest.cameras)."""
+        from paradrive.pipeline import StageRegistry, parse_overrides
+
+        params = StageRegistry().resolve(profile, parse_overrides(set_)).params["ingest"]
         try:
             print(export_scene(scene, fmt, out, params))
-        except ValueError as exc:
+        except (ValueError, SceneError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2)

@@ -166,7 +166,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
                     sd.get("is_key_frame") == old.get("is_key_frame") and sd["timestamp"] < old["timestamp"]):
                 firsts[ch] = sd
     available = [CHANNEL_TO_CAMERA[ch] for ch in CHANNEL_TO_CAMERA if ch in firsts]
-    chosen = select_cameras(available, params.get("cameras"), scene_id=scene_id, where=meta)
+    chosen = select_cameras(available, params, "nuscenes", scene_id=scene_id, where=meta)
     chains = {cam: chain(tables, firsts[CAMERA_TO_CHANNEL[cam]], scene_samples,
                          scene_id=scene_id, where=where_sd) for cam in chosen}
     clock = chains[chosen[0]]

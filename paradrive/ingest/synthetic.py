@@ -19,6 +19,7 @@ QUERY_KEYS = {"seed": int, "frames": int, "width": int, "height": int, "curvatur
 def street_from_uri(uri: SceneURI, params: dict | None = None):
     """The SyntheticStreet a URI names, with the ingest parameters as defaults."""
     from paradrive.synthetic import SyntheticStreet
+    from paradrive.synthetic.street import CAMERA_NAMES
 
     params = params or {}
     query = {}
@@ -41,15 +42,17 @@ def street_from_uri(uri: SceneURI, params: dict | None = None):
     )
     if "speed" in query:
         kwargs["speed_mps"] = query["speed"]
-    rig = query["cameras"].split(",") if "cameras" in query else list(params.get("cameras") or ["front"])
-    kwargs["cameras"] = tuple(rig)
+    if "cameras" in query:  # the URI's rig wins, like its other keys
+        kwargs["cameras"] = query["cameras"]
+    else:
+        kwargs["cameras"] = tuple(select_cameras(CAMERA_NAMES, params, "synthetic",
+                                                 scene_id=uri.scene_id, where=uri.text))
     return SyntheticStreet(**kwargs)
 
 
 def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     street = street_from_uri(uri, params)
-    cam_names = select_cameras(list(street.cameras), params.get("cameras"), scene_id=scene_id,
-                               where=uri.text)
+    cam_names = list(street.cameras)
     ext = params.get("image_ext", "jpg")
     quality = int(params.get("jpeg_quality", 95))
     n = street.frames if params.get("max_frames") is None else min(street.frames, params["max_frames"])

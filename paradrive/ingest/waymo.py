@@ -231,7 +231,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
                                  scene_id=scene_id, path=where,
                                  fix="check that the file is a full perception segment")
             calibs = camera_calibrations(context, scene_id=scene_id, where=where)
-            chosen = select_cameras(list(calibs), params.get("cameras"), scene_id=scene_id,
+            chosen = select_cameras(list(calibs), params, "waymo", scene_id=scene_id,
                                     where=segment)
             for name in chosen:
                 cameras[name] = _camera(name, calibs[name], scene_id=scene_id, where=where)

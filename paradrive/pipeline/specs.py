@@ -11,6 +11,7 @@ A stage file::
     reads: ["scene.json", "images"]         # optional: what a URL data root must bring to the worker
     params:
       checkpoints: {default: [100, 500, 1000, 30000], doc: "paper §3: ..."}
+      cameras: {default: auto, types: [str, list], doc: "..."}   # types: when one type is not enough
 
 A profile overrides parameters by stage::
 
@@ -49,6 +50,8 @@ class Param(BaseModel):
     default: Any = None
     doc: str = Field(min_length=1)
     choices: list[Any] | None = None
+    # value types taken when the default's own type is not the only one, e.g. [str, list]
+    types: list[Literal["str", "int", "float", "bool", "list", "dict"]] | None = None
 
 
 class StageSpec(BaseModel):
@@ -122,6 +125,12 @@ def _coerce(stage: str, key: str, param: Param, value: Any, origin: str) -> Any:
     default = param.default
     if param.choices is not None and value not in param.choices:
         raise ConfigError(f"{origin}: {stage}.{key} = {value!r} is not one of {param.choices}")
+    if param.types is not None and value is not None:
+        kind = "float" if type(value) is int and "float" in param.types else type(value).__name__
+        if kind not in param.types:
+            raise ConfigError(f"{origin}: {stage}.{key} = {value!r} has type "
+                              f"{type(value).__name__}, expected one of {', '.join(param.types)}")
+        return value
     if default is None or value is None:
         return value
     if isinstance(default, bool):

@@ -38,7 +38,8 @@ def _group_kind(group: int) -> int:
     if group == _G_SPH:
         return rc.SPHERE
     return rc.GROUND
-CAMERA_NAMES = ("front", "front_left", "front_right")
+# the front three as in Waymo; with the back three, a six-camera rig as in nuScenes
+CAMERA_NAMES = ("front", "front_left", "front_right", "back_left", "back_right", "back")
 LIDAR_HEIGHT = 1.95
 LIDAR_BEAMS = 32
 LIDAR_AZIMUTHS = 512
@@ -63,10 +64,13 @@ CameraSpec = Camera
 def camera_spec(name: str, width: int, height: int, hfov_deg: float = 70.0,
                 pitch_deg: float = 3.0) -> CameraSpec:
     """The rig's camera ``name``: front (1.5 m ahead of the ego origin, 1.6 m up, pitched down),
-    front_left / front_right yawed +-45 deg."""
+    front_left / front_right yawed +-45 deg, back_left / back_right +-110 deg, back 180 deg."""
     yaw, pos = {"front": (0.0, (1.5, 0.0, 1.6)),
                 "front_left": (np.pi / 4, (1.3, 0.5, 1.6)),
-                "front_right": (-np.pi / 4, (1.3, -0.5, 1.6))}[name]
+                "front_right": (-np.pi / 4, (1.3, -0.5, 1.6)),
+                "back_left": (np.deg2rad(110.0), (0.9, 0.5, 1.6)),
+                "back_right": (np.deg2rad(-110.0), (0.9, -0.5, 1.6)),
+                "back": (np.pi, (-0.5, 0.0, 1.6))}[name]
     p = np.deg2rad(pitch_deg)
     # columns: camera x (right), y (down), z (forward) in ego axes, pitched down by p
     rot = np.array([[0.0, -np.sin(p), np.cos(p)],
