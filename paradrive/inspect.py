@@ -80,6 +80,9 @@ def summarize(build_dir: str | Path) -> dict:
                                       for it, (p, s) in sorted(overall.items())},
                     "scenes": quality},
         "skipped_scenes": index.get("skipped_scenes", []),
+        "kind": index.get("kind", "training"),
+        "exclude_splits": index.get("exclude_splits", []),
+        "excluded_scenes": index.get("excluded_scenes", []),
     }
 
 
@@ -352,6 +355,11 @@ def _print_tables(summary: dict, console) -> None:
     console.print(q)
     for s in summary["skipped_scenes"]:
         console.print(f"[yellow]skipped scene[/] {s['scene_id']}: {s['reason']}")
+    splits = ", ".join(f"{s['name']} (sha256 {s['sha256'][:12]}…, {s['scenes']} scenes)"
+                       for s in summary["exclude_splits"]) or "none"
+    console.print(f"{summary['kind']} build; excluded splits: {splits}")
+    for s in summary["excluded_scenes"]:
+        console.print(f"[yellow]excluded scene[/] {s['scene_id']} (split {s['split']}: {s['line']})")
 
 
 def register(app) -> None:

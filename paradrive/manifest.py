@@ -456,8 +456,11 @@ def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> p
 
 def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             scenes: list[dict], skipped: list[dict], params: dict, fingerprint: str = "",
-            build: str | None = None, log=None) -> dict:
-    """Write shards, media and index under ``build_dir`` as one published build; returns the index."""
+            build: str | None = None, log=None, selection: dict | None = None) -> dict:
+    """Write shards, media and index under ``build_dir`` as one published build; returns the index.
+
+    ``selection`` ({exclude_splits, excluded_scenes}) records which split files left which
+    scenes out of the build."""
     build_dir = Path(build_dir)
     build_dir.mkdir(parents=True, exist_ok=True)
     for stale in build_dir.glob(f"{STAGING_PREFIX}*"):
@@ -504,6 +507,7 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             "media": {"mode": mode, "placed": placed},
             "scenes": scenes,
             "skipped_scenes": skipped,
+            **(selection or {"exclude_splits": [], "excluded_scenes": []}),
         }
         write_json(staging / INDEX_NAME, index)
         # Commit: withdraw the old index, swap the shards, then the new index lands last.
@@ -542,7 +546,8 @@ def _prune_media(build_dir: Path, keep: set[str]) -> int:
 
 
 def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: dict, *,
-                   fingerprint: str = "", build: str | None = None, log=None) -> dict:
+                   fingerprint: str = "", build: str | None = None, log=None,
+                   selection: dict | None = None) -> dict:
     """Rows from every scene in ``scene_dirs`` ([{scene_id, scene_uri, scene_dir}]) published
     under ``build_dir``. A scene whose clips cannot be used is skipped with its reason; no usable
     scene at all is an error."""
@@ -570,13 +575,15 @@ def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: dict, 
         raise ParaDriveError(f"build {build or Path(build_dir).name}: no usable scene, nothing "
                              f"published ({reasons})")
     return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
-                   fingerprint=fingerprint, build=build, log=log)
+                   fingerprint=fingerprint, build=build, log=log, selection=selection)
 
 
 def run_stage(ctx) -> dict:
     """Stage entry (``stages/manifest.yaml``): called with a BuildContext."""
-    index = build_manifest(ctx.build_dir, ctx.scenes, dict(ctx.params),
-                           fingerprint=ctx.fingerprint, build=ctx.build, log=ctx.log)
+    params = dict(ctx.params)
+    selection = params.pop("selection", None)
+    index = build_manifest(ctx.build_dir, ctx.scenes, params, fingerprint=ctx.fingerprint,
+                           build=ctx.build, log=ctx.log, selection=selection)
     return {"rows": index["totals"]["rows"], "shards": index["totals"]["shards"],
             "scenes": index["totals"]["scenes"], "skipped": [s["scene_id"] for s in index["skipped_scenes"]]}
 

@@ -19,6 +19,8 @@ from paradrive.pipeline.runner import (
     MARKER_DIR, BuildContext, StageResult, fingerprint, load_entry, read_marker, scene_dir_for,
 )
 from paradrive.pipeline.specs import ResolvedConfig
+from paradrive import splits
+from paradrive.splits import Selection
 from paradrive.storage import DataRoot
 from paradrive.uri import parse_uri
 
@@ -28,6 +30,7 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
 @dataclass
 class BuildReport:
     results: list[StageResult] = field(default_factory=list)
+    excluded: list[dict] = field(default_factory=list)   # scenes a split left out of the build
 
     def scenes(self) -> dict[str, str]:
         """scene_id -> 'done' | 'failed' (a scene fails if any of its stages failed)."""
@@ -54,6 +57,17 @@ class BuildReport:
         return EXIT_PARTIAL if ok else EXIT_FAILED
 
 
+def default_selection(config: ResolvedConfig, uris: list[str],
+                      exclude_splits: list[str] | None = None) -> Selection:
+    """The scenes a build keeps: a training build leaves out ``exclude_splits`` (default: the
+    manifest stage's ``exclude_splits``); an inference build keeps every scene."""
+    manifest = config.params.get("manifest") or {}
+    if manifest.get("kind") == "inference":
+        return Selection(uris=list(uris))
+    names = exclude_splits if exclude_splits is not None else manifest.get("exclude_splits", [])
+    return splits.exclude(list(uris), list(names))
+
+
 def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list[str], list[str]]:
     registry = config.registry()
     ordered = registry.order(stages)
@@ -64,11 +78,12 @@ def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list
 
 def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
                     data_dir: str | Path | DataRoot, manifests_dir: Path, build: str, *,
-                    force: bool = False) -> StageResult:
+                    force: bool = False, record: dict | None = None) -> StageResult:
     """Run a build-scoped stage over the scenes whose needed stages completed.
 
     With a URL data root, each scene's markers are read remotely and the files the stage
-    ``reads`` are brought to this machine's cache first.
+    ``reads`` are brought to this machine's cache first. ``record`` (what the build left out and
+    by which split files) reaches the stage as ``params["selection"]`` and its fingerprint.
     """
     root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
@@ -95,7 +110,10 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         return StageResult(label, stage, "failed",
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
                                  f"nothing to write")
-    fp = fingerprint(stage, config.params[stage], inputs)
+    params = dict(config.params[stage])
+    if record is not None:
+        params["selection"] = record
+    fp = fingerprint(stage, params, inputs)
     build_dir = Path(manifests_dir) / build
     index = build_dir / "index.json"
     if not force and index.is_file():
@@ -110,7 +128,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             mirror.pull(spec.reads)  # a URL root: what the stage reads, to this machine
         func = load_entry(spec)
         ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=root.local,
-                           scenes=scenes, params=dict(config.params[stage]), log=log, fingerprint=fp)
+                           scenes=scenes, params=params, log=log, fingerprint=fp)
         summary = func(ctx) or {}
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
@@ -126,6 +144,7 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
               stages: list[str] | None = None, executor: Executor | None = None,
               manifests_dir: str | Path = "manifests", build: str = "default",
               force: bool = False, build_scene_uris: list[str] | None = None,
+              selection: Selection | None = None,
               on_start: Callable[[str, str], None] | None = None,
               on_result: Callable[[StageResult], None] | None = None) -> BuildReport:
     """Scene stages of ``scene_uris`` through ``executor``, then the build stages (manifest).
@@ -134,6 +153,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     finished their needs, so a run over a subset (``--retry-failed``) still publishes the whole
     build. ``on_start(scene_uri or 'build:<name>', stage)`` and ``on_result(StageResult)`` are
     called on this process as tasks start and finish, whatever the executor.
+
+    ``selection`` is what a caller already decided about splits (``paradrive build`` prints it);
+    without one, a training build leaves out the scenes of ``manifest.exclude_splits``.
     """
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
@@ -150,8 +172,13 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
             parse_uri(uri)
             in_build.add(uri)
             build_uris.append(uri)
+    if selection is None:
+        selection = default_selection(config, uris)
+    left_out = {e["scene_uri"] for e in selection.excluded}
+    uris = [u for u in uris if u not in left_out]
+    build_uris = [u for u in build_uris if u not in left_out]
     executor = executor or LocalExecutor()
-    report = BuildReport()
+    report = BuildReport(excluded=list(selection.excluded))
     if scene_stages:
         tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
         report.results.extend(executor.run(config, tasks, data_dir, force=force,
@@ -160,12 +187,12 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
         if on_start:
             on_start(f"build:{build}", stage)
         result = run_build_stage(config, stage, build_uris, data_dir, Path(manifests_dir), build,
-                                 force=force)
+                                 force=force, record=selection.record())
         report.results.append(result)
         if on_result:
             on_result(result)
     return report
 
 
-__all__ = ["BuildReport", "run_build", "run_build_stage", "split_stages", "EXIT_OK",
+__all__ = ["BuildReport", "default_selection", "run_build", "run_build_stage", "split_stages", "EXIT_OK",
            "EXIT_FAILED", "EXIT_USAGE", "EXIT_PARTIAL", "ConfigError", "StageNotImplemented"]
