@@ -369,9 +369,10 @@ class PairDataset(Dataset):
         row = self.row(int(i))
         frames = self.frame_indices(int(row["num_frames"]))
         geo = output_geometry(int(row["width"]), int(row["height"]), self.output_size, self.resize)
+        # an inference row of a real log has no target: the novel view is unknown
         sample = {role: self._video(row[f"{role}_uri"], row[f"{role}_sha256"], frames, geo,
                                     f"{self.build}: row {row['pair_id']} column {role}_uri")
-                  for role in ("source", "condition", "target")}
+                  for role in ("source", "condition", "target") if row[f"{role}_uri"] is not None}
         rel = row["rel_pose"][frames]
         f = len(frames)
         sample.update({

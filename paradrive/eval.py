@@ -69,7 +69,7 @@ def depth_abs_rel(pred: np.ndarray, truth: np.ndarray) -> float | None:
 
 # --------------------------------------------------------------------------- evaluation
 
-def _ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
+def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
     """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
     from paradrive.pipeline.runner import read_marker
 
@@ -142,7 +142,7 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
         raise SceneError(f"eval needs a synthetic scene (this one is {scene.dataset}): only a "
                          f"synthetic street can render the true shifted views", scene_id=sid,
                          path=scene_dir / "scene.json", fix="evaluate a 'synthetic:' scene")
-    street = street_from_uri(parse_uri(scene.source), _ingest_params(scene_dir, ingest_params))
+    street = street_from_uri(parse_uri(scene.source), scene_ingest_params(scene_dir, ingest_params))
     renders_path = scene_dir / "renders" / "renders.json"
     renders = json.loads(renders_path.read_text()) if renders_path.is_file() else None
     conds = [int(i) for i in render_params["condition_checkpoints"]]
