@@ -6,7 +6,7 @@ manifest stage (``<manifests>/<build>/index.json`` + ``pairs-*.parquet`` + ``med
 
 One sample (DESIGN.md, "Dataset adapter")::
 
-    source, condition, target   float32 (F, 3, H, W) in [-1, 1]
+    source, condition, target   float32 (F, 3, H, W) in [-1, 1] (no target in an inference row without one)
     rel_pose                    float32 (F, 4, 4)  T_{target<-source} per frame
     identity_pose               float32 (F, 4, 4)  identity
     intrinsics                  float32 (4,)       fx, fy, cx, cy at the output resolution
