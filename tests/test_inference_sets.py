@@ -104,3 +104,75 @@ def test_the_adapter_reads_rows_with_and_without_a_target(inference_build, tmp_p
     assert len(table) == 24 and {r["target_uri"] for r in table} == {None}
     sample = PairDataset(tmp_path / "real")[3]
     assert "target" not in sample and sample["source"].shape == sample["condition"].shape
+
+
+def videos_folder(build_dir, rows, role, folder):
+    """Generated videos stand-ins: each row's ``role`` video linked as ``<pair_id><suffix>``."""
+    import os
+
+    for row in rows:
+        src = build_dir / row[f"{role}_uri"]
+        dst = folder / f"{row['pair_id']}{src.suffix}"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.link(src, dst)
+    return folder
+
+
+def test_eval_build_scores_the_targets_themselves_as_perfect(inference_build, tmp_path):
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+
+    rows = read_pairs(inference_build["dir"]).to_pylist()
+    videos = videos_folder(inference_build["dir"], rows, "target", tmp_path / "videos")
+    result = CliRunner().invoke(app, ["eval", "--build", str(inference_build["dir"]),
+                                      "--videos", str(videos)], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    doc = json.loads((videos / "scores.json").read_text())
+    assert len(doc["by_offset"]) == 8 and not doc["missing"]
+    assert all(r["videos"] == 6 for r in doc["by_offset"])  # 2 scenes x 3 clips
+    assert all(r["psnr"] >= 99.0 and r["ssim"] > 0.9999 for r in doc["by_offset"])
+    assert (videos / "scores.png").stat().st_size > 0
+
+
+def test_eval_build_scores_the_conditions_as_eval_scores_the_final_checkpoint(inference_build,
+                                                                             tmp_path):
+    from paradrive.eval import evaluate_scene
+    from paradrive.inference import score_videos
+
+    rows = [r for r in read_pairs(inference_build["dir"]).to_pylist() if r["scene_id"] == SCENE]
+    videos = videos_folder(inference_build["dir"], rows, "condition", tmp_path / "videos")
+    doc = score_videos(inference_build["dir"], videos)
+    assert len(doc["missing"]) == 24  # the other scene's rows
+    params = inference_build["config"].params
+    truth = evaluate_scene(inference_build["data_dir"] / "scenes" / SCENE, params["render"],
+                           ingest_params=params["ingest"], max_frames=None,
+                           out_dir=tmp_path / "eval")
+    shifted = {r["offset_m"]: r for r in truth["cameras"]["front"]["shifted"]}
+    for r in doc["by_offset"]:
+        # the same renders and truth; the build's conditions went through H.264 once
+        assert r["psnr"] == pytest.approx(shifted[r["offset_m"]]["psnr"], abs=0.5)
+        assert r["ssim"] == pytest.approx(shifted[r["offset_m"]]["ssim"], abs=0.02)
+
+
+def test_train_samples_an_inference_set_that_eval_build_scores(inference_build, smoke_build,
+                                                              tmp_path):
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+
+    samples = tmp_path / "samples"
+    result = CliRunner().invoke(app, [
+        "train", "--build", str(smoke_build["build_dir"]), "--config", "smoke", "--stage", "1",
+        "--out", str(tmp_path / "run"), "--steps", "1", "--sample", str(samples),
+        "--sample-set", str(inference_build["dir"]), "--sample-steps", "1"])
+    assert result.exit_code == 0, result.output
+    ids = read_pairs(inference_build["dir"], ["pair_id"]).column("pair_id").to_pylist()
+    assert sorted(p.relative_to(samples).as_posix() for p in samples.rglob("*.mp4")) == \
+        sorted(f"{i}.mp4" for i in ids)
+    scored = CliRunner().invoke(app, ["eval", "--build", str(inference_build["dir"]),
+                                      "--videos", str(samples)], env={"COLUMNS": "200"})
+    assert scored.exit_code == 0, scored.output
+    doc = json.loads((samples / "scores.json").read_text())
+    assert len(doc["rows"]) == len(ids)  # a one-step model: scored, far from perfect
+    assert all(r["psnr"] < 40 for r in doc["by_offset"])
