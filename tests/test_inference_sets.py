@@ -104,6 +104,11 @@ def test_the_adapter_reads_rows_with_and_without_a_target(inference_build, tmp_p
     assert len(table) == 24 and {r["target_uri"] for r in table} == {None}
     sample = PairDataset(tmp_path / "real")[3]
     assert "target" not in sample and sample["source"].shape == sample["condition"].shape
+    from paradrive.inspect import contact_sheet, verify_build
+
+    assert verify_build(tmp_path / "real")["ok"]
+    contact_sheet(tmp_path / "real", tmp_path / "sheet.png")
+    assert (tmp_path / "sheet.png").stat().st_size > 0
 
 
 def videos_folder(build_dir, rows, role, folder):

@@ -136,3 +136,13 @@ def test_a_training_build_of_a_folder_holds_only_the_training_scene(logs, tmp_pa
     assert not (tmp_path / "d" / "scenes" / "waymo-10444454289801298640_4360_000_4380_000").exists()
     shown = cli("inspect", tmp_path / "m" / "train")
     assert "excluded scene waymo-10444454289801298640_4360_000_4380_000" in shown.output
+
+
+def test_split_builds_exactly_its_scenes_from_a_folder_of_logs(logs, tmp_path):
+    split = tmp_path / "one.txt"
+    split.write_text("waymo:segment-train11_with_camera_labels.tfrecord\n")
+    result = cli("build", "--scenes", logs, "--split", split, "--stages", "ingest",
+                 "--data", tmp_path / "d", "--manifests", tmp_path / "m", *FAST)
+    assert result.exit_code == 0, result.output
+    assert "one.txt: 1 scene(s)" in result.output
+    assert sorted(p.name for p in (tmp_path / "d" / "scenes").iterdir()) == ["waymo-train11"]
