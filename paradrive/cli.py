@@ -81,6 +81,9 @@ def build(
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
     retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
     lock_timeout: float = typer.Option(DEFAULT_LOCK_TIMEOUT_S, "--lock-timeout", min=0, help="Seconds to wait for a scene another build holds locked; after that the scene is left for this run (reported failed, naming that build)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Build exactly the scenes of this split (splits/NAME.txt, or a split file's path) found among --scenes; every line must match one log."),
+    exclude_split: List[str] = typer.Option([], "--exclude-split", help="Leave out the scenes of this split (repeatable; default: manifest.exclude_splits, i.e. paper-eval; 'none' keeps every scene). Training builds only."),
+    kind: Optional[str] = typer.Option(None, "--kind", help="training (pairs) or inference (source = the recording, condition = the final checkpoint's shifted render); default: manifest.kind."),
 ) -> None:
     """Run the pipeline on one or many scenes; stages that are up to date are skipped.
 
@@ -93,7 +96,10 @@ def build(
 
     build_uris: list[str] | None = None
     try:
-        config = StageRegistry().resolve(profile, parse_overrides(set_))
+        overrides = parse_overrides(set_)
+        if kind:
+            overrides.setdefault("manifest", {})["kind"] = kind
+        config = StageRegistry().resolve(profile, overrides)
         stage_list = _split_csv(stages)
         config.registry().order(stage_list)  # unknown stage names fail here
         ledger = _open_ledger(manifests, build_name)
@@ -109,6 +115,8 @@ def build(
             uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
             if not uris:
                 fail(f"--scenes {' '.join(scenes)}: no scenes found")
+        selection = select_scenes(config, uris, split, exclude_split)
+        uris = selection.uris
         options = {"address": address, "gpu_policy": gpu_policy, "max_in_flight": max_in_flight,
                    "max_retries": max_retries} if executor == "ray" else {}
         runner = make_executor(executor, **options)
@@ -119,13 +127,36 @@ def build(
     try:
         report = _run_with_progress(config, uris, root, stage_list, runner, manifests, build_name,
                                     force, ledger, build_uris=build_uris,
-                                    replace=not retry_failed, lock_timeout=lock_timeout)
+                                    replace=not retry_failed, lock_timeout=lock_timeout,
+                                    selection=selection)
     except (ConfigError, ParaDriveError) as exc:
         ledger.end_run(2)
         fail(str(exc))
     ledger.end_run(report.exit_code)
     _print_report(report, ledger)
     raise typer.Exit(report.exit_code)
+
+
+def select_scenes(config, uris: list[str], split: Optional[str], exclude_split: list[str]):
+    """The build's scenes after --split and the exclusion; prints what was left out."""
+    from paradrive import splits
+    from paradrive.pipeline.build import default_selection
+
+    if split:
+        uris = splits.select(uris, split)
+        out.print(f"split {split}: {len(uris)} scene(s)")
+    # an explicit --split is the selection: the default exclusion would empty paper-eval
+    names = exclude_split or (["none"] if split else None)
+    selection = default_selection(config, uris, names)
+    for e in selection.excluded:
+        out.print(f"excluded {e['scene_id']} (split {e['split']}: {e['line']})")
+    if selection.excluded:
+        out.print(f"{len(selection.excluded)} scene(s) excluded by split(s) "
+                  f"{', '.join(s.name for s in selection.splits)}")
+    if not selection.uris:
+        raise ConfigError("every scene given is excluded by a split; nothing to build (pass "
+                          "--exclude-split none to build them)")
+    return selection
 
 
 def data_root(data: str, storage_options: list[str], cache: Optional[Path], drop_cache: bool):
@@ -162,7 +193,8 @@ def _open_ledger(manifests: Path, build_name: str):
 
 
 def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name, force, ledger,
-                       *, build_uris=None, replace=True, lock_timeout=DEFAULT_LOCK_TIMEOUT_S):
+                       *, build_uris=None, replace=True, lock_timeout=DEFAULT_LOCK_TIMEOUT_S,
+                       selection=None):
     """Run the build with a progress bar over scenes (done / failed, ETA) and the ledger updated."""
     from paradrive.pipeline.build import run_build, split_stages
     from paradrive.uri import parse_uri
@@ -204,8 +236,8 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
         task = progress.add_task(describe("starting"), total=len(uris) if scene_stages else None)
         return run_build(config, uris, data, stages=stage_list, executor=runner,
                          manifests_dir=manifests, build=build_name, force=force,
-                         build_scene_uris=build_uris, on_start=on_start, on_result=on_result,
-                         lock_timeout=lock_timeout)
+                         build_scene_uris=build_uris, selection=selection,
+                         on_start=on_start, on_result=on_result, lock_timeout=lock_timeout)
 
 
 def _print_report(report, ledger=None, max_rows: int = 20) -> None:

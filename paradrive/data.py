@@ -6,7 +6,7 @@ manifest stage (``<manifests>/<build>/index.json`` + ``pairs-*.parquet`` + ``med
 
 One sample (DESIGN.md, "Dataset adapter")::
 
-    source, condition, target   float32 (F, 3, H, W) in [-1, 1]
+    source, condition, target   float32 (F, 3, H, W) in [-1, 1] (no target in an inference row without one)
     rel_pose                    float32 (F, 4, 4)  T_{target<-source} per frame
     identity_pose               float32 (F, 4, 4)  identity
     intrinsics                  float32 (4,)       fx, fy, cx, cy at the output resolution
@@ -369,9 +369,10 @@ class PairDataset(Dataset):
         row = self.row(int(i))
         frames = self.frame_indices(int(row["num_frames"]))
         geo = output_geometry(int(row["width"]), int(row["height"]), self.output_size, self.resize)
+        # an inference row of a real log has no target: the novel view is unknown
         sample = {role: self._video(row[f"{role}_uri"], row[f"{role}_sha256"], frames, geo,
                                     f"{self.build}: row {row['pair_id']} column {role}_uri")
-                  for role in ("source", "condition", "target")}
+                  for role in ("source", "condition", "target") if row[f"{role}_uri"] is not None}
         rel = row["rel_pose"][frames]
         f = len(frames)
         sample.update({

@@ -69,7 +69,7 @@ def depth_abs_rel(pred: np.ndarray, truth: np.ndarray) -> float | None:
 
 # --------------------------------------------------------------------------- evaluation
 
-def _ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
+def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
     """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
     from paradrive.pipeline.runner import read_marker
 
@@ -142,7 +142,7 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
         raise SceneError(f"eval needs a synthetic scene (this one is {scene.dataset}): only a "
                          f"synthetic street can render the true shifted views", scene_id=sid,
                          path=scene_dir / "scene.json", fix="evaluate a 'synthetic:' scene")
-    street = street_from_uri(parse_uri(scene.source), _ingest_params(scene_dir, ingest_params))
+    street = street_from_uri(parse_uri(scene.source), scene_ingest_params(scene_dir, ingest_params))
     renders_path = scene_dir / "renders" / "renders.json"
     renders = json.loads(renders_path.read_text()) if renders_path.is_file() else None
     conds = [int(i) for i in render_params["condition_checkpoints"]]
@@ -280,6 +280,48 @@ def eval_table(doc: dict):
     return table
 
 
+def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | None) -> None:
+    """``paradrive eval --build B --videos V``: exit 0 all scored, 3 some missing, 2 none/usage."""
+    import typer
+    from rich.console import Console
+    from rich.table import Table
+
+    from paradrive.errors import ParaDriveError
+    from paradrive.inference import plot_scores, score_videos
+
+    console, err = Console(), Console(stderr=True)
+    if build is None or videos is None or not videos.is_dir():
+        err.print("[bold red]error:[/] --build takes an inference set and --videos a folder of "
+                  "generated videos named by pair_id")
+        raise typer.Exit(2)
+    try:
+        doc = score_videos(build, videos)
+    except ParaDriveError as exc:
+        err.print(f"[bold red]error:[/] {exc}")
+        raise typer.Exit(2)
+    if not doc["rows"]:
+        err.print(f"[bold red]error:[/] no video in {videos} matches a row with a target "
+                  f"({len(doc['missing'])} missing, {doc['rows_without_target']} rows without "
+                  f"a true view)")
+        raise typer.Exit(2)
+    folder = Path(out_dir) if out_dir is not None else videos
+    folder.mkdir(parents=True, exist_ok=True)
+    plot_scores(doc, folder / "scores.png")
+    write_json(folder / "scores.json", doc)
+    table = Table(title=f"{videos} against {build}", title_justify="left")
+    for col in ("offset", "videos", "PSNR", "SSIM"):
+        table.add_column(col, justify="right")
+    for r in doc["by_offset"]:
+        table.add_row(f"{r['offset_m']:+g} m", str(r["videos"]), f"{r['psnr']:.2f}",
+                      f"{r['ssim']:.4f}")
+    console.print(table)
+    console.print(f"wrote {folder / 'scores.json'} and {folder / 'scores.png'}")
+    if doc["missing"]:
+        err.print(f"[yellow]{len(doc['missing'])} row(s) have no video[/], e.g. "
+                  f"{doc['missing'][0]}")
+        raise typer.Exit(3)
+
+
 def register(app) -> None:
     """Add the ``eval`` command to the typer ``app``."""
     from typing import List
@@ -295,9 +337,19 @@ def register(app) -> None:
         out_dir: Optional[Path] = typer.Option(None, "--out", help="Write eval.json / eval.png here (default <scene>/eval; one scene)."),
         camera: Optional[str] = typer.Option(None, "--camera", help="Comma-separated cameras (default: render.cameras)."),
         frames: int = typer.Option(16, "--frames", help="Evaluate at most this many evenly spaced clip frames (0 = all)."),
+        build: Optional[Path] = typer.Option(None, "--build", help="Score generated videos against an inference set's true views instead (with --videos)."),
+        videos: Optional[Path] = typer.Option(None, "--videos", help="With --build: a folder of generated videos, one per row, <pair_id>.mp4 (a pair id's '/' are folders)."),
     ) -> None:
-        """Measure shifted renders against the synthetic street's true views, and the condition renders against the recorded frames."""
+        """Measure shifted renders against the synthetic street's true views, and the condition renders against the recorded frames.
+
+        With --build and --videos: score generated novel-trajectory videos against the true
+        views of a synthetic inference set (PSNR / SSIM per offset, scores.json and scores.png).
+        """
         from rich.console import Console
+
+        if build is not None or videos is not None:
+            score_build_cmd(build, videos, out_dir)
+            return
 
         from paradrive.pipeline import StageRegistry, parse_overrides
         from paradrive.storage import DataRoot, local_scene

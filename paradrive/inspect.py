@@ -80,6 +80,9 @@ def summarize(build_dir: str | Path) -> dict:
                                       for it, (p, s) in sorted(overall.items())},
                     "scenes": quality},
         "skipped_scenes": index.get("skipped_scenes", []),
+        "kind": index.get("kind", "training"),
+        "exclude_splits": index.get("exclude_splits", []),
+        "excluded_scenes": index.get("excluded_scenes", []),
     }
 
 
@@ -119,6 +122,8 @@ def verify_build(build_dir: str | Path, threads: int | None = None) -> dict:
     for role in ("source", "condition", "target"):
         for pair_id, uri, sha, size in zip(cols["pair_id"], cols[f"{role}_uri"],
                                            cols[f"{role}_sha256"], cols[f"{role}_bytes"]):
+            if uri is None:  # an inference row of a real log: no true view
+                continue
             files.setdefault(uri, (size, sha, f"{role} video", f"row {pair_id} column {role}_uri"))
     media = []
     for uri, (size, sha, what, where) in sorted(files.items(), key=lambda kv: str(kv[0])):
@@ -198,10 +203,18 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
                                 f"condition PSNR {psnr:.1f} dB" if psnr is not None else
                                 row["pair_id"], fill=(0, 0, 0), font=font)
         y += head
-        labels = [("source", f"shifted {offset_token(row['offset_m'])}", f"ckpt {row['source_iteration']}"),
-                  ("condition", "recorded path", f"ckpt {row['condition_iteration']}"),
-                  ("target", "recorded camera", "")]
+        shift = f"shifted {offset_token(row['offset_m'])}"
+        if index.get("kind") == "inference":
+            labels = [("source", "recorded camera", ""),
+                      ("condition", shift, f"ckpt {row['condition_iteration']}"),
+                      ("target", f"true view, {shift}", "")]
+        else:
+            labels = [("source", shift, f"ckpt {row['source_iteration']}"),
+                      ("condition", "recorded path", f"ckpt {row['condition_iteration']}"),
+                      ("target", "recorded camera", "")]
         for (role, line2, line3) in labels:
+            if row[f"{role}_uri"] is None:  # an inference row of a real log: no true view
+                continue
             video = build_file(build_dir, row[f"{role}_uri"],
                                f"{build_dir}: row {row['pair_id']} column {role}_uri", index)
             pixels = decode_frames(video, picks, size=(th, tw))
@@ -352,6 +365,11 @@ def _print_tables(summary: dict, console) -> None:
     console.print(q)
     for s in summary["skipped_scenes"]:
         console.print(f"[yellow]skipped scene[/] {s['scene_id']}: {s['reason']}")
+    splits = ", ".join(f"{s['name']} (sha256 {s['sha256'][:12]}…, {s['scenes']} scenes)"
+                       for s in summary["exclude_splits"]) or "none"
+    console.print(f"{summary['kind']} build; excluded splits: {splits}")
+    for s in summary["excluded_scenes"]:
+        console.print(f"[yellow]excluded scene[/] {s['scene_id']} (split {s['split']}: {s['line']})")
 
 
 def register(app) -> None:

@@ -116,7 +116,7 @@ def check_row_uris(columns: dict, where: str) -> None:
     checked: set = set()  # rows share videos: a target serves every offset and checkpoint
     for column in URI_COLUMNS:
         for pair_id, uri in zip(columns["pair_id"], columns[column]):
-            if uri not in checked:
+            if uri is not None and uri not in checked:  # an inference row may have no target
                 check_relative(uri, f"{where}: row {pair_id} column {column}")
                 checked.add(uri)
 
@@ -192,12 +192,21 @@ def _poses(value, n: int, doc: dict, path: Path, what: str) -> np.ndarray:
     return poses
 
 
-def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True,
-               quality: bool = True) -> tuple[list[dict], list[MediaFile], dict]:
+def _media_columns(role: str, file: MediaFile | None) -> dict:
+    """``<role>_uri``, ``<role>_sha256``, ``<role>_bytes`` of a row (null when there is no file)."""
+    return {f"{role}_uri": file and file.uri, f"{role}_sha256": file and file.sha256,
+            f"{role}_bytes": file and file.bytes}
+
+
+def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True, quality: bool = True,
+               truth=None) -> tuple[list[dict], list[MediaFile], dict]:
     """Rows of one scene, the media files they reference and a short summary.
 
-    Every clip gives (sources x conditions) rows; the target stream is shared. Raises SceneError
-    naming clips.json or the offending video when the scene cannot be used.
+    Training (``truth`` None): every clip gives (sources x conditions) rows; the target stream
+    is shared. Inference: every clip gives one row per shifted stream, whose source is the
+    recording and whose condition is that shifted render; ``truth(clip, offset_m, novel_c2w)``
+    returns the true novel view's MediaFile, or None where no truth is known.
+    Raises SceneError naming clips.json or the offending video when the scene cannot be used.
     """
     scene_dir = Path(scene_dir)
     doc = read_clips(scene_dir)
@@ -260,7 +269,42 @@ def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True,
                           if v.get("kind") == "source"))
         frame_indices = [int(i) for i in clip.get("frame_indices") or
                          range(int(clip["frame_start"]), int(clip["frame_start"]) + n)]
-        timestamps = [int(t) for t in clip.get("timestamps_us") or []]
+        base = {
+            "schema_version": SCHEMA_VERSION, "dataset": dataset, "scene_id": sid,
+            "scene_uri": str(doc.get("source", "")), "camera": camera, "clip": name,
+            "frame_start": int(clip["frame_start"]), "num_frames": n,
+            "frame_indices": frame_indices, "timestamps_us": [int(t) for t in clip.get("timestamps_us") or []],
+            "fps": float(doc["fps"]), "width": int(doc["width"]), "height": int(doc["height"]),
+            "intrinsics": intr,
+            "fit_iteration": None if fit.get("iteration") is None else int(fit["iteration"]),
+            "fit_train_psnr": None if fit.get("train_psnr") is None else float(fit["train_psnr"]),
+            "fit_train_ssim": None if fit.get("train_ssim") is None else float(fit["train_ssim"]),
+        }
+        if truth is not None:  # inference: the recording is the source, shifted renders condition
+            for offset, src_name in sources:
+                info = streams[src_name]
+                novel_c2w = _poses(info.get("c2w"), n, doc, path, f"{where} {src_name} c2w")
+                cond = stream_file(clip, src_name, info)
+                true_view = truth(clip, offset, novel_c2w)
+                if true_view is not None:
+                    media[true_view.uri] = true_view
+                psnr = ssim = None
+                if true_view is not None and quality:
+                    psnr, ssim = video_quality(cond.src, true_view.src)
+                rows.append({**base,
+                    "pair_id": make_pair_id(dataset, sid, camera, name, offset,
+                                            int(info.get("iteration", -1))),
+                    "offset_m": offset, "condition_iteration": int(info.get("iteration", -1)),
+                    "source_iteration": None,
+                    "source_stream": targets[0], "condition_stream": src_name,
+                    **_media_columns("source", target), **_media_columns("condition", cond),
+                    **_media_columns("target", true_view),
+                    # rel_pose[i] = inv(c2w_novel[i]) . c2w_recorded[i]
+                    "rel_pose": geometry.relative_pose(novel_c2w, target_c2w).reshape(n, 16)
+                    .astype(np.float32),
+                    "target_c2w": novel_c2w.reshape(n, 16),
+                    "condition_psnr": psnr, "condition_ssim": ssim})
+            continue
         clip_quality = clip.get("quality") or {}
         for iteration, cond_name in conditions:
             cond = stream_file(clip, cond_name, streams[cond_name])
@@ -273,31 +317,17 @@ def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True,
                 source = stream_file(clip, src_name, info)
                 source_c2w = _poses(info.get("c2w"), n, doc, path, f"{where} {src_name} c2w")
                 rel = geometry.relative_pose(target_c2w, source_c2w)
-                rows.append({
-                    "schema_version": SCHEMA_VERSION,
+                rows.append({**base,
                     "pair_id": make_pair_id(dataset, sid, camera, name, offset, iteration),
-                    "dataset": dataset, "scene_id": sid, "scene_uri": str(doc.get("source", "")),
-                    "camera": camera, "clip": name,
-                    "frame_start": int(clip["frame_start"]), "num_frames": n,
-                    "frame_indices": frame_indices, "timestamps_us": timestamps,
-                    "fps": float(doc["fps"]), "width": int(doc["width"]),
-                    "height": int(doc["height"]), "intrinsics": intr,
                     "offset_m": offset, "condition_iteration": iteration,
                     "source_iteration": int(info.get("iteration", -1)),
                     "source_stream": src_name, "condition_stream": cond_name,
-                    "source_uri": source.uri, "source_sha256": source.sha256,
-                    "source_bytes": source.bytes,
-                    "condition_uri": cond.uri, "condition_sha256": cond.sha256,
-                    "condition_bytes": cond.bytes,
-                    "target_uri": target.uri, "target_sha256": target.sha256,
-                    "target_bytes": target.bytes,
+                    **_media_columns("source", source), **_media_columns("condition", cond),
+                    **_media_columns("target", target),
                     "rel_pose": rel.reshape(n, 16).astype(np.float32),
                     "target_c2w": target_c2w.reshape(n, 16),
                     "condition_psnr": None if psnr is None else float(psnr),
                     "condition_ssim": None if ssim is None else float(ssim),
-                    "fit_iteration": None if fit.get("iteration") is None else int(fit["iteration"]),
-                    "fit_train_psnr": None if fit.get("train_psnr") is None else float(fit["train_psnr"]),
-                    "fit_train_ssim": None if fit.get("train_ssim") is None else float(fit["train_ssim"]),
                 })
     if not rows:
         raise _fail(doc, path, "no pairs: the scene has no clip with a source and a condition "
@@ -456,8 +486,11 @@ def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> p
 
 def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             scenes: list[dict], skipped: list[dict], params: dict, fingerprint: str = "",
-            build: str | None = None, log=None) -> dict:
-    """Write shards, media and index under ``build_dir`` as one published build; returns the index."""
+            build: str | None = None, log=None, selection: dict | None = None) -> dict:
+    """Write shards, media and index under ``build_dir`` as one published build; returns the index.
+
+    ``selection`` ({exclude_splits, excluded_scenes}) records which split files left which
+    scenes out of the build."""
     build_dir = Path(build_dir)
     build_dir.mkdir(parents=True, exist_ok=True)
     for stale in build_dir.glob(f"{STAGING_PREFIX}*"):
@@ -485,11 +518,15 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
         mode = params.get("media") or "hardlink"
         placed: dict[str, int] = {}
         for m in media:
+            if m.src.resolve() == (build_dir / m.uri).resolve():  # written in place (truth views)
+                placed["kept"] = placed.get("kept", 0) + 1
+                continue
             done = place_file(m.src, build_dir / m.uri, mode, m.sha256)
             placed[done] = placed.get(done, 0) + 1
         index = {
             "format": "paradrive-pairs", "schema_version": SCHEMA_VERSION,
             "build": build or build_dir.name,
+            "kind": params.get("kind") or "training",
             "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "software": {"paradrive": paradrive.__version__, "pyarrow": pa.__version__},
             "config_fingerprint": fingerprint,
@@ -504,6 +541,7 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             "media": {"mode": mode, "placed": placed},
             "scenes": scenes,
             "skipped_scenes": skipped,
+            **(selection or {"exclude_splits": [], "excluded_scenes": []}),
         }
         write_json(staging / INDEX_NAME, index)
         # Commit: withdraw the old index, swap the shards, then the new index lands last.
@@ -542,18 +580,25 @@ def _prune_media(build_dir: Path, keep: set[str]) -> int:
 
 
 def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: dict, *,
-                   fingerprint: str = "", build: str | None = None, log=None) -> dict:
+                   fingerprint: str = "", build: str | None = None, log=None,
+                   selection: dict | None = None) -> dict:
     """Rows from every scene in ``scene_dirs`` ([{scene_id, scene_uri, scene_dir}]) published
     under ``build_dir``. A scene whose clips cannot be used is skipped with its reason; no usable
     scene at all is an error."""
     rows: list[dict] = []
     media: list[MediaFile] = []
     scenes, skipped = [], []
+    inference = params.get("kind") == "inference"
     for entry in sorted(scene_dirs, key=lambda s: s["scene_id"]):
         try:
+            truth = None
+            if inference:
+                from paradrive.inference import truth_renderer
+
+                truth = truth_renderer(entry["scene_dir"], build_dir, read_clips(entry["scene_dir"]))
             scene_rows_, scene_media, summary = scene_rows(
                 entry["scene_dir"], verify_inputs=bool(params.get("verify_inputs", True)),
-                quality=bool(params.get("quality", True)))
+                quality=bool(params.get("quality", True)), truth=truth)
         except SceneError as exc:
             skipped.append({"scene_id": entry["scene_id"], "scene_uri": entry.get("scene_uri", ""),
                             "reason": str(exc)})
@@ -570,13 +615,15 @@ def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: dict, 
         raise ParaDriveError(f"build {build or Path(build_dir).name}: no usable scene, nothing "
                              f"published ({reasons})")
     return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
-                   fingerprint=fingerprint, build=build, log=log)
+                   fingerprint=fingerprint, build=build, log=log, selection=selection)
 
 
 def run_stage(ctx) -> dict:
     """Stage entry (``stages/manifest.yaml``): called with a BuildContext."""
-    index = build_manifest(ctx.build_dir, ctx.scenes, dict(ctx.params),
-                           fingerprint=ctx.fingerprint, build=ctx.build, log=ctx.log)
+    params = dict(ctx.params)
+    selection = params.pop("selection", None)
+    index = build_manifest(ctx.build_dir, ctx.scenes, params, fingerprint=ctx.fingerprint,
+                           build=ctx.build, log=ctx.log, selection=selection)
     return {"rows": index["totals"]["rows"], "shards": index["totals"]["shards"],
             "scenes": index["totals"]["scenes"], "skipped": [s["scene_id"] for s in index["skipped_scenes"]]}
 

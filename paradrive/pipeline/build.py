@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from paradrive import splits
 from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
 from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
@@ -21,8 +22,9 @@ from paradrive.pipeline.runner import (
     MARKER_DIR, BuildContext, StageResult, damaged_outputs, expand_outputs, fingerprint,
     load_entry, local_size, marker_path, read_marker, scene_dir_for, written_outputs,
 )
-from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.pipeline.ledger import LEDGER_FILE
+from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.splits import Selection
 from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
@@ -33,6 +35,7 @@ NOT_OWNED = (f"{LEDGER_FILE}*", "logs")  # in a build folder, but no build stage
 @dataclass
 class BuildReport:
     results: list[StageResult] = field(default_factory=list)
+    excluded: list[dict] = field(default_factory=list)   # scenes a split left out of the build
 
     def scenes(self) -> dict[str, str]:
         """scene_id -> 'done' | 'failed' (a scene fails if any of its stages failed)."""
@@ -59,6 +62,17 @@ class BuildReport:
         return EXIT_PARTIAL if ok else EXIT_FAILED
 
 
+def default_selection(config: ResolvedConfig, uris: list[str],
+                      exclude_splits: list[str] | None = None) -> Selection:
+    """The scenes a build keeps: a training build leaves out ``exclude_splits`` (default: the
+    manifest stage's ``exclude_splits``); an inference build keeps every scene."""
+    manifest = config.params.get("manifest") or {}
+    if manifest.get("kind") == "inference":
+        return Selection(uris=list(uris))
+    names = exclude_splits if exclude_splits is not None else manifest.get("exclude_splits", [])
+    return splits.exclude(list(uris), list(names))
+
+
 def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list[str], list[str]]:
     registry = config.registry()
     ordered = registry.order(stages)
@@ -69,14 +83,16 @@ def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list
 
 def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
                     data_dir: str | Path | DataRoot, manifests_dir: Path, build: str, *,
-                    force: bool = False) -> StageResult:
+                    force: bool = False, record: dict | None = None) -> StageResult:
     """Run a build-scoped stage over the scenes whose needed stages completed.
 
     With a URL data root, each scene's markers are read remotely and the files the stage
     ``reads`` are brought to this machine's cache first. The stage is up to date when the
     published index carries its fingerprint, its marker (``<build>/.paradrive/<stage>.json``)
     says no scene's needed stage was redone since, and every file it wrote is there with its
-    size (a build published before these markers existed is published once more).
+    size (a build published before these markers existed is published once more). ``record``
+    (what the build left out and by which split files) reaches the stage as
+    ``params["selection"]`` and its fingerprint.
     """
     root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
@@ -104,7 +120,10 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         return StageResult(label, stage, "failed",
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
                                  f"nothing to write")
-    fp = fingerprint(stage, config.params[stage], inputs)
+    params = dict(config.params[stage])
+    if record is not None:
+        params["selection"] = record
+    fp = fingerprint(stage, params, inputs)
     build_dir = Path(manifests_dir) / build
     index = build_dir / "index.json"
     if not force and _published(index, fp) and _intact(read_marker(build_dir, stage), runs, build_dir):
@@ -117,7 +136,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         marker_path(build_dir, stage).unlink(missing_ok=True)
         before = file_stats(build_dir)
         ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=root.local,
-                           scenes=scenes, params=dict(config.params[stage]), log=log, fingerprint=fp)
+                           scenes=scenes, params=params, log=log, fingerprint=fp)
         summary = func(ctx) or {}
         declared = expand_outputs(spec.outputs, config.params[stage])
         outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
@@ -152,6 +171,7 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
               stages: list[str] | None = None, executor: Executor | None = None,
               manifests_dir: str | Path = "manifests", build: str = "default",
               force: bool = False, build_scene_uris: list[str] | None = None,
+              selection: Selection | None = None,
               on_start: Callable[[str, str], None] | None = None,
               on_result: Callable[[StageResult], None] | None = None,
               lock_timeout: float = DEFAULT_LOCK_TIMEOUT_S) -> BuildReport:
@@ -162,6 +182,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     build. ``on_start(scene_uri or 'build:<name>', stage)`` and ``on_result(StageResult)`` are
     called on this process as tasks start and finish, whatever the executor. A scene another
     build holds is waited for up to ``lock_timeout`` seconds (:mod:`paradrive.pipeline.locks`).
+
+    ``selection`` is what a caller already decided about splits (``paradrive build`` prints it);
+    without one, a training build leaves out the scenes of ``manifest.exclude_splits``.
     """
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
@@ -178,8 +201,13 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
             parse_uri(uri)
             in_build.add(uri)
             build_uris.append(uri)
+    if selection is None:
+        selection = default_selection(config, uris)
+    left_out = {e["scene_uri"] for e in selection.excluded}
+    uris = [u for u in uris if u not in left_out]
+    build_uris = [u for u in build_uris if u not in left_out]
     executor = executor or LocalExecutor()
-    report = BuildReport()
+    report = BuildReport(excluded=list(selection.excluded))
     if scene_stages:
         tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
         report.results.extend(executor.run(config, tasks, data_dir, force=force,
@@ -189,12 +217,12 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
         if on_start:
             on_start(f"build:{build}", stage)
         result = run_build_stage(config, stage, build_uris, data_dir, Path(manifests_dir), build,
-                                 force=force)
+                                 force=force, record=selection.record())
         report.results.append(result)
         if on_result:
             on_result(result)
     return report
 
 
-__all__ = ["BuildReport", "run_build", "run_build_stage", "split_stages", "EXIT_OK",
+__all__ = ["BuildReport", "default_selection", "run_build", "run_build_stage", "split_stages", "EXIT_OK",
            "EXIT_FAILED", "EXIT_USAGE", "EXIT_PARTIAL", "ConfigError", "StageNotImplemented"]

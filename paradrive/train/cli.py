@@ -8,6 +8,9 @@ from typing import List, Optional
 import typer
 from rich.console import Console
 
+from paradrive.errors import ParaDriveError
+from paradrive.io import path_inside
+
 console = Console(stderr=True)
 
 
@@ -27,6 +30,7 @@ def train(
     sample: Optional[Path] = typer.Option(None, "--sample", help="After training, generate the target video of one pair and write it here (mp4)."),
     pair: str = typer.Option("0", "--pair", help="Pair to sample: its index in the build or its pair_id."),
     sample_steps: Optional[int] = typer.Option(None, "--sample-steps", min=1, help="Euler steps of the sampler (default: sample.steps)."),
+    sample_set: Optional[Path] = typer.Option(None, "--sample-set", help="With --sample FOLDER: generate every row of this inference set (paradrive build --kind inference) into FOLDER/<pair_id>.mp4, as 'paradrive eval --build' scores them."),
 ) -> None:
     """Train the ReCamDriving-style model on a build's pairs (resumes a run left in --out)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -68,16 +72,29 @@ def train(
         from paradrive.train.trainer import sample_video, torch_threads, write_video
 
         try:
-            item = _find_pair(dataset, pair)
-        except (ValueError, IndexError) as exc:
+            if sample_set is not None:
+                items = open_dataset(sample_set, cfg)
+                # a pair id names the file; one from a shared build must stay inside the folder
+                picks = [(lambda i=i: items[i],
+                          path_inside(sample, f"{pid}.mp4", f"{sample_set}: pair {pid}"))
+                         for i, pid in enumerate(items.pair_ids)]
+            else:
+                item = _find_pair(dataset, pair)
+                picks = [(lambda: item, sample)]
+        except (ValueError, IndexError, ParaDriveError) as exc:
             _fail(str(exc))
         s = cfg["sample"]
         trainer.model.eval()
-        with torch_threads(cfg["threads"]):
-            video = sample_video(trainer.model, trainer.encoder, item, sample_steps or int(s["steps"]),
-                                 seed=int(s["seed"]), shift=float(cfg["flow"]["shift"]))
-        write_video(sample, video, float(s["fps"]))
-        typer.echo(f"sample of {item['pair_id']} ({video.shape[0]} frames, offset {item['offset_m']} m) -> {sample}")
+        for load, path in picks:
+            item = load()
+            with torch_threads(cfg["threads"]):
+                video = sample_video(trainer.model, trainer.encoder, item,
+                                     sample_steps or int(s["steps"]), seed=int(s["seed"]),
+                                     shift=float(cfg["flow"]["shift"]))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_video(path, video, float(s["fps"]))
+            typer.echo(f"sample of {item['pair_id']} ({video.shape[0]} frames, offset "
+                       f"{item['offset_m']} m) -> {path}")
 
 
 def _find_pair(dataset, pair: str) -> dict:
