@@ -29,6 +29,19 @@ def inference_build(smoke_build, tmp_path_factory):
             "training": smoke_build["build_dir"]}
 
 
+def test_a_scene_without_a_fit_is_a_failed_scene_not_a_silent_omission(smoke_build, tmp_path):
+    config = StageRegistry().resolve("smoke", {"manifest": {"kind": "inference"}})
+    unfitted = "synthetic:demo?seed=5"   # never built in this data root
+    report = run_build(config, smoke_build["scene_uris"] + [unfitted], smoke_build["data_dir"],
+                       stages=["manifest"], manifests_dir=tmp_path, build="infer")
+    (failure,) = report.failures()
+    assert failure.scene_id == "synthetic-demo-s5" and failure.stage == "manifest"
+    assert "has not finished clip" in failure.error and "plain re-run" in failure.error
+    assert report.exit_code() == 3   # partial: the other scenes' rows are published
+    assert {r["scene_id"] for r in read_pairs(tmp_path / "infer").to_pylist()} == {
+        "synthetic-demo-s7", "synthetic-demo-s11"}
+
+
 def test_one_row_per_camera_clip_and_offset(inference_build):
     render = inference_build["config"].params["render"]
     rows = read_pairs(inference_build["dir"]).to_pylist()

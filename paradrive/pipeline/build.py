@@ -92,13 +92,13 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     says no scene's needed stage was redone since, and every file it wrote is there with its
     size (a build published before these markers existed is published once more). ``record``
     (what the build left out and by which split files) reaches the stage as
-    ``params["selection"]`` and its fingerprint.
+    ``params["selection"]`` and its fingerprint. The scenes left out because they have not
+    finished the stage's needs are listed in the result's ``summary["unfinished"]``.
     """
     root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
     label = f"build:{build}"
-    t0 = time.time()
-    scenes, inputs, runs, mirrors = [], {}, {}, []
+    scenes, inputs, runs, mirrors, unfinished = [], {}, {}, [], {}
     for uri in scene_uris:
         sid = parse_uri(uri).scene_id
         sdir = scene_dir_for(root.local, sid)
@@ -116,6 +116,17 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             runs[sid] = {need: m.get("run") for need, m in zip(spec.needs, markers)}
             if mirror:
                 mirrors.append(mirror)
+        else:
+            unfinished[sid] = [need for need, m in zip(spec.needs, markers) if not m]
+    result = _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors,
+                              Path(manifests_dir) / build, build, force, record)
+    result.summary["unfinished"] = unfinished
+    return result
+
+
+def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, build_dir, build,
+                     force, record) -> StageResult:
+    label, t0 = f"build:{build}", time.time()
     if not scenes:
         return StageResult(label, stage, "failed",
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
@@ -124,7 +135,6 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     if record is not None:
         params["selection"] = record
     fp = fingerprint(stage, params, inputs)
-    build_dir = Path(manifests_dir) / build
     index = build_dir / "index.json"
     if not force and _published(index, fp) and _intact(read_marker(build_dir, stage), runs, build_dir):
         return StageResult(label, stage, "skipped", fingerprint=fp)
@@ -218,9 +228,15 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
             on_start(f"build:{build}", stage)
         result = run_build_stage(config, stage, build_uris, data_dir, Path(manifests_dir), build,
                                  force=force, record=selection.record())
-        report.results.append(result)
-        if on_result:
-            on_result(result)
+        failed_before = {r.scene_id for r in report.results if r.status == "failed"}
+        left_out = [StageResult(sid, stage, "failed", error=(
+            f"{stage}: left out of build {build}: the scene has not finished "
+            f"{', '.join(needs)}; a plain re-run (without --stages) builds it"))
+            for sid, needs in result.summary.get("unfinished", {}).items() if sid not in failed_before]
+        for r in [*left_out, result]:
+            report.results.append(r)
+            if on_result:
+                on_result(r)
     return report
 
 
