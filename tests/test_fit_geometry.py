@@ -10,7 +10,8 @@ import torch
 
 from paradrive.gs import init as gsinit
 from paradrive.gs.fit import fit_scene, lidar_depth_targets, load_views
-from paradrive.gs.losses import lidar_depth_target
+from paradrive.gs.losses import (DepthTarget, depth_loss, flatten_loss, lidar_depth_target,
+                                 shape_ratio_loss)
 from paradrive.gs.ply import load_ply
 from paradrive.scene import load_scene
 
@@ -130,6 +131,18 @@ def test_lidar_targets_agree_with_the_true_depth(street_scene):
 
 
 # --------------------------------------------------------------------------- fit terms
+def test_geometry_terms_on_known_values():
+    depth = torch.tensor([[10.0, 4.0], [2.0, 8.0]])
+    target = DepthTarget(pixels=torch.tensor([0, 3]), depth=torch.tensor([5.0, 8.0]))
+    assert float(depth_loss(depth, target, inverse=False)) == pytest.approx((5.0 + 0.0) / 2)
+    assert float(depth_loss(depth, target, inverse=True)) == pytest.approx((0.2 - 0.1) / 2)
+    log_s = torch.log(torch.tensor([[0.1, 0.5, 2.0], [0.3, 0.3, 0.3], [1.0, 1.0, 50.0]]))
+    solid = torch.tensor([True, True, False])
+    assert float(flatten_loss(log_s, solid)) == pytest.approx((0.1 + 0.3) / 2)
+    # axis ratios 20, 1 (and 50, not counted): only the first is over 10
+    assert float(shape_ratio_loss(log_s, 10.0, solid)) == pytest.approx((20.0 - 10.0) / 2, rel=1e-5)
+
+
 
 def test_depth_supervision_brings_the_rendered_depth_to_the_truth(fitted, street_scene):
     off = _signed_depth_error(fitted("none"), street_scene)
