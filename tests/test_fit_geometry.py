@@ -131,6 +131,7 @@ def test_lidar_targets_agree_with_the_true_depth(street_scene):
 
 
 # --------------------------------------------------------------------------- fit terms
+
 def test_geometry_terms_on_known_values():
     depth = torch.tensor([[10.0, 4.0], [2.0, 8.0]])
     target = DepthTarget(pixels=torch.tensor([0, 3]), depth=torch.tensor([5.0, 8.0]))
