@@ -150,8 +150,17 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
     render_params: the resolved ``render`` stage parameters (checkpoints, offsets, size, clips).
     ingest_params: used to rebuild the street when the scene has no ingest marker.
     cameras: default ``render_params["cameras"]``. Writes ``<out_dir or scene/eval>/eval.json``
-    and ``eval.png``.
+    and ``eval.png``. Renders use the render stage's thread count, as its PNGs do.
     """
+    from paradrive.gs.model import deterministic_torch
+
+    with deterministic_torch(int(render_params["threads"])):
+        return _evaluate_scene(scene_dir, render_params, ingest_params=ingest_params,
+                               cameras=cameras, max_frames=max_frames, out_dir=out_dir, log=log)
+
+
+def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, max_frames,
+                    out_dir, log) -> dict:
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.render import checkpoint_file, crop_resize, load_checkpoint, sky_dome_of
     from paradrive.scene import load_scene
