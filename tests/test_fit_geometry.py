@@ -195,6 +195,9 @@ def test_road_prior_puts_init_points_at_their_true_depth(street_scene):
     plain = relative_errors(None)
     prior = relative_errors(fit_params()["init_ground_margin"])
     assert float(prior.abs().median()) < 0.5 * float(plain.abs().median())
-    assert float((prior.abs() < 0.1).float().mean()) > 1.5 * float((plain.abs() < 0.1).float().mean())
+    def close(errs):  # share within 10 % of the true depth
+        return float((errs.abs() < 0.1).float().mean())
+
+    assert close(prior) > 1.5 * close(plain)
     # fewer floaters well in front of the surfaces
     assert float((prior < -0.3).float().mean()) < float((plain < -0.3).float().mean())

@@ -69,8 +69,9 @@ _REQUIRED = (
     "prune_opa", "refine_start_iter", "refine_stop_iter", "refine_every", "reset_every",
     "max_gaussians", "init", "init_points", "init_opacity", "init_depth_min", "init_depth_max",
     "init_depth_candidates", "init_ground_margin", "lidar_voxel", "lidar_max_points", "sky_points",
-    "sky_radius", "sky_depth_weight", "depth_weight", "depth_inverse", "flatten_weight", "shape_ratio_weight",
-    "shape_ratio_max", "shape_ratio_every", "eval_views", "state_interval", "keep_state",
+    "sky_radius", "sky_depth_weight", "depth_weight", "depth_inverse", "flatten_weight",
+    "shape_ratio_weight", "shape_ratio_max", "shape_ratio_every", "eval_views", "state_interval",
+    "keep_state",
 )
 
 
@@ -89,7 +90,7 @@ def _check_params(p: Dict[str, Any]) -> Dict[str, Any]:
     return {**p, "checkpoints": cps}
 
 
-def _optional_float(x: Any) -> Optional[float]:
+def _float_or_none(x: Any) -> Optional[float]:
     return None if x is None else float(x)
 
 
@@ -171,7 +172,7 @@ def initial_model(scene, views: list[View], p: Dict[str, Any], scene_scale: floa
                                                 depth_min=float(p["init_depth_min"]),
                                                 depth_max=float(p["init_depth_max"]),
                                                 depth_candidates=int(p["init_depth_candidates"]),
-                                                ground_margin=_optional_float(p["init_ground_margin"]),
+                                                ground_margin=_float_or_none(p["init_ground_margin"]),
                                                 generator=gen)
         how = "frustum"
     scales = gsinit.knn_scales(means, max_scale=0.1 * scene_scale)

@@ -226,7 +226,8 @@ def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: floa
             score = torch.where(seen > 0, cost / seen.clamp_min(1), torch.full_like(cost, 1e3))
             best = score.argmin(1)
             if ground_margin is not None and view.ground_z is not None:
-                road_ok = on_road & (score[:, -1] <= score.gather(1, best[:, None])[:, 0] + ground_margin)
+                best_score = score.gather(1, best[:, None])[:, 0]
+                road_ok = on_road & (score[:, -1] <= best_score + ground_margin)
                 best = torch.where(road_ok, torch.full_like(best, nd - 1), best)
             checked = seen.gather(1, best[:, None])[:, 0] > 0
             depth = torch.where(checked, d.gather(1, best[:, None])[:, 0], depth)
