@@ -34,7 +34,8 @@ from paradrive.clips import clip_windows, condition_stream, frames_needed, sourc
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
 
-__all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "plot_eval", "register"]
+__all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "depth_signed_rel", "depth_errors",
+           "plot_eval", "register"]
 
 EVAL_SCHEMA_VERSION = 1
 log_default = logging.getLogger("paradrive.eval")
@@ -53,6 +54,15 @@ def image_quality(pred: np.ndarray, truth: np.ndarray) -> dict:
     return {"psnr": float(psnr(a, b).mean()), "ssim": float(ssim(a, b).mean())}
 
 
+def _relative_depth_error(pred: np.ndarray, truth: np.ndarray) -> np.ndarray | None:
+    """(pred - truth) / truth on the pixels whose truth is finite (not sky); None when none is."""
+    valid = np.isfinite(truth) & (truth > 0)
+    if not valid.any():
+        return None
+    # a surface rendered as sky (+inf) counts as an infinite error, not as a missing pixel
+    return (pred[valid] - truth[valid]) / truth[valid]
+
+
 def depth_abs_rel(pred: np.ndarray, truth: np.ndarray) -> float | None:
     """Median of |pred - truth| / truth over pixels where the truth is finite (not sky).
 
@@ -60,11 +70,24 @@ def depth_abs_rel(pred: np.ndarray, truth: np.ndarray) -> float | None:
 
     pred, truth: float (N, H, W) z-depth in metres. None when no pixel has a finite truth.
     """
-    valid = np.isfinite(truth) & (truth > 0)
-    if not valid.any():
-        return None
-    # a surface rendered as sky (+inf) counts as an infinite error, not as a missing pixel
-    return float(np.median(np.abs(pred[valid] - truth[valid]) / truth[valid]))
+    rel = _relative_depth_error(pred, truth)
+    return None if rel is None else float(np.median(np.abs(rel)))
+
+
+def depth_signed_rel(pred: np.ndarray, truth: np.ndarray) -> float | None:
+    """Median of (pred - truth) / truth over pixels where the truth is finite (not sky).
+
+    Negative: the geometry sits in front of the true surfaces (too near); positive: behind.
+    pred, truth: float (N, H, W) z-depth in metres. None when no pixel has a finite truth.
+    """
+    rel = _relative_depth_error(pred, truth)
+    return None if rel is None else float(np.median(rel))
+
+
+def depth_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
+    """``depth_abs_rel`` and ``depth_signed_rel`` of one stream, as eval.json stores them."""
+    return {"depth_abs_rel": depth_abs_rel(pred, truth),
+            "depth_signed_rel": depth_signed_rel(pred, truth)}
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -127,8 +150,17 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
     render_params: the resolved ``render`` stage parameters (checkpoints, offsets, size, clips).
     ingest_params: used to rebuild the street when the scene has no ingest marker.
     cameras: default ``render_params["cameras"]``. Writes ``<out_dir or scene/eval>/eval.json``
-    and ``eval.png``.
+    and ``eval.png``. Renders use the render stage's thread count, as its PNGs do.
     """
+    from paradrive.gs.model import deterministic_torch
+
+    with deterministic_torch(int(render_params["threads"])):
+        return _evaluate_scene(scene_dir, render_params, ingest_params=ingest_params,
+                               cameras=cameras, max_frames=max_frames, out_dir=out_dir, log=log)
+
+
+def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, max_frames,
+                    out_dir, log) -> dict:
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.render import checkpoint_file, crop_resize, load_checkpoint, sky_dome_of
     from paradrive.scene import load_scene
@@ -183,7 +215,7 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
         truth = street.render(recorded, out.K, out.width, out.height)
         cam_doc["recorded"] = {"iteration": final, **image_quality(rgb, target),
                                "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
-                               "depth_abs_rel": depth_abs_rel(dep, truth["depth"])}
+                               **depth_errors(dep, truth["depth"])}
         for d in render_params["offsets_m"]:
             shifted = geometry.lateral_shift(recorded, ego, float(d))
             rgb, dep = _render(params, shifted, out, depth=True, batch=batch, device=device,
@@ -192,7 +224,7 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
             q = image_quality(rgb, truth["rgb"])
             cam_doc["shifted"].append({"offset_m": float(d), "stream": source_stream(d),
                                        "iteration": final, **q,
-                                       "depth_abs_rel": depth_abs_rel(dep, truth["depth"])})
+                                       **depth_errors(dep, truth["depth"])})
             log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", sid, cam_name, source_stream(d),
                      q["psnr"], q["ssim"])
         by_abs: dict[str, dict] = {}
@@ -208,7 +240,9 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
            "width": int(render_params["width"]), "height": int(render_params["height"]),
            "condition_checkpoints": conds, "source_checkpoint": final,
            "metrics": {"psnr": "dB, mean over frames", "ssim": "11x11 Gaussian window",
-                       "depth_abs_rel": "median |d - d_true| / d_true on non-sky pixels"},
+                       "depth_abs_rel": "median |d - d_true| / d_true on non-sky pixels",
+                       "depth_signed_rel": "median (d - d_true) / d_true on non-sky pixels "
+                                           "(< 0: too near)"},
            "cameras": doc_cams}
     folder = Path(out_dir) if out_dir is not None else scene_dir / "eval"
     folder.mkdir(parents=True, exist_ok=True)
@@ -259,24 +293,26 @@ def eval_table(doc: dict):
 
     table = Table(title=f"eval {doc['scene_id']}", title_justify="left",
                   caption="vs: recorded = the recorded frames, truth = the street's true shifted "
-                          "view; depth = median relative z-depth error (non-sky)")
-    for col in ("camera", "stream", "iter", "vs", "PSNR", "SSIM", "depth"):
-        table.add_column(col, justify="right" if col in ("iter", "PSNR", "SSIM", "depth") else "left",
-                         no_wrap=True)
+                          "view; depth = median |relative| z-depth error (non-sky), signed = "
+                          "median signed one (< 0: too near)")
+    numeric = ("iter", "PSNR", "SSIM", "depth", "signed")
+    for col in ("camera", "stream") + numeric[:1] + ("vs",) + numeric[1:]:
+        table.add_column(col, justify="right" if col in numeric else "left", no_wrap=True)
 
     def fmt(x, spec):
         return "-" if x is None else format(x, spec)
 
+    def row(cam, stream, r, vs):
+        table.add_row(cam, stream, str(r["iteration"]), vs, fmt(r["psnr"], ".2f"),
+                      fmt(r["ssim"], ".4f"), fmt(r.get("depth_abs_rel"), ".3f"),
+                      fmt(r.get("depth_signed_rel"), "+.3f"))
+
     for cam, c in doc["cameras"].items():
         for r in c["conditions"]:
-            table.add_row(cam, r["stream"], str(r["iteration"]), "recorded",
-                          fmt(r["psnr"], ".2f"), fmt(r["ssim"], ".4f"), "-")
-        r = c["recorded"]
-        table.add_row(cam, "recorded", str(r["iteration"]), "recorded",
-                      fmt(r["psnr"], ".2f"), fmt(r["ssim"], ".4f"), fmt(r["depth_abs_rel"], ".3f"))
+            row(cam, r["stream"], r, "recorded")
+        row(cam, "recorded", c["recorded"], "recorded")
         for r in sorted(c["shifted"], key=lambda r: (abs(r["offset_m"]), -r["offset_m"])):
-            table.add_row(cam, r["stream"], str(r["iteration"]), "truth",
-                          fmt(r["psnr"], ".2f"), fmt(r["ssim"], ".4f"), fmt(r["depth_abs_rel"], ".3f"))
+            row(cam, r["stream"], r, "truth")
     return table
 
 

@@ -182,6 +182,14 @@ class Scene:
             return None
         return read_image(path, scene_id=self.scene_id)[..., 0] > 127
 
+    def lidar_frame(self, frame_index: int) -> np.ndarray | None:
+        """LiDAR points (M, 3) float32 in the scene world of frame ``frame_index`` (position in
+        ``frames``), or None when that frame has none."""
+        path = self._require_root() / "lidar" / f"{self.frames[frame_index].index:06d}.npy"
+        if not path.is_file():
+            return None
+        return np.load(path).astype(np.float32).reshape(-1, 3)
+
     def lidar_points(self, max_frames: int | None = None) -> np.ndarray | None:
         """All LiDAR points (M, 3) float32 in the scene world, or None when the scene has none."""
         folder = self._require_root() / "lidar"

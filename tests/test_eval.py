@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from paradrive.eval import depth_abs_rel, evaluate_scene, image_quality
+from paradrive.eval import depth_abs_rel, depth_signed_rel, evaluate_scene, image_quality
 
 from test_render import SCENE, SID, smoke_params
 
@@ -124,3 +124,30 @@ def test_cli_refuses_a_scene_without_ground_truth(tmp_path):
                                       "--data", str(tmp_path)])
     assert result.exit_code == 2
     assert "synthetic" in result.output
+
+
+def test_signed_depth_error_of_a_scaled_true_depth():
+    from paradrive.ingest.synthetic import street_from_uri
+    from paradrive.uri import parse_uri
+
+    street = street_from_uri(parse_uri("synthetic:demo?seed=7&frames=2&width=64&height=40"))
+    spec = street.cameras["front"]
+    truth = street.render(street.c2w("front"), spec.K(), spec.width, spec.height)["depth"]
+    assert np.isinf(truth).any() and np.isfinite(truth).any()   # sky and surfaces
+    near = np.where(np.isfinite(truth), 0.9 * truth, np.inf)      # every surface 10 % too near
+    assert depth_signed_rel(near, truth) == pytest.approx(-0.1, abs=1e-6)
+    assert depth_abs_rel(near, truth) == pytest.approx(0.1, abs=1e-6)
+    far = truth * 1.25
+    assert depth_signed_rel(far, truth) == pytest.approx(0.25, abs=1e-6)
+    # a surface rendered as sky is an error towards +inf, sky rendered as a surface is ignored
+    assert depth_signed_rel(np.full_like(truth, np.inf), truth) == np.inf
+    assert depth_signed_rel(np.where(np.isfinite(truth), truth, 1.0), truth) == 0.0
+    assert depth_signed_rel(truth, np.full_like(truth, np.inf)) is None
+
+
+def test_every_stream_reports_the_signed_depth_error(evaluated):
+    cam = evaluated["doc"]["cameras"]["front"]
+    for row in [cam["recorded"]] + cam["shifted"]:
+        signed, absolute = row["depth_signed_rel"], row["depth_abs_rel"]
+        assert signed is not None and abs(signed) <= absolute + 1e-9, row
+    assert "depth_signed_rel" in evaluated["doc"]["metrics"]

@@ -15,7 +15,10 @@ Everything is written to a temporary name and renamed into place.
 Loss: (1 - lambda) L1 + lambda D-SSIM (3DGS). The sky is a dome of Gaussians far outside the
 scene (see :func:`paradrive.gs.init.sky_dome`), excluded from densification; where a scene has
 sky masks, sky pixels whose rendered depth is nearer than half the dome radius are penalised,
-which removes floaters in front of the sky.
+which removes floaters in front of the sky. Geometry terms (:mod:`paradrive.gs.losses`): L1
+between the rendered expected depth and the frame's LiDAR where the scene has it
+(``depth_weight``), a flattening term on each Gaussian's smallest axis (``flatten_weight``) and
+a sharp-shape term on its axis ratio (``shape_ratio_weight``).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from paradrive.metrics import psnr, ssim
 
 from . import init as gsinit
 from .init import View
+from .losses import DepthTarget, depth_loss, flatten_loss, lidar_depth_target, shape_ratio_loss
 from .model import (PARAM_KEYS, Params, cat_params, deterministic_torch, new_params, render,
                     scene_scale_of, sh_degree_of)
 from .ply import load_ply, save_ply
@@ -65,8 +69,10 @@ _REQUIRED = (
     "lr_opacities", "lr_sh0", "lr_shN", "grow_grad2d", "grow_scale3d", "prune_scale3d",
     "prune_opa", "refine_start_iter", "refine_stop_iter", "refine_every", "reset_every",
     "max_gaussians", "init", "init_points", "init_opacity", "init_depth_min", "init_depth_max",
-    "init_depth_candidates", "lidar_voxel", "lidar_max_points", "sky_points", "sky_radius",
-    "sky_depth_weight", "eval_views", "state_interval", "keep_state", "backend",
+    "init_depth_candidates", "init_ground_margin", "lidar_voxel", "lidar_max_points", "sky_points",
+    "sky_radius", "sky_depth_weight", "depth_weight", "depth_inverse", "flatten_weight",
+    "shape_ratio_weight", "shape_ratio_max", "shape_ratio_every", "eval_views", "state_interval",
+    "keep_state", "backend",
 )
 
 
@@ -83,6 +89,10 @@ def _check_params(p: Dict[str, Any]) -> Dict[str, Any]:
     if float(p["downscale"]) < 1.0:
         raise ConfigError(f"fit: downscale must be >= 1, got {p['downscale']!r}")
     return {**p, "checkpoints": cps}
+
+
+def _float_or_none(x: Any) -> Optional[float]:
+    return None if x is None else float(x)
 
 
 def _fingerprint(p: Dict[str, Any]) -> str:
@@ -163,6 +173,7 @@ def initial_model(scene, views: list[View], p: Dict[str, Any], scene_scale: floa
                                                 depth_min=float(p["init_depth_min"]),
                                                 depth_max=float(p["init_depth_max"]),
                                                 depth_candidates=int(p["init_depth_candidates"]),
+                                                ground_margin=_float_or_none(p["init_ground_margin"]),
                                                 generator=gen)
         how = "frustum"
     scales = gsinit.knn_scales(means, max_scale=0.1 * scene_scale)
@@ -181,6 +192,20 @@ def initial_model(scene, views: list[View], p: Dict[str, Any], scene_scale: floa
             "sky_radius_m": radius, "scene_scale_m": scene_scale}
     log.info("fit: init %s with %d points + %d sky", how, len(means), int(is_sky.sum()))
     return params, is_sky, desc
+
+
+def lidar_depth_targets(scene, views: Sequence[View],
+                        device: torch.device) -> list[Optional[DepthTarget]]:
+    """Per view, the LiDAR sweep of its frame projected into it (None where the frame has none)."""
+    sweeps: dict[int, Optional[np.ndarray]] = {}
+    targets: list[Optional[DepthTarget]] = []
+    for v in views:
+        if v.frame not in sweeps:
+            sweeps[v.frame] = scene.lidar_frame(v.frame)
+        pts = sweeps[v.frame]
+        target = None if pts is None or not len(pts) else lidar_depth_target(pts, v)
+        targets.append(target.to(device) if target is not None and len(target.pixels) else None)
+    return targets
 
 
 def _make_optimizers(params: Dict[str, torch.nn.Parameter], p: Dict[str, Any],
@@ -373,6 +398,13 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
     sky_w = float(p["sky_depth_weight"])
     sky_radius = float(p["sky_radius"])
     has_sky = int(strat_state["is_sky"].sum()) > 0 and any(v.sky is not None for v in views)
+    depth_w = float(p["depth_weight"])
+    depth_inv = bool(p["depth_inverse"])
+    depth_targets = (lidar_depth_targets(scene, views, device) if depth_w > 0
+                     else [None] * len(views))
+    flat_w = float(p["flatten_weight"])
+    ratio_w, ratio_max = float(p["shape_ratio_weight"]), float(p["shape_ratio_max"])
+    ratio_every = max(int(p["shape_ratio_every"]), 1)
     eval_idx = _eval_indices(len(views), int(p["eval_views"]))
     max_deg = int(p["sh_degree"])
     interval = max(int(p["sh_degree_interval"]), 1)
@@ -416,8 +448,10 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
             group["lr"] = lr0 * gamma**step
         deg = min(step // interval, max_deg)
         use_sky = has_sky and view.sky is not None and sky_w > 0
+        target = depth_targets[vi]
         out, alphas, info = render(params, viewmat, K, view.width, view.height, sh_degree=deg,
-                                   render_mode="RGB+ED" if use_sky else "RGB", backend=backend)
+                                   render_mode="RGB+ED" if use_sky or target is not None else "RGB",
+                                   backend=backend)
         pred = out[0, ..., :3]
         gt = view.rgb().to(device)
         loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
@@ -426,6 +460,13 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
             if sky.any():
                 depth = out[0, ..., 3][sky]
                 loss = loss + sky_w * F.relu(1.0 - depth / (0.5 * sky_radius)).mean()
+        if target is not None:
+            loss = loss + depth_w * depth_loss(out[0, ..., 3], target, depth_inv)
+        solid = ~strat_state["is_sky"]
+        if flat_w > 0:
+            loss = loss + flat_w * flatten_loss(params["scales"], solid)
+        if ratio_w > 0 and step % ratio_every == 0:
+            loss = loss + ratio_w * shape_ratio_loss(params["scales"], ratio_max, solid)
         loss.backward()
         for o in optimizers.values():
             o.step()

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["View", "knn_scales", "lidar_points_init", "frustum_points_init", "sky_dome",
+__all__ = ["View", "project", "knn_scales", "lidar_points_init", "frustum_points_init", "sky_dome",
            "colours_from_views"]
 
 
@@ -68,7 +68,7 @@ def knn_scales(points: torch.Tensor, k: int = 3, chunk: int = 1024,
     return out[:, None].expand(n, 3).contiguous()
 
 
-def _project(points: torch.Tensor, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def project(points: torch.Tensor, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """World points (N, 3) -> pixel coords (N, 2), depth (N,), in-frame mask (N,)."""
     w2c = torch.linalg.inv(view.c2w)
     pc = points.double() @ w2c[:3, :3].T + w2c[:3, 3]
@@ -92,7 +92,7 @@ def colours_from_views(points: torch.Tensor, views: Sequence[View], default: flo
         if not todo.any():
             break
         idx = torch.nonzero(todo).squeeze(1)
-        uv, _, ok = _project(points[idx], view)
+        uv, _, ok = project(points[idx], view)
         if not ok.any():
             continue
         idx, uv = idx[ok], uv[ok]
@@ -149,14 +149,24 @@ def _sample(img_chw: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: float, depth_max: float,
                         generator: torch.Generator, depth_candidates: int = 32,
-                        neighbours: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+                        neighbours: int = 4,
+                        ground_margin: Optional[float] = None) -> tuple[torch.Tensor, torch.Tensor]:
     """LiDAR-free initialisation: points along pixel rays of the training views.
 
     For each view, ``n_points / len(views)`` non-sky pixels are drawn; along each ray
     ``depth_candidates`` depths uniform in inverse depth over [depth_min, depth_max] are tested
     by photo-consistency (colour difference against up to ``neighbours`` other views of the same
-    camera, nearest in time) and the best one is kept (a small plane sweep). Rays no neighbour
-    can check keep a random depth. Colour is the pixel's. Returns means (N, 3), rgb (N, 3).
+    camera, nearest in time) and the best one is kept (a small plane sweep). Where the view knows
+    the road height (``View.ground_z``), the ray's hit on the road plane is one more candidate.
+    Rays no neighbour can check keep a random depth. Colour is the pixel's.
+
+    ground_margin: None, or the road prior: a ray that meets the road plane in range takes it
+    when its colour difference there is within ``ground_margin`` (mean absolute, colours in
+    [0, 1]) of the best candidate's, and when no neighbour can check it. The road is textureless
+    and has no best depth of its own; without the prior such rays pick a near candidate at
+    random, and those points become floaters in front of the camera.
+
+    Returns means (N, 3), rgb (N, 3).
     """
     if depth_max <= depth_min:
         raise ValueError(f"depth range [{depth_min}, {depth_max}] is empty")
@@ -186,6 +196,15 @@ def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: floa
         # random inverse depth for rays nobody can check
         u = torch.rand(per_view, generator=generator).double()
         depth = 1.0 / (1.0 / depth_min + u * (1.0 / depth_max - 1.0 / depth_min))
+        on_road = torch.zeros(per_view, dtype=torch.bool)
+        if view.ground_z is not None:
+            # driving prior: the road plane under the vehicle, hit at z-depth tg
+            dz = dirs_w[:, 2]
+            tg = (float(view.ground_z) - o[2]) / torch.where(dz.abs() > 1e-9, dz, torch.full_like(dz, -1e-9))
+            on_road = (tg > depth_min) & (tg < depth_max)
+            tg = torch.where(on_road, tg, torch.full_like(tg, depth_min))
+            if ground_margin is not None:
+                depth = torch.where(on_road, tg, depth)
         ref = _sample(blurred[i], torch.stack([px, py], 1))    # (P, 3)
         siblings = by_cam[view.camera]
         pos = siblings.index(i)
@@ -193,23 +212,23 @@ def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: floa
         if near:
             d = (1.0 / inv.double())[None].expand(per_view, -1)  # (P, D)
             if view.ground_z is not None:
-                # driving prior: the road plane under the vehicle is one more candidate per ray
-                dz = dirs_w[:, 2]
-                tg = (float(view.ground_z) - o[2]) / torch.where(dz.abs() > 1e-9, dz, torch.full_like(dz, -1e-9))
-                tg = torch.where((tg > depth_min) & (tg < depth_max), tg, d[:, 0])
                 d = torch.cat([d, tg[:, None]], 1)
             nd = d.shape[1]
             pts = o + dirs_w[:, None, :] * d[:, :, None]       # (P, D, 3)
             cost = torch.zeros(per_view, nd)
             seen = torch.zeros(per_view, nd)
             for j in near:
-                uv, _, ok = _project(pts.reshape(-1, 3), views[j])
+                uv, _, ok = project(pts.reshape(-1, 3), views[j])
                 col = _sample(blurred[j], uv)
                 diff = (col - ref.repeat_interleave(nd, 0)).abs().mean(1)
                 cost += torch.where(ok, diff, torch.zeros_like(diff)).reshape(per_view, -1)
                 seen += ok.float().reshape(per_view, -1)
             score = torch.where(seen > 0, cost / seen.clamp_min(1), torch.full_like(cost, 1e3))
             best = score.argmin(1)
+            if ground_margin is not None and view.ground_z is not None:
+                best_score = score.gather(1, best[:, None])[:, 0]
+                road_ok = on_road & (score[:, -1] <= best_score + ground_margin)
+                best = torch.where(road_ok, torch.full_like(best, nd - 1), best)
             checked = seen.gather(1, best[:, None])[:, 0] > 0
             depth = torch.where(checked, d.gather(1, best[:, None])[:, 0], depth)
         means.append((o + dirs_w * depth[:, None]).float())
@@ -249,7 +268,7 @@ def sky_dome(views: Sequence[View], *, n_points: int, radius: float, center: tor
             if view.sky is None or not todo.any():
                 continue
             idx = torch.nonzero(todo).squeeze(1)
-            uv, _, ok = _project(means[idx], view)
+            uv, _, ok = project(means[idx], view)
             idx, uv = idx[ok], uv[ok]
             x = uv[:, 0].long().clamp(0, view.width - 1)
             y = uv[:, 1].long().clamp(0, view.height - 1)
