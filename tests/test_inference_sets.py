@@ -37,7 +37,7 @@ def test_a_scene_without_a_fit_is_a_failed_scene_not_a_silent_omission(smoke_bui
     (failure,) = report.failures()
     assert failure.scene_id == "synthetic-demo-s5" and failure.stage == "manifest"
     assert "has not finished clip" in failure.error and "plain re-run" in failure.error
-    assert report.exit_code() == 3   # partial: the other scenes' rows are published
+    assert report.exit_code == 3   # partial: the other scenes' rows are published
     assert {r["scene_id"] for r in read_pairs(tmp_path / "infer").to_pylist()} == {
         "synthetic-demo-s7", "synthetic-demo-s11"}
 

@@ -114,7 +114,7 @@ def logs(tmp_path_factory):
     return folder
 
 
-FAST = ["--profile", "smoke", "--set", "fit.checkpoints=[5,10,15,20]",
+FAST = ["--profile", "smoke", "--set", "ingest.cameras=[front]", "--set", "fit.checkpoints=[5,10,15,20]",
         "--set", "render.condition_checkpoints=[5,10,15]", "--set", "render.source_checkpoint=20",
         "--set", "render.width=80", "--set", "render.height=48"]
 
@@ -144,5 +144,5 @@ def test_split_builds_exactly_its_scenes_from_a_folder_of_logs(logs, tmp_path):
     result = cli("build", "--scenes", logs, "--split", split, "--stages", "ingest",
                  "--data", tmp_path / "d", "--manifests", tmp_path / "m", *FAST)
     assert result.exit_code == 0, result.output
-    assert "one.txt: 1 scene(s)" in result.output
+    assert "one.txt: 1 scene(s)" in result.output.replace("\n", "")   # rich wraps long paths
     assert sorted(p.name for p in (tmp_path / "d" / "scenes").iterdir()) == ["waymo-train11"]
