@@ -46,19 +46,24 @@ def smoke_build(smoke_scene):
     return _build(smoke_scene["root"], SMOKE_SCENES)
 
 
-@pytest.fixture(scope="session")
-def tiny_scene(tmp_path_factory) -> Path:
-    """Synthetic street, 8 frames of 80x48, front camera, with LiDAR and sky masks (ingest only)."""
+def ingest_synthetic(root: Path, frames: int, width: int, height: int) -> Path:
+    """``synthetic:demo?seed=7`` ingested with the smoke profile at this size; its scene folder."""
     from paradrive.pipeline import StageRegistry, run_build
 
-    root = tmp_path_factory.mktemp("tiny_scene")
     config = StageRegistry().resolve("smoke", {"ingest": {
-        "synthetic_frames": 8, "synthetic_width": 80, "synthetic_height": 48}})
+        "synthetic_frames": frames, "synthetic_width": width, "synthetic_height": height}})
     report = run_build(config, ["synthetic:demo?seed=7"], root / "data", stages=["ingest"],
-                       manifests_dir=root / "manifests", build="tiny")
+                       manifests_dir=root / "manifests", build="ingest")
     assert not report.failures(), [r.error for r in report.failures()]
     (scene_dir,) = (root / "data" / "scenes").iterdir()
     return scene_dir
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """Synthetic street, 8 frames of 80x48, the smoke profile's cameras, with LiDAR and sky
+    masks (ingest only)."""
+    return ingest_synthetic(tmp_path_factory.mktemp("tiny_scene"), 8, 80, 48)
 
 
 @pytest.fixture

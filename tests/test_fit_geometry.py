@@ -30,19 +30,17 @@ def fit_params(**overrides) -> dict:
 
 @pytest.fixture(scope="module")
 def street_scene(tmp_path_factory):
-    """Synthetic street, 10 frames of 96x64, front camera, with LiDAR and sky masks, and the
-    street itself (the truth)."""
+    """Synthetic street, 10 frames of 96x64, with LiDAR and sky masks, and the street itself
+    (the truth)."""
+    from conftest import ingest_synthetic
+
     from paradrive.ingest.synthetic import street_from_uri
-    from paradrive.pipeline import StageRegistry, run_build
+    from paradrive.pipeline import StageRegistry
     from paradrive.uri import parse_uri
 
-    root = tmp_path_factory.mktemp("street")
+    scene_dir = ingest_synthetic(tmp_path_factory.mktemp("street"), 10, 96, 64)
     config = StageRegistry().resolve("smoke", {"ingest": {
         "synthetic_frames": 10, "synthetic_width": 96, "synthetic_height": 64}})
-    report = run_build(config, ["synthetic:demo?seed=7"], root / "data", stages=["ingest"],
-                       manifests_dir=root / "manifests", build="geometry")
-    assert not report.failures(), [r.error for r in report.failures()]
-    (scene_dir,) = (root / "data" / "scenes").iterdir()
     street = street_from_uri(parse_uri("synthetic:demo?seed=7"), config.params["ingest"])
     return {"dir": scene_dir, "street": street}
 
