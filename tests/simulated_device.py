@@ -65,11 +65,6 @@ class OnDevice(torch.Tensor):
         return _dispatch(func, args, kwargs or {})
 
 
-def _target_device(func, kwargs: dict) -> torch.device | None:
-    dev = kwargs.get("device")
-    return None if dev is None else torch.device(dev)
-
-
 def _check_generator(func, kwargs: dict, target: torch.device) -> None:
     gen = kwargs.get("generator")
     if gen is not None and gen.device.type != target.type:
@@ -112,15 +107,15 @@ def _check_no_bare_meta(func, args, kwargs) -> None:
 
 def _dispatch(func, args, kwargs):
     _check_no_bare_meta(func, args, kwargs)
-    target = _target_device(func, kwargs)
-    if target is not None and target.type == DEVICE.type:
-        _check_generator(func, kwargs, target)
-        kwargs = {**kwargs, "device": torch.device("cpu")}
-    elif target is None and func not in (aten._to_copy.default,):
-        on_device = _check_devices(func, args, kwargs)
-        target = DEVICE if on_device else torch.device("cpu")
-    elif func is aten._to_copy.default and target is None:
+    if kwargs.get("device") is not None:   # a factory, or a copy to a named device
+        target = torch.device(kwargs["device"])
+        if target.type == DEVICE.type:
+            _check_generator(func, kwargs, target)
+            kwargs = {**kwargs, "device": torch.device("cpu")}
+    elif func is aten._to_copy.default:     # a dtype change keeps the device
         target = DEVICE if isinstance(args[0], OnDevice) else torch.device("cpu")
+    else:
+        target = DEVICE if _check_devices(func, args, kwargs) else torch.device("cpu")
     inputs = {id(a.elem): a for a in pytree.tree_leaves((args, kwargs)) if isinstance(a, OnDevice)}
     args, kwargs = pytree.tree_map_only(OnDevice, lambda t: t.elem, (args, kwargs))
     out = func(*args, **kwargs)
