@@ -253,9 +253,9 @@ def _save_state(path: Path, *, step, params, optimizers, strategy_state, gen, or
                 metrics, elapsed, fingerprint, extra) -> None:
     doc = {
         "version": STATE_VERSION, "step": int(step), "fingerprint": fingerprint,
-        "params": {k: v.detach().cpu().clone() for k, v in params.items()},
+        "params": _to_cpu(dict(params)),
         "optimizers": {k: _to_cpu(o.state_dict()) for k, o in optimizers.items()},
-        "strategy": {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in strategy_state.items()},
+        "strategy": _to_cpu(strategy_state),
         "rng": _rng_state(gen), "order": order.clone(), "cursor": int(cursor),
         "metrics": list(metrics), "elapsed": float(elapsed), "extra": extra,
     }
