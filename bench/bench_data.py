@@ -34,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from paradrive import geometry  # noqa: E402
-from paradrive.manifest import build_manifest  # noqa: E402
+from paradrive.stages.manifest import build_manifest
 
 
 def synthetic_frames(seed: int, n: int, h: int, w: int):

@@ -70,7 +70,7 @@ def _render_rate(scene_dir: Path, device: str, frames: int) -> float:
     import numpy as np
     import torch
 
-    from paradrive.render import load_checkpoint, render_views
+    from paradrive.gs.views import load_checkpoint, render_views
     from paradrive.scene import load_scene
 
     scene = load_scene(scene_dir)

@@ -92,7 +92,7 @@ def build(
     the rest landed); 1: nothing succeeded; 2: usage error.
     """
     from paradrive.pipeline import StageRegistry, parse_overrides
-    from paradrive.pipeline.executors import make_executor
+    from paradrive.pipeline.choose import make_executor
 
     build_uris: list[str] | None = None
     try:
@@ -301,8 +301,8 @@ def stages_cmd(
 
 # Commands that live next to the code they drive. Each module exposes ``register(app)``.
 COMMAND_MODULES = [
-    ("paradrive.inspect", "inspect"),
-    ("paradrive.eval", "eval"),
+    ("paradrive.inspection", "inspect"),
+    ("paradrive.evaluation", "eval"),
     ("paradrive.pipeline.status", "status"),
     ("paradrive.train.cli", "train"),
     ("paradrive.ingest.export", "export"),

@@ -150,3 +150,8 @@ def project(points_world, c2w, K) -> tuple[np.ndarray, np.ndarray]:
     z = cam[:, 2]
     uv = (cam[:, :2] / z[:, None]) * [K[0][0], K[1][1]] + [K[0][2], K[1][2]]
     return uv, z
+
+
+def flat16(m: np.ndarray) -> list[float]:
+    """A 4x4 matrix as 16 Python floats, row-major (the JSON form of a pose)."""
+    return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(16)]

@@ -14,7 +14,9 @@ from typing import Callable
 
 import numpy as np
 
-from paradrive.manifest import MediaFile, media_uri, offset_token
+from paradrive.manifest import MediaFile
+from paradrive.pairs import media_uri
+from paradrive.streams import format_offset
 
 TRUTH_DIR = "truth"
 TRUTH_CODEC = "ffv1"   # lossless: the target is the ray caster's pixels exactly
@@ -26,12 +28,22 @@ def truth_file(camera: str, clip: str, offset_m: float) -> str:
     """Scene-relative name of a true novel view: ``truth/<camera>/<clip>/truth<+2m>.mkv``."""
     from paradrive.video import container_suffix
 
-    return f"{TRUTH_DIR}/{camera}/{clip}/truth{offset_token(offset_m)}{container_suffix(TRUTH_CODEC)}"
+    return f"{TRUTH_DIR}/{camera}/{clip}/truth{format_offset(offset_m)}{container_suffix(TRUTH_CODEC)}"
 
 
 def no_truth(clip: dict, offset_m: float, novel_c2w: np.ndarray) -> None:
     """A real log: the novel view is unknown."""
     return None
+
+
+def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
+    """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
+    from paradrive.pipeline.runner import read_marker
+
+    marker = read_marker(scene_dir, "ingest")
+    if marker and isinstance(marker.get("params"), dict):
+        return marker["params"]
+    return dict(fallback or {})
 
 
 def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: dict) -> Truth:
@@ -40,7 +52,6 @@ def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: dict) ->
     synthetic scene; ``no_truth`` for any other."""
     if clips.get("dataset") != "synthetic":
         return no_truth
-    from paradrive.eval import scene_ingest_params
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.uri import parse_uri
     from paradrive.video import encode_video
@@ -82,7 +93,7 @@ def generated_video(videos_dir: Path, pair_id: str) -> Path | None:
 def resized(frames: np.ndarray, width: int, height: int) -> np.ndarray:
     """uint8 (N, H, W, 3) frames at ``width`` x ``height`` (the render stage's area resize): a
     model that generates at a smaller size is scored against the truth at its own size."""
-    from paradrive.render import OutputCamera, crop_resize
+    from paradrive.streams import OutputCamera, crop_resize
 
     h, w = frames.shape[1:3]
     if (w, h) == (width, height):
@@ -95,10 +106,10 @@ def score_videos(build_dir: str | Path, videos_dir: str | Path) -> dict:
     """PSNR / SSIM of each generated video (one per row, named by pair_id) against the row's
     true novel view (resized to the video's size), and their means per offset. Rows without a
     target cannot be scored."""
-    from paradrive.data import decode_frames
+    from paradrive.video import decode_frames
     from paradrive.errors import ParaDriveError
-    from paradrive.eval import image_quality
-    from paradrive.manifest import build_file, read_index, read_pairs
+    from paradrive.metrics import frames_quality
+    from paradrive.pairs import build_file, read_index, read_pairs
 
     build_dir, videos_dir = Path(build_dir), Path(videos_dir)
     index = read_index(build_dir)
@@ -122,7 +133,7 @@ def score_videos(build_dir: str | Path, videos_dir: str | Path) -> dict:
                                  f"generate the build's frame count")
         truth = resized(truth, pred.shape[2], pred.shape[1])
         scored.append({"pair_id": row["pair_id"], "offset_m": float(row["offset_m"]),
-                       **image_quality(pred, truth)})
+                       **dict(zip(("psnr", "ssim"), frames_quality(pred, truth)))})
     by_offset: dict[float, list[dict]] = {}
     for r in scored:
         by_offset.setdefault(r["offset_m"], []).append(r)

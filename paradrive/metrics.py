@@ -12,7 +12,7 @@ import functools
 import torch
 import torch.nn.functional as F
 
-__all__ = ["psnr", "ssim", "mse"]
+__all__ = ["psnr", "ssim", "mse", "frames_quality", "peak_rss_mb"]
 
 
 def _batch(img: torch.Tensor) -> torch.Tensor:
@@ -76,3 +76,21 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
         return smap
     out = smap.flatten(1).mean(1)
     return out[0] if single else out
+
+
+def peak_rss_mb() -> float:
+    """The process's peak resident memory so far, MiB (Linux reports KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def frames_quality(a, b) -> tuple[float, float]:
+    """Mean PSNR (dB) and SSIM over frames of two uint8 (N, H, W, 3) arrays (the shorter length)."""
+    import numpy as np
+
+    n = min(len(a), len(b))
+    x = torch.from_numpy(np.ascontiguousarray(a[:n])).float() / 255.0
+    y = torch.from_numpy(np.ascontiguousarray(b[:n])).float() / 255.0
+    with torch.no_grad():
+        return float(psnr(x, y).mean()), float(ssim(x, y).mean())

@@ -103,7 +103,7 @@ class Camera:
     def to_json(self) -> dict:
         return {"width": int(self.width), "height": int(self.height),
                 "fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy),
-                "cam2ego": _flat(self.cam2ego)}
+                "cam2ego": geometry.flat16(self.cam2ego)}
 
 
 @dataclass
@@ -112,7 +112,7 @@ class FrameCamera:
     c2w: np.ndarray      # (4, 4) camera-to-world, OpenCV, scene world
 
     def to_json(self) -> dict:
-        return {"image": self.image, "c2w": _flat(self.c2w)}
+        return {"image": self.image, "c2w": geometry.flat16(self.c2w)}
 
 
 @dataclass
@@ -124,7 +124,7 @@ class Frame:
 
     def to_json(self) -> dict:
         return {"index": int(self.index), "timestamp_us": int(self.timestamp_us),
-                "ego2world": _flat(self.ego2world),
+                "ego2world": geometry.flat16(self.ego2world),
                 "cameras": {k: v.to_json() for k, v in self.cameras.items()}}
 
 
@@ -209,10 +209,6 @@ class Scene:
         for key, value in self.extra.items():
             doc.setdefault(key, value)
         return doc
-
-
-def _flat(m: np.ndarray) -> list[float]:
-    return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(16)]
 
 
 # --------------------------------------------------------------------------- I/O

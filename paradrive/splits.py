@@ -32,7 +32,11 @@ _NUSCENES_NAME = re.compile(r"^scene-\d+$")
 def default_splits_dir() -> Path:
     """``$PARADRIVE_SPLITS`` or the ``splits/`` folder next to the package."""
     env = os.environ.get("PARADRIVE_SPLITS")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "splits"
+    if env:
+        return Path(env)
+    package = Path(__file__).resolve().parent
+    checkout = package.parent / "splits"
+    return checkout if checkout.is_dir() else package / "_splits"
 
 
 def waymo_segment(name: str) -> str:

@@ -11,17 +11,19 @@ with no frame dropped or duplicated. Every file is written under a temporary nam
 
 from __future__ import annotations
 
+import math
 import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from fractions import Fraction
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 
+from paradrive.errors import ParaDriveError
 from paradrive.io import atomic_path, sha256_file
 
 __all__ = ["CODECS", "container_suffix", "encode_video", "decode_video", "iter_video",
-           "probe_video"]
+           "probe_video", "decode_frames", "each_frame"]
 
 # codec -> (container suffix, FFmpeg container format, default pixel format)
 CODECS = {
@@ -139,3 +141,119 @@ def probe_video(path: str | os.PathLike) -> dict:
                 "fps": float(stream.average_rate or stream.base_rate or 0)}
         info["frames"] = sum(1 for _ in container.decode(stream))
     return info
+
+
+# --------------------------------------------------------------------------- decoding
+
+def _frame_index(frame, start_pts: int, time_base, rate) -> int | None:
+    if frame.pts is None or not rate:
+        return None
+    return int(round(float((frame.pts - start_pts) * time_base * rate)))
+
+
+def decode_frames(path: str | Path, indices: Sequence[int] | None = None, *,
+                  size: tuple[int, int] | None = None, seek: bool = True,
+                  threads: int = 1, stats: dict | None = None) -> np.ndarray:
+    """Frames of a video as uint8 (F, H, W, 3) RGB, in the order of ``indices``.
+
+    indices: 0-based frame numbers (repeats allowed); None = every frame.
+    size: (height, width) to resize to while converting (swscale, area filter); None = as stored.
+    seek: seek to the keyframe at or before the first index (False decodes from the start; the
+    result is the same, only slower).
+    threads: decoder threads (1 = none, the right choice inside DataLoader workers; 0 = FFmpeg
+    picks).
+    stats: if given, ``stats["decoded"]`` is set to the number of frames the decoder produced.
+    Raises ParaDriveError naming the file when it cannot be opened or is too short.
+    """
+    got: dict[int, np.ndarray] = {}
+    order: list[int] = []
+
+    def keep(idx: int, pixels: np.ndarray) -> None:
+        got[idx] = pixels
+        order.append(idx)
+
+    each_frame(path, indices, keep, size=size, seek=seek, threads=threads, stats=stats)
+    if indices is None:
+        return np.stack([got[i] for i in order])
+    return np.stack([got[int(i)] for i in indices])
+
+
+def each_frame(path: str | Path, indices: Sequence[int] | None,
+               sink: Callable[[int, np.ndarray], None], *, size: tuple[int, int] | None = None,
+               seek: bool = True, threads: int = 1, stats: dict | None = None) -> None:
+    """Decode the frames ``indices`` (None = all) of ``path`` and hand each to ``sink(index,
+    rgb_uint8_hwc)`` once, in frame order, without holding the whole clip. Arguments as in
+    ``decode_frames``."""
+    import av
+
+    path = Path(path)
+    wanted = None if indices is None else sorted(set(int(i) for i in indices))
+    if wanted is not None and (not wanted or wanted[0] < 0):
+        raise ValueError(f"frame indices must be non-negative and non-empty, got {indices!r}")
+    got: set[int] = set()
+
+    def convert(frame) -> np.ndarray:
+        if size is not None:
+            frame = frame.reformat(width=size[1], height=size[0], format="rgb24",
+                                   interpolation="AREA")
+            return frame.to_ndarray()
+        return frame.to_ndarray(format="rgb24")
+
+    def again() -> None:
+        got.clear()
+        each_frame(path, indices, sink, size=size, seek=False, threads=threads, stats=stats)
+
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as exc:
+        raise ParaDriveError(f"{path}: cannot open video ({exc}); the file is missing or "
+                             f"corrupt, run `paradrive inspect --verify` on the build") from exc
+    counter = 0
+    with container:
+        stream = container.streams.video[0]
+        if threads != 1:
+            stream.thread_type = "AUTO"
+            stream.codec_context.thread_count = max(0, int(threads))
+        rate = stream.average_rate or stream.guessed_rate
+        start = stream.start_time or 0
+        tb = stream.time_base
+        first, last = (None, None) if wanted is None else (wanted[0], wanted[-1])
+        wanted_lookup = set(wanted or ())
+        sought = False
+        if seek and first and rate and tb:
+            target = start + int(math.floor(first / float(rate) / float(tb)))
+            container.seek(target, stream=stream, backward=True, any_frame=False)
+            sought = True
+        try:
+            for frame in container.decode(stream):
+                idx = _frame_index(frame, start, tb, rate)
+                counter += 1
+                if stats is not None:
+                    stats["decoded"] = stats.get("decoded", 0) + 1
+                if sought and counter == 1 and (idx is None or idx > first):
+                    # No timestamps to place a sought frame, or the seek overshot: start over.
+                    return again()
+                if idx is None:
+                    idx = counter - 1
+                if wanted is None:
+                    sink(idx, convert(frame))
+                    got.add(idx)
+                    continue
+                if idx in got or idx < first:
+                    continue
+                if idx > last:
+                    break
+                if idx in wanted_lookup:
+                    sink(idx, convert(frame))
+                    got.add(idx)
+                if len(got) == len(wanted):
+                    break
+        except av.error.FFmpegError as exc:
+            raise ParaDriveError(f"{path}: video is corrupt ({exc}); re-run the clip stage for "
+                                 f"its scene, or `paradrive inspect --verify` the build") from exc
+    if wanted is None and not got:
+        raise ParaDriveError(f"{path}: video has no frames; re-run the clip stage")
+    missing = [i for i in (wanted or ()) if i not in got]
+    if missing:
+        raise ParaDriveError(f"{path}: frames {missing[:5]} not in the video; the manifest and "
+                             f"the video disagree, re-run the clip and manifest stages")

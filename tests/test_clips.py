@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from paradrive import geometry
-from paradrive.clips import (ClipWindow, clip_windows, condition_stream, format_offset,
-                             frames_needed, source_stream, write_clips)
+from paradrive.streams import ClipWindow, clip_windows, condition_stream, format_offset, frames_needed, source_stream
+from paradrive.stages.clip import write_clips
 from paradrive.errors import SceneError
 from paradrive.io import sha256_file
 from paradrive.pipeline import run_build
@@ -161,7 +161,7 @@ def test_clips_json_describes_poses_timing_fit_and_quality(clipped):
 
 
 def test_depth_sequences_are_copied_next_to_the_clips(clipped):
-    from paradrive.render import read_depth_exr
+    from paradrive.exr import read_depth_exr
 
     clip = clipped["doc"]["clips"][0]
     folder = clipped["dir"] / "clips/front/front/depth/source+1m"
@@ -212,7 +212,7 @@ def test_a_missing_render_names_the_file(clipped, copy_tree):
 
 
 def test_short_scene_writes_no_clips_but_records_why(clipped, copy_tree):
-    from paradrive.render import render_scene
+    from paradrive.stages.render import render_scene
 
     scene_dir = copy_tree(clipped["dir"])
     render_scene(scene_dir, {**clipped["render"], "clip_frames": 121, "clips": ["front", "middle", "rear"]})

@@ -12,10 +12,11 @@ import torch
 from torch.utils.data import DataLoader
 
 from paradrive import geometry
-from paradrive.data import (PairDataset, PairIterableDataset, decode_frames, output_geometry,
-                            recammaster_camera)
+from paradrive.data import PairDataset, PairIterableDataset, output_geometry, recammaster_camera
+from paradrive.video import decode_frames
 from paradrive.errors import ParaDriveError
-from paradrive.manifest import build_manifest, read_pairs
+from paradrive.stages.manifest import build_manifest
+from paradrive.pairs import read_pairs
 from test_manifest import frame_pixels, scenes_entry, write_clip_scene, write_video
 
 

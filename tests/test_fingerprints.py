@@ -193,6 +193,6 @@ def test_real_pipeline_reruns_render_and_clip_but_not_fit_when_offsets_change(tm
     overrides["render"]["offsets_m"] = [2.0, -2.0]
     assert run(overrides) == {"ingest": "skipped", "fit": "skipped", "render": "done",
                               "clip": "done", "manifest": "done"}
-    from paradrive.manifest import read_pairs
+    from paradrive.pairs import read_pairs
     offsets = set(read_pairs(tmp_path / "manifests" / "real").column("offset_m").to_pylist())
     assert offsets == {2.0, -2.0}

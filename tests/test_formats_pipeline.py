@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from paradrive.cli import app
-from paradrive.manifest import read_pairs
+from paradrive.pairs import read_pairs
 from paradrive.uri import parse_uri
 
 FRONT3 = ["front", "front_left", "front_right"]

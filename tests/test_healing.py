@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from paradrive.inspect import verify_build
+from paradrive.inspection import verify_build
 from paradrive.pipeline import StageRegistry, run_build
 from paradrive.pipeline.runner import read_marker, scene_dir_for
 from paradrive.storage import DataRoot

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from paradrive import geometry
-from paradrive.data import PairDataset, decode_frames
-from paradrive.manifest import publish, read_index, read_pairs, scene_rows
+from paradrive.data import PairDataset
+from paradrive.video import decode_frames
+from paradrive.manifest import publish, scene_rows
+from paradrive.pairs import read_index, read_pairs
 from paradrive.pipeline import StageRegistry, run_build
 
 SCENE = "synthetic-demo-s7"
@@ -117,7 +119,7 @@ def test_the_adapter_reads_rows_with_and_without_a_target(inference_build, tmp_p
     assert len(table) == 24 and {r["target_uri"] for r in table} == {None}
     sample = PairDataset(tmp_path / "real")[3]
     assert "target" not in sample and sample["source"].shape == sample["condition"].shape
-    from paradrive.inspect import contact_sheet, verify_build
+    from paradrive.inspection import contact_sheet, verify_build
 
     assert verify_build(tmp_path / "real")["ok"]
     contact_sheet(tmp_path / "real", tmp_path / "sheet.png")
@@ -155,7 +157,7 @@ def test_eval_build_scores_the_targets_themselves_as_perfect(inference_build, tm
 
 def test_eval_build_scores_the_conditions_as_eval_scores_the_final_checkpoint(inference_build,
                                                                              tmp_path):
-    from paradrive.eval import evaluate_scene
+    from paradrive.evaluation import evaluate_scene
     from paradrive.inference import score_videos
 
     rows = [r for r in read_pairs(inference_build["dir"]).to_pylist() if r["scene_id"] == SCENE]

@@ -7,7 +7,7 @@ from typer.testing import CliRunner
 
 from paradrive.cli import app
 from paradrive.errors import ConfigError, SceneError
-from paradrive.ingest import ingest
+from paradrive.stages.ingest import ingest
 from paradrive.ingest.export import export_scene
 from paradrive.pipeline import StageRegistry, parse_overrides
 from paradrive.scene import load_scene

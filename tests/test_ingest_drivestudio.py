@@ -9,7 +9,8 @@ import pytest
 
 from paradrive import geometry
 from paradrive.errors import SceneError
-from paradrive.ingest import export, ingest
+from paradrive.ingest import export
+from paradrive.stages.ingest import ingest
 from paradrive.ingest.common import OPENCV_TO_FLU
 from paradrive.scene import load_scene
 from paradrive.uri import parse_uri

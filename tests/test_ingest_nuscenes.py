@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from paradrive.errors import SceneError
-from paradrive.ingest import export, ingest
+from paradrive.ingest import export
+from paradrive.stages.ingest import ingest
 from paradrive.scene import load_scene
 from paradrive.uri import parse_uri
 from synthetic_logs import street_log

@@ -11,7 +11,8 @@ import pytest
 
 from paradrive import geometry
 from paradrive.errors import SceneError
-from paradrive.ingest import export, ingest
+from paradrive.ingest import export
+from paradrive.stages.ingest import ingest
 from paradrive.ingest import undistort as ud
 from paradrive.ingest import waymo
 from paradrive.scene import load_scene

@@ -11,8 +11,9 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from paradrive.inspect import register, summarize, verify_build
-from paradrive.manifest import build_manifest, read_index
+from paradrive.inspection import register, summarize, verify_build
+from paradrive.stages.manifest import build_manifest
+from paradrive.pairs import read_index
 from test_manifest import scenes_entry, write_clip_scene
 
 

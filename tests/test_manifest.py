@@ -19,8 +19,9 @@ import pytest
 
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
-from paradrive.manifest import (SCHEMA, build_manifest, make_pair_id, read_index, read_pairs,
-                                scene_rows)
+from paradrive.pairs import SCHEMA, make_pair_id, read_index, read_pairs
+from paradrive.stages.manifest import build_manifest
+from paradrive.manifest import scene_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 OFFSETS = (1.0, -1.0, 2.0, -2.0, 3.0, -3.0, 4.0, -4.0)

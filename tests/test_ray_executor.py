@@ -14,7 +14,8 @@ import pytest
 
 from paradrive.errors import ConfigError
 from paradrive.pipeline import StageRegistry, run_build
-from paradrive.pipeline.executors import LocalExecutor, make_executor
+from paradrive.pipeline.choose import make_executor
+from paradrive.pipeline.executors import LocalExecutor
 from paradrive.pipeline.ledger import Ledger
 from paradrive.pipeline.ray_executor import Capacity, RayExecutor, task_resources
 from paradrive.pipeline.runner import scene_dir_for
@@ -253,7 +254,7 @@ def test_real_pipeline_on_ray_equals_local_and_a_corrupt_scene_makes_a_partial_b
     from typer.testing import CliRunner
 
     from paradrive.cli import app
-    from paradrive.manifest import read_pairs
+    from paradrive.pairs import read_pairs
     from paradrive.storage import DataRoot
 
     monkeypatch.delenv("PARADRIVE_STAGES", raising=False)

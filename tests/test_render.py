@@ -11,8 +11,10 @@ import pytest
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.pipeline import StageRegistry, run_build
-from paradrive.render import (crop_resize, load_checkpoint, output_camera, read_depth_exr,
-                              render_scene, render_views, write_depth_exr)
+from paradrive.streams import crop_resize, output_camera
+from paradrive.gs.views import load_checkpoint, render_views
+from paradrive.exr import read_depth_exr, write_depth_exr
+from paradrive.stages.render import render_scene
 from paradrive.scene import load_scene, read_image
 
 SCENE = "synthetic:demo?seed=7"

@@ -23,8 +23,8 @@ import pytest
 from typer.testing import CliRunner
 
 from paradrive.cli import app
-from paradrive.inspect import verify_build
-from paradrive.manifest import read_pairs
+from paradrive.inspection import verify_build
+from paradrive.pairs import read_pairs
 from paradrive.pipeline import StageRegistry, run_scene_stage
 from paradrive.pipeline.ledger import Ledger
 from paradrive.pipeline.locks import LockOptions, held_locks, scene_lock

@@ -131,7 +131,7 @@ def watch_opens():
 @pytest.fixture(scope="module")
 def clip_build(tmp_path_factory):
     """One scene x 24 pairs (the middle clip), media copied into the build."""
-    from paradrive.manifest import build_manifest
+    from paradrive.stages.manifest import build_manifest
     from test_manifest import scenes_entry, write_clip_scene
 
     data = tmp_path_factory.mktemp("data")
@@ -180,7 +180,7 @@ def pa_array(values, type_):
 def test_a_uri_out_of_the_build_fails_in_the_adapter_and_verify_without_reading_it(
         clip_build, tmp_path, kind, watch_opens):
     from paradrive.data import PairDataset
-    from paradrive.inspect import verify_build
+    from paradrive.inspection import verify_build
 
     secret = _outside_file(tmp_path)
     build = tmp_path / "b"
@@ -201,7 +201,7 @@ def test_inspect_verify_exits_1_naming_the_row_of_an_escaping_uri(clip_build, tm
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.inspect import register
+    from paradrive.inspection import register
 
     build = tmp_path / "b"
     pair_id = tampered(clip_build, build, 0, "source_uri", "/etc/hostname")
@@ -216,7 +216,7 @@ def test_inspect_verify_exits_1_naming_the_row_of_an_escaping_uri(clip_build, tm
 def test_a_media_link_leading_out_of_the_build_is_refused_when_read(clip_build, tmp_path,
                                                                    watch_opens):
     from paradrive.data import PairDataset
-    from paradrive.inspect import verify_build
+    from paradrive.inspection import verify_build
 
     secret = _outside_file(tmp_path)
     build = tmp_path / "b"
@@ -235,8 +235,8 @@ def test_a_media_link_leading_out_of_the_build_is_refused_when_read(clip_build, 
 def test_a_symlink_build_reads_its_links_into_the_scene_folder(tmp_path):
     """``media: symlink`` links lead out of the build by design, to the scene's own clip."""
     from paradrive.data import PairDataset
-    from paradrive.inspect import verify_build
-    from paradrive.manifest import build_manifest
+    from paradrive.inspection import verify_build
+    from paradrive.stages.manifest import build_manifest
     from test_manifest import scenes_entry, write_clip_scene
 
     scene = write_clip_scene(tmp_path / "data", "synthetic-a", clips=("middle",),
@@ -270,7 +270,7 @@ def test_a_shard_listed_outside_the_build_is_refused(clip_build, tmp_path):
 
 def test_eval_refuses_a_scene_whose_image_path_leads_out(tiny_scene, tmp_path):
     from paradrive.errors import SceneError
-    from paradrive.eval import evaluate_scene
+    from paradrive.evaluation import evaluate_scene
     from paradrive.pipeline.specs import StageRegistry
 
     scene = tmp_path / "scene"

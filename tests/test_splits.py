@@ -124,7 +124,7 @@ def test_a_training_build_of_a_folder_holds_only_the_training_scene(logs, tmp_pa
                  "--build", "train", *FAST)
     assert result.exit_code == 0, result.output
     assert "excluded waymo-10444454289801298640_4360_000_4380_000 (split paper-eval" in result.output
-    from paradrive.manifest import read_index, read_pairs
+    from paradrive.pairs import read_index, read_pairs
 
     rows = read_pairs(tmp_path / "m" / "train", ["scene_id"]).to_pylist()
     assert {r["scene_id"] for r in rows} == {"waymo-train11"}

@@ -1,4 +1,4 @@
-"""The ``fit`` stage: train a 3D Gaussian Splatting model of one scene and write checkpoints.
+"""Fitting a 3D Gaussian Splatting model of one scene (the fit stage's work, :mod:`paradrive.stages.fit`).
 
 Outputs under ``<scene>/gs/``:
 
@@ -28,74 +28,41 @@ import json
 import logging
 import os
 import random
-import resource
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from paradrive.devices import resolve_backend, resolve_device
-from paradrive.errors import ConfigError, SceneError
-from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries, write_json
-from paradrive.metrics import psnr, ssim
+from paradrive.errors import SceneError
+from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries
+from paradrive.metrics import peak_rss_mb, psnr, ssim
+from paradrive.stages.layout import SceneLayout
+from paradrive.stages.records import FitRecord
 
 from . import init as gsinit
 from .init import View
 from .losses import DepthTarget, depth_loss, flatten_loss, lidar_depth_target, shape_ratio_loss
-from .model import (PARAM_KEYS, Params, cat_params, deterministic_torch, new_params, render,
+from .model import (PARAM_KEYS, Params, cat_params, deterministic_torch, new_params, render_gaussians,
                     scene_scale_of, sh_degree_of)
 from .ply import load_ply, save_ply
 from .strategy import DensifyStrategy
 
-__all__ = ["run_stage", "fit_scene", "render_checkpoint", "load_ply", "checkpoint_path",
-           "load_views"]
+if TYPE_CHECKING:
+    from paradrive.stages.fit import Params as FitParams
+
+__all__ = ["fit_scene", "render_checkpoint", "load_ply", "load_views"]
 
 STATE_VERSION = 2  # 2: RNG states as tensors and plain lists, loaded without pickle
 log_default = logging.getLogger("paradrive.gs.fit")
 
 
-def checkpoint_path(gs_dir: Path, iteration: int) -> Path:
-    return Path(gs_dir) / f"ckpt_{int(iteration):06d}.ply"
-
-
 # --------------------------------------------------------------------------- parameters
 
-_REQUIRED = (
-    "checkpoints", "cameras", "downscale", "seed", "threads", "device", "sh_degree",
-    "sh_degree_interval", "ssim_lambda", "lr_means", "lr_means_final", "lr_scales", "lr_quats",
-    "lr_opacities", "lr_sh0", "lr_shN", "grow_grad2d", "grow_scale3d", "prune_scale3d",
-    "prune_opa", "refine_start_iter", "refine_stop_iter", "refine_every", "reset_every",
-    "max_gaussians", "init", "init_points", "init_opacity", "init_depth_min", "init_depth_max",
-    "init_depth_candidates", "init_ground_margin", "lidar_voxel", "lidar_max_points", "sky_points",
-    "sky_radius", "sky_depth_weight", "depth_weight", "depth_inverse", "flatten_weight",
-    "shape_ratio_weight", "shape_ratio_max", "shape_ratio_every", "eval_views", "state_interval",
-    "keep_state", "backend",
-)
-
-
-def _check_params(p: Dict[str, Any]) -> Dict[str, Any]:
-    missing = [k for k in _REQUIRED if k not in p]
-    if missing:
-        raise ConfigError(f"fit: parameters missing: {', '.join(missing)}; they are declared in "
-                          "stages/fit.yaml (pass the resolved stage parameters)")
-    cps = sorted({int(c) for c in p["checkpoints"]})
-    if not cps or cps[0] <= 0:
-        raise ConfigError(f"fit: checkpoints must be positive iterations, got {p['checkpoints']!r}")
-    if p["init"] not in ("auto", "lidar", "frustum"):
-        raise ConfigError(f"fit: init must be auto, lidar or frustum, got {p['init']!r}")
-    if float(p["downscale"]) < 1.0:
-        raise ConfigError(f"fit: downscale must be >= 1, got {p['downscale']!r}")
-    return {**p, "checkpoints": cps}
-
-
-def _float_or_none(x: Any) -> Optional[float]:
-    return None if x is None else float(x)
-
-
-def _fingerprint(p: Dict[str, Any]) -> str:
+def _fingerprint(p: FitParams) -> str:
     keep = {k: p[k] for k in sorted(p) if k not in ("keep_state", "state_interval", "eval_views")}
     return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -148,44 +115,44 @@ def load_views(scene, cameras: Optional[Sequence[str]], downscale: float) -> lis
 
 # --------------------------------------------------------------------------- model building
 
-def initial_model(scene, views: list[View], p: Dict[str, Any], scene_scale: float,
+def initial_model(scene, views: list[View], p: FitParams, scene_scale: float,
                   log: logging.Logger) -> tuple[Params, torch.Tensor, dict]:
     """Initial raw parameters, the sky flag per Gaussian, and a description for fit.json."""
-    gen = torch.Generator().manual_seed(int(p["seed"]))
+    gen = torch.Generator().manual_seed(p.seed)
     # colour look-ups walk the views in time order, spread over the whole drive
     order = sorted(range(len(views)), key=lambda i: (views[i].frame, views[i].camera))
     ordered = [views[i] for i in order]
-    mode = p["init"]
+    mode = p.init
     lidar = scene.lidar_points() if mode in ("auto", "lidar") else None
     if mode == "lidar" and lidar is None:
         raise SceneError("fit: init 'lidar' asked but the scene has no lidar/", scene_id=scene.scene_id,
                          fix="use init: auto or frustum, or ingest the LiDAR")
-    cap = int(p["max_gaussians"]) if int(p["max_gaussians"]) > 0 else None
-    n_sky = int(p["sky_points"])
-    budget = int(p["init_points"]) if cap is None else min(int(p["init_points"]), max(cap - n_sky, 1))
+    cap = p.max_gaussians if p.max_gaussians > 0 else None
+    n_sky = p.sky_points
+    budget = p.init_points if cap is None else min(p.init_points, max(cap - n_sky, 1))
     if lidar is not None and len(lidar):
-        means, rgb = gsinit.lidar_points_init(lidar, ordered, voxel=float(p["lidar_voxel"]),
-                                              max_points=min(int(p["lidar_max_points"]), budget),
+        means, rgb = gsinit.lidar_points_init(lidar, ordered, voxel=p.lidar_voxel,
+                                              max_points=min(p.lidar_max_points, budget),
                                               generator=gen)
         how = "lidar"
     else:
         means, rgb = gsinit.frustum_points_init(ordered, n_points=budget,
-                                                depth_min=float(p["init_depth_min"]),
-                                                depth_max=float(p["init_depth_max"]),
-                                                depth_candidates=int(p["init_depth_candidates"]),
-                                                ground_margin=_float_or_none(p["init_ground_margin"]),
+                                                depth_min=p.init_depth_min,
+                                                depth_max=p.init_depth_max,
+                                                depth_candidates=p.init_depth_candidates,
+                                                ground_margin=p.init_ground_margin,
                                                 generator=gen)
         how = "frustum"
     scales = gsinit.knn_scales(means, max_scale=0.1 * scene_scale)
-    params = new_params(means, rgb, scales, opacity=float(p["init_opacity"]),
-                        sh_degree=int(p["sh_degree"]))
+    params = new_params(means, rgb, scales, opacity=p.init_opacity,
+                        sh_degree=p.sh_degree)
     is_sky = torch.zeros(len(means), dtype=torch.bool)
-    radius = float(p["sky_radius"])
+    radius = p.sky_radius
     if n_sky > 0:
         centers = torch.stack([v.c2w[:3, 3] for v in views]).float()
         s_means, s_rgb, s_scales = gsinit.sky_dome(ordered, n_points=n_sky, radius=radius,
                                                    center=centers.mean(0))
-        sky = new_params(s_means, s_rgb, s_scales, opacity=0.9, sh_degree=int(p["sh_degree"]))
+        sky = new_params(s_means, s_rgb, s_scales, opacity=0.9, sh_degree=p.sh_degree)
         params = cat_params(params, sky)
         is_sky = torch.cat([is_sky, torch.ones(len(s_means), dtype=torch.bool)])
     desc = {"method": how, "points": int(len(means)), "sky_points": int(is_sky.sum()),
@@ -208,11 +175,11 @@ def lidar_depth_targets(scene, views: Sequence[View],
     return targets
 
 
-def _make_optimizers(params: Dict[str, torch.nn.Parameter], p: Dict[str, Any],
-                     scene_scale: float) -> Dict[str, torch.optim.Optimizer]:
-    lrs = {"means": float(p["lr_means"]) * scene_scale, "scales": float(p["lr_scales"]),
-           "quats": float(p["lr_quats"]), "opacities": float(p["lr_opacities"]),
-           "sh0": float(p["lr_sh0"]), "shN": float(p["lr_shN"])}
+def _make_optimizers(params: dict[str, torch.nn.Parameter], p: FitParams,
+                     scene_scale: float) -> dict[str, torch.optim.Optimizer]:
+    lrs = {"means": p.lr_means * scene_scale, "scales": p.lr_scales,
+           "quats": p.lr_quats, "opacities": p.lr_opacities,
+           "sh0": p.lr_sh0, "shN": p.lr_shN}
     return {k: torch.optim.Adam([params[k]], lr=lrs[k], eps=1e-15) for k in PARAM_KEYS}
 
 
@@ -266,10 +233,6 @@ def _save_state(path: Path, *, step, params, optimizers, strategy_state, gen, or
             os.fsync(f.fileno())
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-
-
 # --------------------------------------------------------------------------- evaluation
 
 @torch.no_grad()
@@ -279,7 +242,7 @@ def evaluate(params: Params, views: Sequence[View], indices: Sequence[int], sh_d
     ps, ss = [], []
     for i in indices:
         v = views[i]
-        out, _, _ = render(params, v.viewmat()[None].to(device), v.K[None].to(device), v.width,
+        out, _, _ = render_gaussians(params, v.viewmat()[None].to(device), v.K[None].to(device), v.width,
                            v.height, sh_degree=sh_degree, backend=backend)
         pred = out[0, ..., :3].clamp(0, 1).cpu()
         gt = v.rgb()
@@ -296,62 +259,45 @@ def _eval_indices(n_views: int, n_eval: int) -> list[int]:
 
 # --------------------------------------------------------------------------- the fit
 
-def fit_scene(scene_dir: str | os.PathLike, params: Dict[str, Any], *,
+def fit_scene(scene: SceneLayout | str | os.PathLike, p: FitParams, *,
               log: Optional[logging.Logger] = None,
               progress: Optional[Callable[[int, int], None]] = None,
-              stop_after: Optional[int] = None) -> dict:
-    """Fit the scene at ``scene_dir`` with the resolved stage ``params``; returns fit.json's dict.
+              stop_after: Optional[int] = None) -> FitRecord:
+    """Fit the scene folder ``scene`` with the fit stage's parameters ``p``; returns fit.json.
 
     Resumes from ``gs/state.pt`` when present and made with the same parameters.
     ``stop_after``: return after this many total iterations (tests; the state is saved).
     """
     from paradrive.scene import load_scene
 
-    log = log or log_default
-    p = _check_params(dict(params))
-    scene_dir = Path(scene_dir)
-    scene = load_scene(scene_dir)
-    gs_dir = scene_dir / "gs"
-    gs_dir.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(gs_dir)
-    fp = _fingerprint(p)
-    fit_json = gs_dir / "fit.json"
-    cps = p["checkpoints"]
+    layout = scene if isinstance(scene, SceneLayout) else SceneLayout(Path(scene))
+    layout.gs_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(layout.gs_dir)
+    device = resolve_device(p.device)
+    with deterministic_torch(p.threads):
+        return _fit(load_scene(layout.root), layout, p, device, log or log_default, progress,
+                    stop_after)
+
+
+def _fit(scene, layout: SceneLayout, p: FitParams, device: torch.device,
+         log: logging.Logger, progress, stop_after) -> FitRecord:
+    fp = _fingerprint({**p.source, "checkpoints": p.checkpoints})
+    cps = p.checkpoints
     total = cps[-1]
-    if fit_json.is_file():
-        try:
-            done = json.loads(fit_json.read_text())
-        except json.JSONDecodeError:
-            done = {}
-        if (done.get("complete") and done.get("fingerprint") == fp
-                and all(checkpoint_path(gs_dir, c).is_file() for c in cps)):
-            log.info("fit: %s already complete", scene.scene_id)
-            return done
-
-    device = resolve_device(str(p["device"]))
-
-    with deterministic_torch(int(p["threads"])):
-        return _fit(scene, gs_dir, p, fp, device, log, progress, stop_after)
-
-
-def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
-         log: logging.Logger, progress, stop_after) -> dict:
-    cps = p["checkpoints"]
-    total = cps[-1]
-    views = load_views(scene, p["cameras"], float(p["downscale"]))
+    views = load_views(scene, p.cameras, p.downscale)
     scene_scale = scene_scale_of(torch.stack([v.c2w for v in views]))
-    strategy = DensifyStrategy(prune_opa=float(p["prune_opa"]), grow_grad2d=float(p["grow_grad2d"]),
-                               grow_scale3d=float(p["grow_scale3d"]),
-                               prune_scale3d=float(p["prune_scale3d"]),
-                               refine_start_iter=int(p["refine_start_iter"]),
-                               refine_stop_iter=int(p["refine_stop_iter"]),
-                               reset_every=int(p["reset_every"]), refine_every=int(p["refine_every"]),
-                               max_gaussians=int(p["max_gaussians"]))
-    backend = resolve_backend(str(p["backend"]), device)
+    strategy = DensifyStrategy(prune_opa=p.prune_opa, grow_grad2d=p.grow_grad2d,
+                               grow_scale3d=p.grow_scale3d,
+                               prune_scale3d=p.prune_scale3d,
+                               refine_start_iter=p.refine_start_iter,
+                               refine_stop_iter=p.refine_stop_iter,
+                               reset_every=p.reset_every, refine_every=p.refine_every,
+                               max_gaussians=p.max_gaussians)
+    backend = resolve_backend(p.backend, device)
     # the training order and split samples come from a CPU generator on every device, so a fit
     # resumed on another machine draws the same numbers
-    gen = torch.Generator(device="cpu").manual_seed(int(p["seed"]) + 1)
-    state_path = gs_dir / "state.pt"
+    gen = torch.Generator(device="cpu").manual_seed(p.seed + 1)
+    state_path = layout.fit_state
     saved = None
     if state_path.is_file():
         try:
@@ -392,23 +338,23 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         del saved
 
     densify = extra.setdefault("densify", {})   # running totals, saved with the state
-    lr0 = float(p["lr_means"]) * scene_scale
-    gamma = (float(p["lr_means_final"]) / float(p["lr_means"])) ** (1.0 / max(total, 1))
-    lam = float(p["ssim_lambda"])
-    sky_w = float(p["sky_depth_weight"])
-    sky_radius = float(p["sky_radius"])
+    lr0 = p.lr_means * scene_scale
+    gamma = (p.lr_means_final / p.lr_means) ** (1.0 / max(total, 1))
+    lam = p.ssim_lambda
+    sky_w = p.sky_depth_weight
+    sky_radius = p.sky_radius
     has_sky = int(strat_state["is_sky"].sum()) > 0 and any(v.sky is not None for v in views)
-    depth_w = float(p["depth_weight"])
-    depth_inv = bool(p["depth_inverse"])
+    depth_w = p.depth_weight
+    depth_inv = p.depth_inverse
     depth_targets = (lidar_depth_targets(scene, views, device) if depth_w > 0
                      else [None] * len(views))
-    flat_w = float(p["flatten_weight"])
-    ratio_w, ratio_max = float(p["shape_ratio_weight"]), float(p["shape_ratio_max"])
-    ratio_every = max(int(p["shape_ratio_every"]), 1)
-    eval_idx = _eval_indices(len(views), int(p["eval_views"]))
-    max_deg = int(p["sh_degree"])
-    interval = max(int(p["sh_degree_interval"]), 1)
-    state_every = max(int(p["state_interval"]), 1)
+    flat_w = p.flatten_weight
+    ratio_w, ratio_max = p.shape_ratio_weight, p.shape_ratio_max
+    ratio_every = max(p.shape_ratio_every, 1)
+    eval_idx = _eval_indices(len(views), p.eval_views)
+    max_deg = p.sh_degree
+    interval = max(p.sh_degree_interval, 1)
+    state_every = max(p.state_interval, 1)
     gpu_views = [(v.viewmat()[None].to(device), v.K[None].to(device)) for v in views]
     t_start = time.perf_counter()
     c_start = time.process_time()
@@ -425,14 +371,13 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
                     metrics=metrics, elapsed=elapsed(), fingerprint=fp,
                     extra={**extra, "cpu_seconds": cpu_seconds()})
 
-    def write_summary(complete: bool) -> dict:
-        doc = {"scene_id": scene.scene_id, "complete": complete, "fingerprint": fp,
-               "iterations": total, "checkpoints": metrics, "eval_views": len(eval_idx),
-               "resolution": [views[0].width, views[0].height], "n_views": len(views),
-               "cameras": sorted({v.camera for v in views}),
-               "device": str(device), **extra}
-        write_json(gs_dir / "fit.json", doc)
-        return doc
+    def write_summary(complete: bool) -> FitRecord:
+        record = FitRecord(scene_id=scene.scene_id, complete=complete, fingerprint=fp,
+                           iterations=total, checkpoints=metrics, eval_views=len(eval_idx),
+                           resolution=[views[0].width, views[0].height], n_views=len(views),
+                           cameras=sorted({v.camera for v in views}), device=str(device), **extra)
+        record.save(layout.fit_json)
+        return record
 
     while step < total:
         if stop_after is not None and step >= stop_after:
@@ -449,7 +394,7 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         deg = min(step // interval, max_deg)
         use_sky = has_sky and view.sky is not None and sky_w > 0
         target = depth_targets[vi]
-        out, alphas, info = render(params, viewmat, K, view.width, view.height, sh_degree=deg,
+        out, alphas, info = render_gaussians(params, viewmat, K, view.width, view.height, sh_degree=deg,
                                    render_mode="RGB+ED" if use_sky or target is not None else "RGB",
                                    backend=backend)
         pred = out[0, ..., :3]
@@ -477,12 +422,12 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
         del out, alphas, info, loss, pred
         step += 1
         if step in cps:
-            save_ply(checkpoint_path(gs_dir, step), params)
+            save_ply(layout.checkpoint(step), params)
             m = evaluate(params, views, eval_idx, max_deg, device, backend)
             metrics = [x for x in metrics if x["iteration"] != step]
             metrics.append({"iteration": step, **m, "num_gaussians": int(params["means"].shape[0]),
                             "seconds": round(elapsed(), 3),
-                            "cpu_seconds": round(cpu_seconds(), 3), "peak_rss_mb": round(_peak_rss_mb(), 1)})
+                            "cpu_seconds": round(cpu_seconds(), 3), "peak_rss_mb": round(peak_rss_mb(), 1)})
             if device.type == "cuda" and torch.cuda.is_available():
                 metrics[-1]["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
             log.info("fit: %s iteration %d: PSNR %.2f dB, SSIM %.4f, %d Gaussians, %.1f s",
@@ -495,7 +440,7 @@ def _fit(scene, gs_dir: Path, p: Dict[str, Any], fp: str, device: torch.device,
             progress(step, total)
 
     doc = write_summary(True)
-    if not bool(p["keep_state"]):
+    if not p.keep_state:
         state_path.unlink(missing_ok=True)
     return doc
 
@@ -534,7 +479,7 @@ def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, he
     deg = sh_degree_of(params)
     rgbs, alphas, depths = [], [], []
     for i in range(len(viewmats)):
-        out, alpha, _ = render(params, viewmats[i:i + 1], Kt[None], int(width), int(height),
+        out, alpha, _ = render_gaussians(params, viewmats[i:i + 1], Kt[None], int(width), int(height),
                                sh_degree=deg, render_mode="RGB+ED" if render_depth else "RGB")
         rgbs.append(out[0, ..., :3].clamp(0, 1).float().cpu().numpy())
         alphas.append(alpha[0, ..., 0].clamp(0, 1).float().cpu().numpy())

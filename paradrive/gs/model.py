@@ -99,7 +99,7 @@ def activated(params: Params) -> dict:
     }
 
 
-def render(params: Params, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
+def render_gaussians(params: Params, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
            sh_degree: Optional[int] = None, render_mode: str = "RGB",
            backgrounds: Optional[torch.Tensor] = None, **kwargs):
     """Render the Gaussians from C cameras.

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -19,12 +20,15 @@ from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions
 from paradrive.pipeline.runner import (
-    MARKER_DIR, BuildContext, StageResult, damaged_outputs, expand_outputs, fingerprint,
-    load_entry, local_size, marker_path, read_marker, scene_dir_for, written_outputs,
+    MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
+    load_entry, local_size, marker_path, read_marker, scene_dir_for, summary_of, typed_params,
+    written_outputs,
 )
 from paradrive.pipeline.ledger import LEDGER_FILE
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.splits import Selection
+from paradrive.stages.base import BuildContext
+from paradrive.stages.layout import BuildLayout
 from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
@@ -132,10 +136,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
                                  f"nothing to write")
     params = dict(config.params[stage])
-    if record is not None:
-        params["selection"] = record
-    fp = fingerprint(stage, params, inputs)
-    index = build_dir / "index.json"
+    fp = fingerprint(stage, params if record is None else {**params, "selection": record}, inputs)
+    index = BuildLayout(build_dir).index_json
     if not force and _published(index, fp) and _intact(read_marker(build_dir, stage), runs, build_dir):
         return StageResult(label, stage, "skipped", fingerprint=fp)
     log = logging.getLogger(f"paradrive.build.{build}")
@@ -145,9 +147,10 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
         func = load_entry(spec)
         marker_path(build_dir, stage).unlink(missing_ok=True)
         before = file_stats(build_dir)
-        ctx = BuildContext(stage=stage, build=build, build_dir=build_dir, data_dir=root.local,
-                           scenes=scenes, params=params, log=log, fingerprint=fp)
-        summary = func(ctx) or {}
+        ctx = BuildContext(stage=stage, build=build, layout=BuildLayout(build_dir),
+                           data_dir=root.local, scenes=scenes, params=typed_params(spec, params),
+                           log=log, fingerprint=fp, selection=record)
+        summary = summary_of(func(ctx))
         declared = expand_outputs(spec.outputs, config.params[stage])
         outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
                    if not matches(rel, NOT_OWNED)}
@@ -157,7 +160,13 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
     except (ParaDriveError, OSError, ValueError) as exc:
-        return StageResult(label, stage, "failed", seconds=time.time() - t0, error=str(exc))
+        error = str(exc) if isinstance(exc, ParaDriveError) else f"build {build}: {stage} failed: {type(exc).__name__}: {exc}"
+        log.error("%s: failed: %s", stage, error)
+        return StageResult(label, stage, "failed", seconds=time.time() - t0, error=error)
+    except Exception as exc:  # a bug or an unexpected library error: the run is still closed
+        log.error("%s: crashed:\n%s", stage, traceback.format_exc())
+        return StageResult(label, stage, "failed", seconds=time.time() - t0,
+                           error=f"build {build}: {stage} crashed: {type(exc).__name__}: {exc}")
     finally:
         if root.drop_cache:
             for mirror in mirrors:

@@ -76,12 +76,3 @@ class LocalExecutor:
                     on_result(result)
         return results
 
-
-def make_executor(name: str, **options) -> Executor:
-    if name == "local":
-        return LocalExecutor()
-    if name == "ray":
-        from paradrive.pipeline.ray_executor import RayExecutor
-
-        return RayExecutor(**options)
-    raise ValueError(f"unknown executor {name!r}; use 'local' or 'ray'")

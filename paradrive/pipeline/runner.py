@@ -21,7 +21,6 @@ import itertools
 import json
 import logging
 import os
-import resource
 import re
 import time
 import traceback
@@ -34,43 +33,14 @@ import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
 from paradrive.io import remove_stale_temporaries, write_json
 from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
-from paradrive.pipeline.specs import ResolvedConfig, StageSpec
+from paradrive.metrics import peak_rss_mb
+from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
+from paradrive.stages.base import BuildContext, StageContext
+from paradrive.stages.layout import MARKER_DIR, SceneLayout
 from paradrive.redact import redact
 from paradrive.storage import DataRoot, SceneMirror, file_stats, matches
 from paradrive.uri import parse_uri, safe_name
 
-MARKER_DIR = ".paradrive"
-
-
-@dataclass
-class StageContext:
-    """What a scene-scoped stage gets: where the scene lives and the parameters it runs with."""
-
-    stage: str
-    scene_uri: str
-    scene_id: str
-    scene_dir: Path
-    data_dir: Path
-    params: dict[str, Any]
-    log: logging.Logger
-    progress: Callable[[int, int], None] = lambda done, total: None
-    upstream: dict[str, dict] = field(default_factory=dict)  # markers of the stages it needs
-    hashes: dict[str, str] = field(default_factory=dict)  # sha256 of outputs the stage computed
-
-
-@dataclass
-class BuildContext:
-    """What a build-scoped stage (manifest) gets: every scene that finished its needs."""
-
-    stage: str
-    build: str
-    build_dir: Path              # <manifests>/<build>
-    data_dir: Path
-    scenes: list[dict]           # [{"scene_id", "scene_uri", "scene_dir"}]
-    params: dict[str, Any]
-    log: logging.Logger
-    fingerprint: str = ""
-    progress: Callable[[int, int], None] = lambda done, total: None
 
 
 @dataclass
@@ -98,7 +68,7 @@ def fingerprint(stage: str, params: dict, inputs: dict[str, str], extra: str = "
 
 
 def marker_path(scene_dir: Path, stage: str) -> Path:
-    return Path(scene_dir) / MARKER_DIR / f"{stage}.json"
+    return SceneLayout(Path(scene_dir)).marker(stage)
 
 
 def read_marker(scene_dir: Path, stage: str) -> dict | None:
@@ -186,12 +156,8 @@ def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
 
 
 def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
-    """``<data>/scenes/<scene_id>``; an id that is not a plain file name (``..``, ``a/b``) could
-    lead out of the data root and is refused."""
-    if safe_name(scene_id) != scene_id:
-        raise ConfigError(f"scene id {scene_id!r} is not a plain file name (letters, digits, "
-                          f"'-', '_', '.'); scene ids come from scene URIs, never from paths")
-    return Path(data_dir) / "scenes" / scene_id
+    """``<data>/scenes/<scene_id>``; an id that is not a plain file name is refused."""
+    return SceneLayout.of(data_dir, scene_id).root
 
 
 def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path) -> tuple[str, dict]:
@@ -226,6 +192,7 @@ def check_inputs(scene_id: str, stage: str, upstream: dict[str, dict],
 
 
 def load_entry(spec: StageSpec) -> Callable:
+    """The stage's ``run`` function; its module's ``Params`` types the parameters it gets."""
     module_name, _, func_name = spec.entry.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -242,8 +209,11 @@ def load_entry(spec: StageSpec) -> Callable:
     return func
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+def summary_of(record: Any) -> dict:
+    """What a stage's return value says for its marker."""
+    if record is None:
+        return {}
+    return record.summary() if hasattr(record, "summary") else dict(record)
 
 
 class _Redacting(logging.Filter):
@@ -371,9 +341,11 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             before = file_stats(scene_dir)
             log.info("%s: started (fingerprint %s)", stage, fp)
             ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
-                               scene_dir=scene_dir, data_dir=data_dir, params=dict(params), log=log,
-                               progress=progress or (lambda done, total: None), upstream=upstream)
-            summary = func(ctx) or {}
+                               layout=SceneLayout(scene_dir), data_dir=data_dir,
+                               params=typed_params(spec, params), log=log, upstream=upstream)
+            if progress is not None:
+                ctx.progress = progress
+            summary = summary_of(func(ctx))
             missing = outputs_present(scene_dir, spec, params)
             if missing:
                 raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
@@ -394,7 +366,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                          root.scene_location(scene_id), deleted)
             log.info("%s: done in %.1f s", stage, seconds)
             return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
-                               peak_rss_mb=_peak_rss_mb(), summary=summary)
+                               peak_rss_mb=peak_rss_mb(), summary=summary)
         except (SceneError, ConfigError, StageNotImplemented, OSError, ValueError) as exc:
             message = str(exc)
             if not isinstance(exc, ParaDriveError):
@@ -402,11 +374,11 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             message = redact(message, root.storage_options)
             log.error("%s: failed: %s", stage, message)
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
-                               peak_rss_mb=_peak_rss_mb())
+                               peak_rss_mb=peak_rss_mb())
         except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
             log.error("%s: crashed:\n%s", stage, traceback.format_exc())
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
                                error=redact(f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: "
                                             f"{exc} (traceback in {root}/logs/{scene_id}.log)",
                                             root.storage_options),
-                               peak_rss_mb=_peak_rss_mb())
+                               peak_rss_mb=peak_rss_mb())

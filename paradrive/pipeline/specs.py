@@ -27,6 +27,7 @@ what was expected, never a silent default.
 from __future__ import annotations
 
 import difflib
+import importlib
 import os
 from functools import cached_property
 from pathlib import Path
@@ -36,6 +37,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from paradrive.errors import ConfigError
+from paradrive.stages.base import StageParams
 
 
 class Resources(BaseModel):
@@ -87,11 +89,14 @@ class Profile(BaseModel):
 
 
 def default_stages_dir() -> Path:
-    """``$PARADRIVE_STAGES`` or the ``stages/`` folder next to the package."""
+    """``$PARADRIVE_STAGES``, else the project's ``stages/`` folder: in a checkout (and an
+    editable install) next to the package, in an installed wheel inside it (``paradrive/_stages``)."""
     env = os.environ.get("PARADRIVE_STAGES")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2] / "stages"
+    package = Path(__file__).resolve().parents[1]
+    checkout = package.parent / "stages"
+    return checkout if (checkout / "fit.yaml").is_file() else package / "_stages"
 
 
 def _read_yaml(path: Path) -> dict:
@@ -271,6 +276,19 @@ class ResolvedConfig(BaseModel):
 
     def registry(self) -> StageRegistry:
         return StageRegistry(self.stages_dir)
+
+    def typed(self, stage: str) -> Any:
+        """The stage's parameters as its module's typed ``Params``."""
+        return typed_params(self.registry().specs[stage], self.params[stage])
+
+
+def typed_params(spec: StageSpec, values: dict[str, Any]) -> Any:
+    """``values`` as the stage module's ``Params`` (a module without one gets the mapping)."""
+    module = importlib.import_module(spec.entry.partition(":")[0])
+    kind = getattr(module, "Params", None)
+    if isinstance(kind, type) and issubclass(kind, StageParams):
+        return kind.of(spec.name, values)
+    return dict(values)
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, dict[str, Any]]:

@@ -29,13 +29,14 @@ import yaml
 
 from paradrive.devices import resolve_device
 from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
+from paradrive.pipeline.specs import default_stages_dir
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.flow import euler_sample, flow_matching_loss
 from paradrive.train.model import ModelConfig, VideoDiT, is_stage2_parameter, load_stage1_weights
 
 log = logging.getLogger(__name__)
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "stages" / "train"
+CONFIG_DIR = default_stages_dir() / "train"
 CHECKPOINT_FORMAT = "paradrive-train/1"
 
 

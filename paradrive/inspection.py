@@ -19,7 +19,8 @@ import numpy as np
 
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, sha256_file
-from paradrive.manifest import build_file, offset_token, read_index, read_pairs, shard_paths
+from paradrive.pairs import build_file, read_index, read_pairs, shard_paths
+from paradrive.streams import format_offset
 
 __all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "register"]
 
@@ -52,7 +53,7 @@ def summarize(build_dir: str | Path) -> dict:
         "scene": count("scene_id"),
         "camera": count("camera"),
         "clip": count("clip"),
-        "offset": {offset_token(d): offsets[d] for d in sorted(offsets)},
+        "offset": {format_offset(d): offsets[d] for d in sorted(offsets)},
         "checkpoint": count("condition_iteration", lambda v: f"{int(v):06d}"),
     }
     by_scene: dict[str, dict] = defaultdict(lambda: defaultdict(lambda: ([], [])))
@@ -170,7 +171,7 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
     """A PNG with ``pairs`` pairs: source / condition / target thumbnails at ``frames`` frames."""
     from PIL import Image, ImageDraw
 
-    from paradrive.data import decode_frames
+    from paradrive.video import decode_frames
 
     build_dir, out = Path(build_dir), Path(out)
     cols = read_pairs(build_dir, ["pair_id", "scene_id", "clip", "offset_m", "condition_iteration",
@@ -199,11 +200,11 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
         picks = sorted({int(round(x)) for x in np.linspace(0, n - 1, min(frames, n))})
         psnr = row["condition_psnr"]
         draw.rectangle([0, y, sheet_w, y + head - 4], fill=(225, 232, 242))
-        draw.text((pad, y + 4), f"{row['pair_id']}    offset {offset_token(row['offset_m'])}    "
+        draw.text((pad, y + 4), f"{row['pair_id']}    offset {format_offset(row['offset_m'])}    "
                                 f"condition PSNR {psnr:.1f} dB" if psnr is not None else
                                 row["pair_id"], fill=(0, 0, 0), font=font)
         y += head
-        shift = f"shifted {offset_token(row['offset_m'])}"
+        shift = f"shifted {format_offset(row['offset_m'])}"
         if index.get("kind") == "inference":
             labels = [("source", "recorded camera", ""),
                       ("condition", shift, f"ckpt {row['condition_iteration']}"),
@@ -286,7 +287,7 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
         color = (0.55 - 0.45 * a, 0.65 - 0.45 * a, 1.0) if d > 0 else (1.0, 0.6 - 0.45 * a, 0.55 - 0.45 * a)
         if len(src) >= 2:
             plotter.add_mesh(pv.lines_from_points(src), color=color, line_width=3,
-                             label=None if d in drawn_offsets else f"source {offset_token(d)}")
+                             label=None if d in drawn_offsets else f"source {format_offset(d)}")
             drawn_offsets.add(d)
         plotter.add_points(rec[:1], color="black", point_size=10, render_points_as_spheres=True)
     plotter.add_legend(bcolor="white", size=(0.3, 0.35), loc="upper right")

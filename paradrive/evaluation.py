@@ -25,19 +25,25 @@ import json
 import logging
 import os
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import numpy as np
 
 from paradrive import geometry
-from paradrive.clips import clip_windows, condition_stream, frames_needed, source_stream
+from paradrive.streams import clip_windows, condition_stream, frames_needed, source_stream
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
+from paradrive.stages.layout import SceneLayout
+from paradrive.stages.records import FitRecord, RendersRecord
+from paradrive.streams import OutputCamera, output_camera
 
 __all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "depth_signed_rel", "depth_errors",
            "plot_eval", "register"]
 
 EVAL_SCHEMA_VERSION = 1
+if TYPE_CHECKING:
+    from paradrive.stages.render import Params as RenderParams
+
 log_default = logging.getLogger("paradrive.eval")
 
 
@@ -45,13 +51,10 @@ log_default = logging.getLogger("paradrive.eval")
 
 def image_quality(pred: np.ndarray, truth: np.ndarray) -> dict:
     """Mean PSNR (dB) and SSIM over frames of uint8 (N, H, W, 3) arrays (paradrive.metrics)."""
-    import torch
+    from paradrive.metrics import frames_quality
 
-    from paradrive.metrics import psnr, ssim
-
-    a = torch.from_numpy(np.ascontiguousarray(pred)).float() / 255.0
-    b = torch.from_numpy(np.ascontiguousarray(truth)).float() / 255.0
-    return {"psnr": float(psnr(a, b).mean()), "ssim": float(ssim(a, b).mean())}
+    value, structure = frames_quality(pred, truth)
+    return {"psnr": value, "ssim": structure}
 
 
 def _relative_depth_error(pred: np.ndarray, truth: np.ndarray) -> np.ndarray | None:
@@ -92,16 +95,6 @@ def depth_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
 
 # --------------------------------------------------------------------------- evaluation
 
-def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
-    """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
-    from paradrive.pipeline.runner import read_marker
-
-    marker = read_marker(scene_dir, "ingest")
-    if marker and isinstance(marker.get("params"), dict):
-        return marker["params"]
-    return dict(fallback or {})
-
-
 def _subsample(frames: list[int], max_frames: int | None) -> list[int]:
     if not max_frames or len(frames) <= max_frames:
         return list(frames)
@@ -109,28 +102,26 @@ def _subsample(frames: list[int], max_frames: int | None) -> list[int]:
     return [frames[i] for i in sorted(set(pick.tolist()))]
 
 
-def _plan_camera(scene, cam_name: str, render_params: dict, renders: dict | None):
+def _plan_camera(scene, cam_name: str, render_params: RenderParams,
+                 renders: RendersRecord | None) -> tuple[list[int], OutputCamera]:
     """(frames, OutputCamera) for a camera: from renders.json when present, else from params."""
-    from paradrive.render import OutputCamera, output_camera
-
     cam = scene.cameras[cam_name]
-    if renders and cam_name in renders.get("cameras", {}) and renders["cameras"][cam_name]["frames"]:
-        rc = renders["cameras"][cam_name]
-        fx, fy, cx, cy = rc["intrinsics"]
+    rc = renders.cameras.get(cam_name) if renders else None
+    if renders and rc and rc.frames:
+        fx, fy, cx, cy = rc.intrinsics
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        out = OutputCamera(width=int(renders["width"]), height=int(renders["height"]),
-                           crop=tuple(rc["crop"]), K=K)
-        return list(rc["frames"]), out
-    windows, _ = clip_windows(len(scene.frames), int(render_params["clip_frames"]),
-                              render_params["clips"])
+        x0, y0, cw, ch = rc.crop
+        out = OutputCamera(width=renders.width, height=renders.height, crop=(x0, y0, cw, ch), K=K)
+        return list(rc.frames), out
+    windows, _ = clip_windows(len(scene.frames), render_params.clip_frames, render_params.clips)
     frames = frames_needed(windows) or list(range(len(scene.frames)))
     out = output_camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
-                        int(render_params["width"]), int(render_params["height"]))
+                        render_params.width, render_params.height)
     return frames, out
 
 
 def _render(params, c2w, out, *, depth: bool, batch: int, device: str, sky=None):
-    from paradrive.render import render_views
+    from paradrive.gs.views import render_views
 
     rgb, dep = [], []
     for r in render_views(params, c2w, out.K, out.width, out.height, depth=depth,
@@ -141,7 +132,7 @@ def _render(params, c2w, out, *, depth: bool, batch: int, device: str, sky=None)
     return np.concatenate(rgb), (np.concatenate(dep) if depth else None)
 
 
-def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
+def evaluate_scene(scene_dir: str | os.PathLike, render_params: RenderParams, *,
                    ingest_params: dict | None = None, cameras: Optional[list[str]] = None,
                    max_frames: int | None = 16, out_dir: str | os.PathLike | None = None,
                    log: logging.Logger | None = None) -> dict:
@@ -149,49 +140,53 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: dict, *,
 
     render_params: the resolved ``render`` stage parameters (checkpoints, offsets, size, clips).
     ingest_params: used to rebuild the street when the scene has no ingest marker.
-    cameras: default ``render_params["cameras"]``. Writes ``<out_dir or scene/eval>/eval.json``
+    cameras: default ``render_params.cameras``. Writes ``<out_dir or scene/eval>/eval.json``
     and ``eval.png``. Renders use the render stage's thread count, as its PNGs do.
     """
     from paradrive.gs.model import deterministic_torch
 
-    with deterministic_torch(int(render_params["threads"])):
+    with deterministic_torch(render_params.threads):
         return _evaluate_scene(scene_dir, render_params, ingest_params=ingest_params,
                                cameras=cameras, max_frames=max_frames, out_dir=out_dir, log=log)
 
 
-def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, max_frames,
+def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, cameras, max_frames,
                     out_dir, log) -> dict:
     from paradrive.ingest.synthetic import street_from_uri
-    from paradrive.render import checkpoint_file, crop_resize, load_checkpoint, sky_dome_of
+    from paradrive.gs.views import load_checkpoint, sky_dome_of
+    from paradrive.streams import crop_resize
     from paradrive.scene import load_scene
     from paradrive.uri import parse_uri
 
     log = log or log_default
     scene_dir = Path(scene_dir)
+    layout = SceneLayout(scene_dir)
     scene = load_scene(scene_dir)
     sid = scene.scene_id
     if scene.dataset != "synthetic":
         raise SceneError(f"eval needs a synthetic scene (this one is {scene.dataset}): only a "
                          f"synthetic street can render the true shifted views", scene_id=sid,
-                         path=scene_dir / "scene.json", fix="evaluate a 'synthetic:' scene")
+                         path=layout.scene_json, fix="evaluate a 'synthetic:' scene")
+    from paradrive.inference import scene_ingest_params
+
     street = street_from_uri(parse_uri(scene.source), scene_ingest_params(scene_dir, ingest_params))
-    renders_path = scene_dir / "renders" / "renders.json"
-    renders = json.loads(renders_path.read_text()) if renders_path.is_file() else None
-    conds = [int(i) for i in render_params["condition_checkpoints"]]
-    final = int(render_params["source_checkpoint"])
+    renders = RendersRecord.load(layout.renders_json, sid) if layout.renders_json.is_file() else None
+    conds = render_params.condition_checkpoints
+    final = render_params.source_checkpoint
     for it in conds + [final]:
-        if not checkpoint_file(scene_dir, it).is_file():
+        if not layout.checkpoint(it).is_file():
             raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid,
-                             path=checkpoint_file(scene_dir, it),
+                             path=layout.checkpoint(it),
                              fix="run the fit stage with the same profile first")
-    sky = sky_dome_of(scene, scene_dir)
-    batch = int(render_params["batch_frames"])
-    device = str(render_params.get("device", "auto"))
-    cams = list(cameras or render_params["cameras"])
+    fit = FitRecord.load(layout.fit_json, sid) if layout.fit_json.is_file() else None
+    sky = sky_dome_of(scene, fit.init if fit else None)
+    batch = render_params.batch_frames
+    device = render_params.device
+    cams = list(cameras or render_params.cameras)
     for c in cams:
         if c not in scene.cameras or c not in street.cameras:
             raise SceneError(f"camera {c} is not in the scene", scene_id=sid,
-                             path=scene_dir / "scene.json", fix="choose a camera the scene has")
+                             path=layout.scene_json, fix="choose a camera the scene has")
 
     doc_cams = {}
     for cam_name in cams:
@@ -203,20 +198,20 @@ def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, m
         cam_doc = {"intrinsics": out.intrinsics, "frames": frames, "conditions": [],
                    "shifted": []}
         for it in conds:
-            params = load_checkpoint(checkpoint_file(scene_dir, it), scene_id=sid)
+            params = load_checkpoint(layout.checkpoint(it), scene_id=sid)
             rgb, _ = _render(params, recorded, out, depth=False, batch=batch, device=device)
             q = image_quality(rgb, target)
             cam_doc["conditions"].append({"iteration": it, "stream": condition_stream(it), **q})
             log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it, q["psnr"],
                      q["ssim"])
-        params = load_checkpoint(checkpoint_file(scene_dir, final), scene_id=sid)
+        params = load_checkpoint(layout.checkpoint(final), scene_id=sid)
         rgb, dep = _render(params, recorded, out, depth=True, batch=batch, device=device,
                            sky=sky)
         truth = street.render(recorded, out.K, out.width, out.height)
         cam_doc["recorded"] = {"iteration": final, **image_quality(rgb, target),
                                "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
                                **depth_errors(dep, truth["depth"])}
-        for d in render_params["offsets_m"]:
+        for d in render_params.offsets_m:
             shifted = geometry.lateral_shift(recorded, ego, float(d))
             rgb, dep = _render(params, shifted, out, depth=True, batch=batch, device=device,
                            sky=sky)
@@ -237,7 +232,7 @@ def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, m
         doc_cams[cam_name] = cam_doc
 
     doc = {"schema_version": EVAL_SCHEMA_VERSION, "scene_id": sid, "source": scene.source,
-           "width": int(render_params["width"]), "height": int(render_params["height"]),
+           "width": render_params.width, "height": render_params.height,
            "condition_checkpoints": conds, "source_checkpoint": final,
            "metrics": {"psnr": "dB, mean over frames", "ssim": "11x11 Gaussian window",
                        "depth_abs_rel": "median |d - d_true| / d_true on non-sky pixels",
@@ -411,7 +406,7 @@ def register(app) -> None:
                 continue
             try:
                 scene_dir = local_scene(DataRoot.of(data), uri.scene_id)
-                doc = evaluate_scene(scene_dir, config.params["render"],
+                doc = evaluate_scene(scene_dir, config.typed("render"),
                                      ingest_params=config.params["ingest"],
                                      cameras=[c.strip() for c in camera.split(",")] if camera else None,
                                      max_frames=frames or None, out_dir=out_dir)

@@ -1,0 +1,87 @@
+"""The ``ingest`` stage (``stages/ingest.yaml``): a log (any supported kind) becomes one
+canonical scene.
+
+Each reader ``paradrive.ingest.<kind>.read(uri, out_dir, params, scene_id) -> Scene`` writes the
+images under ``out_dir`` and returns the scene (with relative image paths). The stage writes
+everything into a temporary folder and moves it into ``<data>/scenes/<scene_id>/`` only when the
+whole scene is valid, so a failed ingest leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Literal
+
+from paradrive.io import temporary_name
+from paradrive.scene import load_scene, write_scene
+from paradrive.stages.base import StageContext, StageParams
+from paradrive.stages.layout import SceneLayout
+from paradrive.uri import parse_uri
+
+READERS = {
+    "synthetic": "paradrive.ingest.synthetic",
+    "waymo": "paradrive.ingest.waymo",
+    "nuscenes": "paradrive.ingest.nuscenes",
+    "drivestudio": "paradrive.ingest.drivestudio",
+}
+# What ingest owns inside a scene folder; later stages' outputs are left alone.
+INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
+
+
+class Params(StageParams):
+    cameras: str | list[str] | None
+    camera_sets: dict[str, list[str]]
+    max_frames: int | None
+    image_ext: Literal["jpg", "png"]
+    jpeg_quality: int
+    lidar: bool
+    sky_masks: bool
+    synthetic_frames: int
+    synthetic_width: int
+    synthetic_height: int
+    synthetic_curvature: float
+
+
+class IngestSummary(dict[str, Any]):
+    """What ingest reports: frames, cameras and dataset of the scene (scene.json is the record)."""
+
+    def summary(self) -> dict[str, Any]:
+        return dict(self)
+
+
+def ingest(scene_uri: str, layout: SceneLayout, params: Params) -> IngestSummary:
+    """Ingest ``scene_uri`` into the scene folder of ``layout``."""
+    uri = parse_uri(scene_uri)
+    reader = importlib.import_module(READERS[uri.kind])
+    scene_dir = layout.root
+    scene_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_name(scene_dir)
+    tmp.mkdir(parents=True)
+    try:
+        scene = reader.read(uri, tmp, params.source, scene_dir.name)
+        scene.scene_id = scene_dir.name
+        write_scene(scene, tmp)
+        load_scene(tmp)  # validates files too, before anything is published
+        scene_dir.mkdir(parents=True, exist_ok=True)
+        for name in INGEST_ENTRIES:
+            _replace(tmp / name, scene_dir / name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return IngestSummary(frames=len(scene.frames), cameras=sorted(scene.cameras),
+                         dataset=scene.dataset)
+
+
+def _replace(src: Path, target: Path) -> None:
+    if target.is_dir():
+        shutil.rmtree(target)
+    elif target.exists():
+        target.unlink()
+    if src.exists():
+        os.replace(src, target)
+
+
+def run(ctx: StageContext[Params]) -> IngestSummary:
+    return ingest(ctx.scene_uri, ctx.layout, ctx.params)

@@ -1,0 +1,183 @@
+"""Every path of a scene folder and of a build folder, in one place.
+
+A scene lives at ``<data>/scenes/<scene_id>/``::
+
+    scene.json                                    the canonical scene (ingest)
+    images/<camera>/<frame:06d>.<ext>             undistorted images
+    lidar/<frame:06d>.npy                         world points (optional)
+    masks/sky/<camera>/<frame:06d>.png            sky masks (optional)
+    gs/ckpt_<iteration:06d>.ply  gs/fit.json  gs/state.pt      the fit
+    renders/renders.json  renders/<camera>/<stream>/<frame:06d>.png  (+ depth/, alpha/)
+    clips/clips.json  clips/<camera>/<clip>/<stream>.<mp4|mkv>      the clips
+    .paradrive/<stage>.json                       a completed stage's marker
+
+and the data root also holds ``logs/<scene_id>.log`` and ``locks/<scene_id>.lock``. A build
+lives at ``<manifests>/<build>/``: ``index.json``, ``pairs-<nnnnn>.parquet``, ``media/``,
+``ledger.sqlite``. No other module spells these names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from paradrive.errors import ConfigError
+from paradrive.uri import safe_name
+
+MARKER_DIR = ".paradrive"
+SCENES_DIR = "scenes"
+LOGS_DIR = "logs"
+LOCKS_DIR = "locks"
+
+
+def checked_scene_id(scene_id: str) -> str:
+    """A scene id that is a plain file name; ``..`` or ``a/b`` could lead out of the data root."""
+    if safe_name(scene_id) != scene_id:
+        raise ConfigError(f"scene id {scene_id!r} is not a plain file name (letters, digits, "
+                          f"'-', '_', '.'); scene ids come from scene URIs, never from paths")
+    return scene_id
+
+
+@dataclass(frozen=True)
+class SceneLayout:
+    """The files of one scene folder (``root``)."""
+
+    root: Path
+
+    @classmethod
+    def of(cls, data_dir: str | Path, scene_id: str) -> SceneLayout:
+        return cls(Path(data_dir) / SCENES_DIR / checked_scene_id(scene_id))
+
+    @property
+    def scene_id(self) -> str:
+        return self.root.name
+
+    # -- ingest
+    @property
+    def scene_json(self) -> Path:
+        return self.root / "scene.json"
+
+    def image(self, camera: str, frame: int, ext: str) -> Path:
+        return self.root / "images" / camera / f"{int(frame):06d}.{ext}"
+
+    def lidar(self, frame: int) -> Path:
+        return self.lidar_dir / f"{int(frame):06d}.npy"
+
+    @property
+    def lidar_dir(self) -> Path:
+        return self.root / "lidar"
+
+    def sky_mask(self, camera: str, frame: int) -> Path:
+        return self.root / "masks" / "sky" / camera / f"{int(frame):06d}.png"
+
+    # -- fit
+    @property
+    def gs_dir(self) -> Path:
+        return self.root / "gs"
+
+    def checkpoint(self, iteration: int) -> Path:
+        return self.gs_dir / f"ckpt_{int(iteration):06d}.ply"
+
+    @property
+    def fit_json(self) -> Path:
+        return self.gs_dir / "fit.json"
+
+    @property
+    def fit_state(self) -> Path:
+        return self.gs_dir / "state.pt"
+
+    # -- render
+    @property
+    def renders_dir(self) -> Path:
+        return self.root / "renders"
+
+    @property
+    def renders_json(self) -> Path:
+        return self.renders_dir / RENDERS_JSON
+
+    # -- clip
+    @property
+    def clips_dir(self) -> Path:
+        return self.root / "clips"
+
+    @property
+    def clips_json(self) -> Path:
+        return self.clips_dir / CLIPS_JSON
+
+    # -- the runner
+    def marker(self, stage: str) -> Path:
+        return self.root / MARKER_DIR / f"{stage}.json"
+
+
+RENDERS_JSON = "renders.json"
+CLIPS_JSON = "clips.json"
+
+
+def stream_dir(camera: str, stream: str) -> str:
+    """A stream's frame folder, relative to ``renders/``."""
+    return f"{camera}/{stream}"
+
+
+def frame_file(position: int, suffix: str = ".png") -> str:
+    """A rendered frame's file name: its position in ``scene.json``'s frames."""
+    return f"{int(position):06d}{suffix}"
+
+
+def clip_file(camera: str, clip: str, stream: str, suffix: str) -> str:
+    """A clip video, relative to the scene folder (``clips/<camera>/<clip>/<stream><suffix>``)."""
+    return f"clips/{camera}/{clip}/{stream}{suffix}"
+
+
+def clip_depth_dir(camera: str, clip: str, stream: str) -> str:
+    """A clip's depth EXR sequence, relative to the scene folder."""
+    return f"clips/{camera}/{clip}/depth/{stream}"
+
+
+@dataclass(frozen=True)
+class DataLayout:
+    """The data root's own folders beside the scenes."""
+
+    root: Path
+
+    def scene(self, scene_id: str) -> SceneLayout:
+        return SceneLayout.of(self.root, scene_id)
+
+    def log(self, scene_id: str) -> Path:
+        return self.root / LOGS_DIR / f"{scene_id}.log"
+
+    def lock(self, scene_id: str) -> Path:
+        return self.root / LOCKS_DIR / f"{scene_id}.lock"
+
+
+INDEX_JSON = "index.json"
+MEDIA_DIR = "media"
+SHARD_PATTERN = "pairs-{:05d}.parquet"
+SHARD_GLOB = "pairs-*.parquet"
+LEDGER = "ledger.sqlite"
+
+
+@dataclass(frozen=True)
+class BuildLayout:
+    """The files of one build folder (``<manifests>/<build>``)."""
+
+    root: Path
+
+    @property
+    def index_json(self) -> Path:
+        return self.root / INDEX_JSON
+
+    def shard(self, number: int) -> Path:
+        return self.root / SHARD_PATTERN.format(int(number))
+
+    @property
+    def media_dir(self) -> Path:
+        return self.root / MEDIA_DIR
+
+    @property
+    def ledger(self) -> Path:
+        return self.root / LEDGER
+
+    @staticmethod
+    def media_uri(scene_id: str, file: str) -> str:
+        """Build-relative URI of a scene file (``clips/...`` relative to the scene folder)."""
+        return f"{MEDIA_DIR}/{scene_id}/{file}"

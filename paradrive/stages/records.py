@@ -1,0 +1,263 @@
+"""The files stages write and later stages read, as typed records.
+
+``fit.json`` (:class:`FitRecord`), ``renders/renders.json`` (:class:`RendersRecord`),
+``clips/clips.json`` (:class:`ClipsRecord`) and a build's ``index.json`` (:class:`IndexRecord`).
+Each knows its schema version, saves itself atomically with :meth:`Record.save` and loads with
+:meth:`Record.load`, which names the file and the fix when it is missing, not JSON, of another
+schema version or malformed. Consumers read fields, never keys. Optional fields of the nested
+parts are left out of the file when unset, as readers of the format expect.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+from pydantic import BaseModel, ConfigDict, ValidationError, model_serializer
+
+from paradrive.errors import SceneError
+from paradrive.io import write_json
+
+R = TypeVar("R", bound="Record")
+Pose = list[float]          # a 4x4 matrix, row-major, 16 floats
+
+
+class Part(BaseModel):
+    """A nested part of a record; its unset (None) fields are not written."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    @model_serializer(mode="wrap")
+    def _without_none(self, handler: Any) -> dict[str, Any]:
+        return {k: v for k, v in handler(self).items() if v is not None}
+
+
+class Record(BaseModel):
+    """A stage's JSON file: ``save`` writes it (temporary name, then rename), ``load`` checks it."""
+
+    model_config = ConfigDict(extra="forbid")
+    WHAT: ClassVar[str]                       # the file's name in messages
+    SCHEMA_VERSION: ClassVar[int | None] = None
+    FIX: ClassVar[str]                        # what re-creates the file
+
+    def save(self, path: str | Path) -> None:
+        write_json(path, self.model_dump())
+
+    @classmethod
+    def load(cls: type[R], path: str | Path, scene_id: str | None = None) -> R:
+        path = Path(path)
+        sid = scene_id or path.parent.parent.name
+
+        def fail(what: str) -> SceneError:
+            return SceneError(what, scene_id=sid, path=path, fix=cls.FIX)
+
+        if not path.is_file():
+            raise fail(f"{cls.WHAT} is missing")
+        try:
+            doc = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise fail(f"{cls.WHAT} is not valid JSON ({exc})") from exc
+        if not isinstance(doc, dict):
+            raise fail(f"{cls.WHAT} is not a JSON object")
+        if cls.SCHEMA_VERSION is not None and doc.get("schema_version") != cls.SCHEMA_VERSION:
+            raise fail(f"{cls.WHAT} schema_version {doc.get('schema_version')!r} is not "
+                       f"{cls.SCHEMA_VERSION}")
+        try:
+            return cls.model_validate(doc)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(x) for x in err["loc"])
+            raise fail(f"{cls.WHAT} field '{where}': {err['msg']}") from exc
+
+
+# --------------------------------------------------------------------------- fit.json
+
+class CheckpointMetrics(Part):
+    iteration: int
+    psnr: float
+    ssim: float
+    num_gaussians: int
+    seconds: float
+    cpu_seconds: float
+    peak_rss_mb: float
+    peak_gpu_mb: float | None = None
+
+
+class FitInit(Part):
+    method: str
+    points: int
+    sky_points: int
+    sky_radius_m: float
+    scene_scale_m: float
+
+
+class FitRecord(Record):
+    WHAT: ClassVar[str] = "fit.json"
+    FIX: ClassVar[str] = "re-run the fit stage for this scene"
+
+    scene_id: str
+    complete: bool
+    fingerprint: str
+    iterations: int
+    checkpoints: list[CheckpointMetrics]
+    eval_views: int
+    resolution: list[int]
+    n_views: int
+    cameras: list[str]
+    device: str
+    init: FitInit
+    scene_scale: float
+    densify: dict[str, int]
+
+    def summary(self) -> dict[str, Any]:
+        last = self.at(None)
+        return {"iterations": self.iterations, "complete": self.complete,
+                "psnr": last.psnr if last else None, "num_gaussians": last.num_gaussians if last else None}
+
+    def at(self, iteration: int | None) -> CheckpointMetrics | None:
+        """The metrics of ``iteration``, else of the last checkpoint (None before the first)."""
+        match = [c for c in self.checkpoints if c.iteration == iteration]
+        if match:
+            return match[0]
+        return max(self.checkpoints, key=lambda c: c.iteration) if self.checkpoints else None
+
+
+# --------------------------------------------------------------------------- renders.json
+
+class WindowRecord(Part):
+    clip: str
+    frame_start: int
+    num_frames: int
+
+
+class SkippedClip(Part):
+    clip: str
+    reason: str
+
+
+class CameraSkippedClip(Part):
+    camera: str
+    clip: str
+    reason: str
+
+
+class RenderedStream(Part):
+    kind: str
+    dir: str
+    c2w: list[Pose]
+    iteration: int | None = None
+    offset_m: float | None = None
+
+
+class RenderedCamera(Part):
+    intrinsics: list[float]
+    stored_size: list[int]
+    crop: list[int]
+    windows: list[WindowRecord]
+    skipped: list[SkippedClip]
+    frames: list[int]
+    c2w: list[Pose]
+    streams: dict[str, RenderedStream]
+
+
+class SkyDomeRecord(Part):
+    centre: list[float]
+    radius_m: float
+
+
+class RendersRecord(Record):
+    WHAT: ClassVar[str] = "renders.json"
+    SCHEMA_VERSION: ClassVar[int | None] = 1
+    FIX: ClassVar[str] = "run the render stage for this scene first"
+
+    schema_version: int = 1
+    scene_id: str
+    width: int
+    height: int
+    frame_naming: str = "position in scene.json frames"
+    condition_checkpoints: list[int]
+    source_checkpoint: int
+    offsets_m: list[float]
+    clip_frames: int
+    depth: bool
+    alpha: bool
+    depth_units: str = "metres, z-depth along the camera axis; +inf = sky"
+    sky_dome: SkyDomeRecord | None
+    cameras: dict[str, RenderedCamera]
+
+    def summary(self) -> dict[str, Any]:
+        cams = self.cameras.values()
+        return {"cameras": len(self.cameras), "frames": sum(len(c.frames) for c in cams),
+                "streams": sum(len(c.streams) for c in cams),
+                "skipped_clips": sum(len(c.skipped) for c in cams)}
+
+
+# --------------------------------------------------------------------------- clips.json
+
+class ClipStream(Part):
+    file: str
+    bytes: int
+    sha256: str
+    kind: str
+    iteration: int | None = None
+    offset_m: float | None = None
+    c2w: list[Pose] | None = None
+    depth_dir: str | None = None
+
+
+class Quality(Part):
+    psnr: float
+    ssim: float
+
+
+class ClipRecord(Part):
+    camera: str
+    clip: str
+    frame_start: int
+    num_frames: int
+    frame_indices: list[int]
+    timestamps_us: list[int]
+    c2w: list[Pose]
+    streams: dict[str, ClipStream]
+    quality: dict[str, Quality]
+
+
+class CameraIntrinsics(Part):
+    intrinsics: list[float]
+
+
+class FitFigures(BaseModel):
+    """The fit's training-view figures at the source checkpoint (null when unknown)."""
+
+    model_config = ConfigDict(extra="forbid")
+    iteration: int | None
+    train_psnr: float | None
+    train_ssim: float | None
+
+
+class ClipsRecord(Record):
+    WHAT: ClassVar[str] = "clips.json"
+    SCHEMA_VERSION: ClassVar[int | None] = 1
+    FIX: ClassVar[str] = "run the clip stage for this scene first"
+
+    schema_version: int = 1
+    scene_id: str
+    dataset: str
+    source: str
+    fps: float
+    width: int
+    height: int
+    codec: str
+    cameras: dict[str, CameraIntrinsics]
+    fit: FitFigures
+    clips: list[ClipRecord]
+    skipped: list[CameraSkippedClip]
+
+    def summary(self) -> dict[str, Any]:
+        return {"clips": len(self.clips), "streams": sum(len(c.streams) for c in self.clips),
+                "skipped": len(self.skipped), "codec": self.codec}
+
+    def video_hashes(self) -> dict[str, str]:
+        """sha256 of every video, by its path relative to the scene folder."""
+        return {s.file: s.sha256 for c in self.clips for s in c.streams.values()}

@@ -1,0 +1,250 @@
+"""The ``render`` stage: the frames the clips need, from the fitted checkpoints.
+
+Per camera of ``render.cameras`` and for the union of the frames its clip windows cover
+(:func:`paradrive.streams.clip_windows`), it writes these streams::
+
+    target          the recorded frames, cropped and resized like the renders
+    cond@000100 ..  the recorded trajectory rendered at each under-fitted checkpoint
+    source+1m ..    the trajectory shifted laterally by each offset, at the source (final) checkpoint
+
+Layout under ``<scene>/renders/``::
+
+    renders.json                                   windows, streams, intrinsics, poses (below)
+    <camera>/<stream>/<frame:06d>.png              8-bit RGB, lossless
+    <camera>/<stream>/depth/<frame:06d>.exr        float32 z-depth in metres, channel "Z" (render.depth)
+    <camera>/<stream>/alpha/<frame:06d>.png        8-bit accumulated opacity (render.alpha)
+
+``renders.json`` holds, per camera: ``intrinsics`` [fx, fy, cx, cy] at the output size, the
+``crop`` box in stored pixels, the clip ``windows`` and ``skipped`` clips (with reasons), the
+rendered ``frames`` and their recorded ``c2w``, and per stream its ``kind`` (target, condition,
+source), ``iteration``, ``offset_m``, folder and ``c2w`` per frame (16 floats, row-major).
+
+``<frame>`` is the frame's position in ``scene.json``'s ``frames`` list. Output size is
+``width`` x ``height``: when the stored images have another aspect ratio they are centre-cropped
+to the output aspect, then resized; the pinhole intrinsics are shifted by the crop and scaled by
+the resize (DESIGN.md: fx, cx by sx; fy, cy by sy) and renders use the same ones, so render and
+target pixels correspond. Depth of the target stream is not written (a log has no dense depth).
+
+Depth is the expected z-depth of the scene's Gaussians, leaving out the fit's sky dome (Gaussians
+farther than half the dome radius from the trajectory centre, ``fit.json``); a pixel whose
+remaining opacity is below one half is sky and holds +inf, as the synthetic ground truth does.
+Left in, a far dome seen through a half-transparent surface would pull its depth to hundreds of
+metres.
+
+The whole ``renders/`` folder is assembled under a temporary name and renamed into place.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from paradrive import geometry
+from paradrive.errors import SceneError
+from paradrive.exr import write_depth_exr
+from paradrive.io import atomic_path
+from paradrive.scene import Scene, load_scene, write_image
+from paradrive.stages.base import StageContext, StageParams
+from paradrive.stages.layout import SceneLayout, frame_file, stream_dir
+from paradrive.stages.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
+                                      SkippedClip, SkyDomeRecord, WindowRecord)
+from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_windows, crop_resize,
+                               frames_needed, output_camera, plan_streams)
+
+log_default = logging.getLogger("paradrive.render")
+Progress = Callable[[int, int], None]
+
+
+class Params(StageParams):
+    cameras: list[str]
+    width: int
+    height: int
+    condition_checkpoints: list[int]
+    source_checkpoint: int
+    offsets_m: list[float]
+    clips: list[str]
+    clip_frames: int
+    depth: bool
+    alpha: bool
+    batch_frames: int
+    device: str
+    backend: Literal["auto", "torch", "gsplat"]
+    threads: int
+
+    def streams(self) -> list[StreamPlan]:
+        return plan_streams(self.condition_checkpoints, self.source_checkpoint, self.offsets_m)
+
+
+@dataclass
+class CameraPlan:
+    """What one camera renders: its clip windows, the frames they cover, the output camera."""
+
+    name: str
+    windows: list[ClipWindow]
+    skipped: list[dict]
+    frames: list[int]
+    out: OutputCamera
+
+
+def check_params(params: Params, scene: Scene, layout: SceneLayout) -> None:
+    sid = scene.scene_id
+    w, h = params.width, params.height
+    if w <= 0 or h <= 0:
+        raise SceneError(f"render size {w}x{h} is not positive", scene_id=sid,
+                         fix="set render.width and render.height to positive integers")
+    if params.clip_frames <= 0:
+        raise SceneError(f"render.clip_frames = {params.clip_frames} is not positive",
+                         scene_id=sid, fix="set render.clip_frames >= 1")
+    if len({s.name for s in params.streams()}) != len(params.streams()):
+        raise SceneError(f"render.offsets_m {params.offsets_m} repeats an offset", scene_id=sid,
+                         fix="list each lateral offset once")
+    for it in sorted({s.iteration for s in params.streams() if s.iteration is not None}):
+        if not layout.checkpoint(it).is_file():
+            raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid,
+                             path=layout.checkpoint(it),
+                             fix=f"add {it} to fit.checkpoints (render.condition_checkpoints and "
+                                 f"render.source_checkpoint must be fitted) and re-run fit")
+    unknown = [c for c in params.cameras if c not in scene.cameras]
+    if unknown:
+        raise SceneError(f"render.cameras names {', '.join(unknown)}, which the scene does not "
+                         f"have (it has {', '.join(scene.cameras)})", scene_id=sid,
+                         path=layout.scene_json,
+                         fix="ingest those cameras (ingest.cameras) or drop them from render.cameras")
+
+
+def plan_camera(scene: Scene, name: str, params: Params, log: logging.Logger) -> CameraPlan:
+    try:
+        windows, skipped = clip_windows(len(scene.frames), params.clip_frames, params.clips)
+    except ValueError as exc:
+        raise SceneError(str(exc), scene_id=scene.scene_id, fix="fix render.clips") from exc
+    for s in skipped:
+        log.warning("render: %s camera %s clip %s skipped: %s", scene.scene_id, name, s["clip"],
+                    s["reason"])
+    cam = scene.cameras[name]
+    out = output_camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, params.width,
+                        params.height)
+    return CameraPlan(name, windows, skipped, frames_needed(windows), out)
+
+
+class _Renderer:
+    """Writes the streams of one scene under a temporary ``renders/`` folder."""
+
+    def __init__(self, scene: Scene, layout: SceneLayout, params: Params, root: Path,
+                 progress: Progress | None, total: int):
+        from paradrive.gs.views import sky_dome_of
+
+        self.scene, self.layout, self.params, self.root = scene, layout, params, root
+        self.progress, self.total, self.done = progress, total, 0
+        init = FitRecord.load(layout.fit_json).init if params.depth and layout.fit_json.is_file() else None
+        self.sky = sky_dome_of(scene, init) if params.depth else None
+        self.cache: dict[int, dict] = {}
+
+    def tick(self, count: int = 1) -> None:
+        self.done += count
+        if self.progress:
+            self.progress(self.done, self.total)
+
+    def camera(self, plan: CameraPlan) -> RenderedCamera:
+        frames = plan.frames
+        recorded = self.scene.c2w(plan.name)[frames] if frames else np.zeros((0, 4, 4))
+        ego = self.scene.ego2world()[frames] if frames else np.zeros((0, 4, 4))
+        streams = {}
+        for stream in self.params.streams() if frames else []:
+            c2w = (geometry.lateral_shift(recorded, ego, stream.offset_m)
+                   if stream.kind == "source" else recorded)
+            folder = self.root / stream_dir(plan.name, stream.name)
+            folder.mkdir(parents=True)
+            if stream.kind == "target":
+                self.target(plan, folder)
+            else:
+                self.rendered(plan, stream, c2w, folder)
+            streams[stream.name] = RenderedStream(kind=stream.kind, dir=stream_dir(plan.name, stream.name),
+                                                  c2w=[geometry.flat16(m) for m in c2w],
+                                                  iteration=stream.iteration, offset_m=stream.offset_m)
+        cam = self.scene.cameras[plan.name]
+        return RenderedCamera(
+            intrinsics=plan.out.intrinsics, stored_size=[cam.width, cam.height],
+            crop=list(plan.out.crop),
+            windows=[WindowRecord(clip=w.name, frame_start=w.start, num_frames=w.num_frames)
+                     for w in plan.windows],
+            skipped=[SkippedClip(**s) for s in plan.skipped], frames=frames,
+            c2w=[geometry.flat16(m) for m in recorded], streams=streams)
+
+    def target(self, plan: CameraPlan, folder: Path) -> None:
+        for pos in plan.frames:
+            image = self.scene.load_image(pos, plan.name)
+            write_image(folder / frame_file(pos), crop_resize(image, plan.out))
+            self.tick()
+
+    def checkpoint(self, iteration: int) -> dict:
+        from paradrive.gs.views import load_checkpoint
+
+        if iteration not in self.cache:
+            self.cache.clear()  # one checkpoint in memory at a time
+            self.cache[iteration] = load_checkpoint(self.layout.checkpoint(iteration),
+                                                    scene_id=self.scene.scene_id)
+        return self.cache[iteration]
+
+    def rendered(self, plan: CameraPlan, stream: StreamPlan, c2w: np.ndarray, folder: Path) -> None:
+        from paradrive.gs.views import render_views
+
+        assert stream.iteration is not None
+        p = self.params
+        k = 0
+        for result in render_views(self.checkpoint(stream.iteration), c2w, plan.out.K, p.width,
+                                   p.height, depth=p.depth, batch_frames=p.batch_frames,
+                                   sky=self.sky, device=p.device, backend=p.backend):
+            for j in range(len(result["rgb"])):
+                self.write_frame(folder, plan.frames[k], result, j)
+                k += 1
+            self.tick(len(result["rgb"]))
+
+    def write_frame(self, folder: Path, pos: int, result: dict, j: int) -> None:
+        write_image(folder / frame_file(pos), result["rgb"][j])
+        if self.params.depth:
+            write_depth_exr(folder / "depth" / frame_file(pos, ".exr"), result["depth"][j])
+        if self.params.alpha:
+            a8 = (result["alpha"][j] * 255.0).round().astype(np.uint8)
+            write_image(folder / "alpha" / frame_file(pos), a8[..., None])
+
+
+def render_scene(layout: SceneLayout, params: Params, *, log: logging.Logger | None = None,
+                 progress: Progress | None = None) -> RendersRecord:
+    """Render every stream of the scene with the render stage's ``params``; writes ``renders/``."""
+    log = log or log_default
+    scene = load_scene(layout.root)
+    check_params(params, scene, layout)
+    plans = [plan_camera(scene, name, params, log) for name in params.cameras]
+    total = sum(len(p.frames) for p in plans) * len(params.streams())
+    with atomic_path(layout.renders_dir) as tmp_root:
+        tmp_root.mkdir(parents=True)
+        renderer = _Renderer(scene, layout, params, tmp_root, progress, total)
+        cameras = {}
+        for plan in plans:
+            cameras[plan.name] = renderer.camera(plan)
+            log.info("render: %s camera %s: %d frames x %d streams, %d clips skipped",
+                     scene.scene_id, plan.name, len(plan.frames),
+                     len(params.streams()) if plan.frames else 0, len(plan.skipped))
+        sky = renderer.sky
+        record = RendersRecord(
+            scene_id=scene.scene_id, width=params.width, height=params.height,
+            condition_checkpoints=params.condition_checkpoints,
+            source_checkpoint=params.source_checkpoint, offsets_m=params.offsets_m,
+            clip_frames=params.clip_frames, depth=params.depth, alpha=params.alpha,
+            sky_dome=None if sky is None else SkyDomeRecord(centre=[float(x) for x in sky.centre],
+                                                            radius_m=sky.radius),
+            cameras=cameras)
+        record.save(tmp_root / layout.renders_json.name)
+    return record
+
+
+def run(ctx: StageContext[Params]) -> RendersRecord:
+    from paradrive.gs.model import deterministic_torch
+
+    with deterministic_torch(ctx.params.threads):
+        return render_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress)

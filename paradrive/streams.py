@@ -1,0 +1,170 @@
+"""What render, clip, manifest and eval agree on: clip windows, stream names, the output camera.
+
+A clip is ``clip_frames`` consecutive frames of one camera (DESIGN.md, "Clips"). For a scene of
+N >= F frames: front = [0, F), middle = [floor((N - F) / 2), + F), rear = [N - F, N). A shorter
+scene has no clips; the reason is recorded and the other cameras and scenes go on.
+
+Every clip has streams: ``target`` (the recording), ``cond@<iteration:06d>`` (the recorded
+trajectory at an under-fitted checkpoint) and ``source<offset>`` (the trajectory shifted
+laterally at the final checkpoint). An offset is written one way everywhere (stream names, pair
+ids, inference truth files): :func:`format_offset`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from paradrive import geometry
+
+CLIP_NAMES = ("front", "middle", "rear")
+TARGET_STREAM = "target"
+
+
+@dataclass(frozen=True)
+class ClipWindow:
+    """A clip: ``num_frames`` consecutive frames from position ``start`` of the scene's frames."""
+
+    name: str
+    start: int
+    num_frames: int
+
+    @property
+    def stop(self) -> int:
+        return self.start + self.num_frames
+
+    @property
+    def frames(self) -> range:
+        return range(self.start, self.stop)
+
+
+def clip_windows(n_frames: int, clip_frames: int,
+                 names: Sequence[str] = CLIP_NAMES) -> tuple[list[ClipWindow], list[dict]]:
+    """The clip windows of a sequence of ``n_frames`` frames, and the clips that do not fit.
+
+    names: any of ``front`` ([0, F)), ``middle`` ([floor((N-F)/2), +F)) and ``rear`` ([N-F, N)),
+    in the order wanted. Returns (windows, skipped) where skipped is a list of
+    ``{"clip": name, "reason": "..."}`` (every clip when N < F). A name outside those three
+    or a non-positive ``clip_frames`` is a ValueError.
+    """
+    n, f = int(n_frames), int(clip_frames)
+    if f <= 0:
+        raise ValueError(f"clip_frames must be positive, got {clip_frames}")
+    unknown = [x for x in names if x not in CLIP_NAMES]
+    if unknown:
+        raise ValueError(f"unknown clip name(s) {', '.join(map(repr, unknown))}; "
+                         f"clips are {', '.join(CLIP_NAMES)}")
+    if n < f:
+        reason = f"scene has {n} frames, a clip needs {f}"
+        return [], [{"clip": name, "reason": reason} for name in names]
+    starts = {"front": 0, "middle": (n - f) // 2, "rear": n - f}
+    return [ClipWindow(name, starts[name], f) for name in names], []
+
+
+def frames_needed(windows: Iterable[ClipWindow]) -> list[int]:
+    """Sorted union of the frame positions the windows cover (each frame once)."""
+    return sorted({i for w in windows for i in w.frames})
+
+
+def format_offset(offset_m: float) -> str:
+    """``+1m``, ``-2m``, ``+0.5m``, ``+1000000m``: the sign always, integers without decimals,
+    no exponent, and one name for zero (``+0m``, also for -0.0)."""
+    d = float(offset_m)
+    if not math.isfinite(d):
+        raise ValueError(f"offset must be finite, got {offset_m}")
+    if d == 0:
+        return "+0m"
+    if d == round(d):
+        return f"{d:+.0f}m"
+    return f"{np.format_float_positional(d, sign=True, trim='-')}m"
+
+
+def condition_stream(iteration: int) -> str:
+    """``cond@000100``: the recorded trajectory rendered at an under-fitted checkpoint."""
+    return f"cond@{int(iteration):06d}"
+
+
+def source_stream(offset_m: float) -> str:
+    """``source+1m``: the recorded trajectory shifted ``offset_m`` (left > 0) at the final checkpoint."""
+    return f"source{format_offset(offset_m)}"
+
+
+@dataclass(frozen=True)
+class StreamPlan:
+    """One stream a camera gets: its name, kind, checkpoint iteration and lateral offset."""
+
+    name: str
+    kind: str                 # target | condition | source
+    iteration: int | None = None
+    offset_m: float | None = None
+
+
+def plan_streams(condition_checkpoints: Sequence[int], source_checkpoint: int,
+                 offsets_m: Sequence[float]) -> list[StreamPlan]:
+    """The streams a camera gets: target, one per condition checkpoint, one per offset."""
+    streams = [StreamPlan(TARGET_STREAM, "target")]
+    streams += [StreamPlan(condition_stream(it), "condition", int(it)) for it in condition_checkpoints]
+    streams += [StreamPlan(source_stream(d), "source", int(source_checkpoint), float(d))
+                for d in offsets_m]
+    return streams
+
+
+# --------------------------------------------------------------------------- the output camera
+
+@dataclass(frozen=True)
+class OutputCamera:
+    """How stored images map to the output: crop box (pixels of the stored image), then resize.
+
+    ``K`` (3, 3) is the pinhole matrix at the output resolution.
+    """
+
+    width: int
+    height: int
+    crop: tuple[int, int, int, int]   # x0, y0, crop width, crop height
+    K: np.ndarray
+
+    @property
+    def intrinsics(self) -> list[float]:
+        return [float(self.K[0, 0]), float(self.K[1, 1]), float(self.K[0, 2]), float(self.K[1, 2])]
+
+
+def output_camera(stored_width: int, stored_height: int, fx: float, fy: float, cx: float,
+                  cy: float, width: int, height: int) -> OutputCamera:
+    """Centre-crop (to the output aspect ratio) then resize a stored image to ``width x height``.
+
+    Pixel coordinates are continuous with pixel centres at +0.5, so a crop subtracts its corner
+    from (cx, cy) and a resize by (sx, sy) scales (fx, cx) by sx and (fy, cy) by sy.
+    """
+    W, H, w, h = int(stored_width), int(stored_height), int(width), int(height)
+    if min(W, H, w, h) <= 0:
+        raise ValueError(f"sizes must be positive: stored {W}x{H}, output {w}x{h}")
+    if W * h > w * H:      # stored is wider: keep full height
+        cw, ch = min(W, max(1, round(H * w / h))), H
+    else:                  # stored is taller (or equal): keep full width
+        cw, ch = W, min(H, max(1, round(W * h / w)))
+    x0, y0 = (W - cw) // 2, (H - ch) // 2
+    sx, sy = w / cw, h / ch
+    fx2, fy2, cx2, cy2 = geometry.scale_intrinsics(fx, fy, cx - x0, cy - y0, sx, sy)
+    K = np.array([[fx2, 0.0, cx2], [0.0, fy2, cy2], [0.0, 0.0, 1.0]])
+    return OutputCamera(width=w, height=h, crop=(x0, y0, cw, ch), K=K)
+
+
+def crop_resize(image: np.ndarray, out: OutputCamera) -> np.ndarray:
+    """Apply ``out``'s crop and resize to a uint8 (H, W, C) image; returns uint8 (h, w, C).
+
+    The resize is area-preserving (antialiased bilinear), half-pixel aligned like the intrinsics.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    x0, y0, cw, ch = out.crop
+    img = image[y0:y0 + ch, x0:x0 + cw]
+    if img.shape[:2] == (out.height, out.width):
+        return np.ascontiguousarray(img)
+    t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
+    r = F.interpolate(t, size=(out.height, out.width), mode="bilinear", align_corners=False,
+                      antialias=True)
+    return r[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
