@@ -34,6 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from paradrive import geometry  # noqa: E402
+from paradrive.pipeline import StageRegistry  # noqa: E402
 from paradrive.stages.manifest import build_manifest
 
 
@@ -102,7 +103,7 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
                       "quality": {"cond@000100": {"psnr": 20.0, "ssim": 0.6}}}]}
     (scene / "clips" / "clips.json").write_text(json.dumps(doc))
     build = root / "manifests" / "bench"
-    build_manifest(build, [{"scene_id": "bench", "scene_dir": str(scene)}], {"quality": False})
+    build_manifest(build, [{"scene_id": "bench", "scene_dir": str(scene)}], StageRegistry().resolve(None, {"manifest": {"quality": False}}).typed("manifest"))
     return build
 
 

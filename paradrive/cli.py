@@ -16,6 +16,7 @@ from rich.table import Table
 from paradrive import __version__
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S
+from paradrive.storage import data_root
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Build parallel-trajectory video pairs from single-pass driving logs.")
@@ -159,33 +160,6 @@ def select_scenes(config, uris: list[str], split: Optional[str], exclude_split: 
     return selection
 
 
-def data_root(data: str, storage_options: list[str], cache: Optional[Path], drop_cache: bool):
-    """The build's DataRoot from --data and the storage flags (which need a URL --data)."""
-    import json
-
-    from paradrive.storage import DataRoot, is_url
-
-    options = {}
-    for item in storage_options:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            # the argument itself is not repeated: a mistyped one may be a secret
-            raise ConfigError("--storage-option: an argument without KEY= (not shown); write "
-                              "KEY=VALUE, e.g. endpoint_url=http://host:9000")
-        try:
-            options[key.strip()] = json.loads(value)
-        except json.JSONDecodeError:
-            options[key.strip()] = value
-    if not is_url(data) and (options or drop_cache):
-        raise ConfigError(f"--storage-option and --drop-cache apply to a URL --data (s3://…); "
-                          f"{data!r} is a folder")
-    root = DataRoot.of(data, storage_options=options, cache_dir=str(cache) if cache else None,
-                       drop_cache=drop_cache)
-    if root.remote:
-        root.filesystem()  # a missing backend (s3fs, gcsfs…) is a usage error before any work
-    return root
-
-
 def _open_ledger(manifests: Path, build_name: str):
     from paradrive.pipeline.ledger import Ledger
 
@@ -300,12 +274,34 @@ def stages_cmd(
 
 
 # Commands that live next to the code they drive. Each module exposes ``register(app)``.
+@app.command("export")
+def export_cmd(
+    fmt: str = typer.Argument(..., help="waymo, nuscenes or drivestudio"),
+    out: Path = typer.Argument(..., help="Folder to write the log into."),
+    scene: str = typer.Option("synthetic:demo?seed=7", "--scene", help="A synthetic scene URI."),
+    profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes and cameras apply."),
+    set_: List[str] = typer.Option([], "--set", help="Override an ingest parameter: ingest.param=value (e.g. ingest.cameras=[front]). Repeatable."),
+) -> None:
+    """Write a synthetic scene as a real log (known answers) and print the URI that ingests it.
+
+    The log carries the cameras its ingest keeps with these parameters (ingest.cameras)."""
+    from paradrive.errors import SceneError
+    from paradrive.ingest.export import export_scene
+    from paradrive.pipeline import StageRegistry, parse_overrides
+
+    params = StageRegistry().resolve(profile, parse_overrides(set_)).params["ingest"]
+    try:
+        print(export_scene(scene, fmt, out, params))
+    except (ValueError, SceneError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2)
+
+
 COMMAND_MODULES = [
     ("paradrive.inspection", "inspect"),
     ("paradrive.evaluation", "eval"),
     ("paradrive.pipeline.status", "status"),
     ("paradrive.train.cli", "train"),
-    ("paradrive.ingest.export", "export"),
 ]
 
 

@@ -38,15 +38,14 @@ from paradrive.io import sha256_file
 from paradrive.pairs import build_file, check_row_uris, read_index, shard_paths
 from paradrive.video import decode_frames, each_frame
 
-__all__ = ["PairDataset", "PairIterableDataset", "decode_frames", "each_frame", "video_info",
-           "output_geometry", "recammaster_camera"]
+__all__ = ["PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera"]
 
 # Columns kept in memory for every row; the per-frame poses are read one row group at a time.
-_LIGHT = ("pair_id", "dataset", "scene_id", "camera", "clip", "num_frames", "fps", "width",
+_ROW_COLUMNS = ("pair_id", "dataset", "scene_id", "camera", "clip", "num_frames", "fps", "width",
           "height", "intrinsics", "offset_m", "condition_iteration", "source_iteration",
           "source_uri", "source_sha256", "condition_uri", "condition_sha256", "target_uri",
           "target_sha256")
-_HEAVY = ("rel_pose", "target_c2w")
+_POSE_COLUMNS = ("rel_pose", "target_c2w")
 
 
 # --------------------------------------------------------------------------- geometry
@@ -140,7 +139,7 @@ class PairDataset(Dataset):
             if not path.is_file():
                 raise ParaDriveError(f"{path} is listed in {self.build / 'index.json'} but missing;"
                                      f" re-run the manifest stage or re-publish the build")
-            table = pq.read_table(path, columns=list(_LIGHT))
+            table = pq.read_table(path, columns=list(_ROW_COLUMNS))
             if table.num_rows != entry["rows"]:
                 raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
                                      f"{entry['rows']}; the build is inconsistent, re-run the "
@@ -148,7 +147,7 @@ class PairDataset(Dataset):
             check_row_uris(table.select(["pair_id", "source_uri", "condition_uri",
                                          "target_uri"]).to_pydict(), str(path))
             tables.append(table)
-        self._rows = {name: [v for t in tables for v in t.column(name).to_pylist()] for name in _LIGHT}
+        self._rows = {name: [v for t in tables for v in t.column(name).to_pylist()] for name in _ROW_COLUMNS}
         self._starts = np.cumsum([0] + [t.num_rows for t in tables])
         self._pid = None
         self._files: dict[int, Any] = {}
@@ -167,7 +166,7 @@ class PairDataset(Dataset):
         """The manifest row of pair i (light columns plus ``rel_pose`` and ``target_c2w`` (N, 4, 4))."""
         if not 0 <= i < len(self):
             raise IndexError(f"pair index {i} out of range for {len(self)} pairs")
-        row = {name: self._rows[name][i] for name in _LIGHT}
+        row = {name: self._rows[name][i] for name in _ROW_COLUMNS}
         row.update(self._poses(i))
         return row
 
@@ -187,13 +186,13 @@ class PairDataset(Dataset):
         key = (shard, group)
         cols = self._group_cache.get(key)
         if cols is None:
-            table = f.read_row_group(group, columns=list(_HEAVY))
-            cols = {name: table.column(name) for name in _HEAVY}
+            table = f.read_row_group(group, columns=list(_POSE_COLUMNS))
+            cols = {name: table.column(name) for name in _POSE_COLUMNS}
             if len(self._group_cache) >= 4:
                 self._group_cache.pop(next(iter(self._group_cache)))
             self._group_cache[key] = cols
         out = {}
-        for name in _HEAVY:
+        for name in _POSE_COLUMNS:
             values = cols[name][offset].values.flatten().to_numpy(zero_copy_only=False)
             out[name] = values.reshape(-1, 4, 4)
         return out

@@ -25,7 +25,7 @@ import json
 import logging
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, List, Optional
+from typing import TYPE_CHECKING, Any, List, Optional
 
 import numpy as np
 
@@ -195,13 +195,15 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
         recorded = scene.c2w(cam_name)[frames]
         ego = scene.ego2world()[frames]
         target = np.stack([crop_resize(scene.load_image(p, cam_name), out) for p in frames])
-        cam_doc = {"intrinsics": out.intrinsics, "frames": frames, "conditions": [],
-                   "shifted": []}
+        conditions: list[dict] = []
+        shifted_rows: list[dict] = []
+        cam_doc: dict[str, Any] = {"intrinsics": out.intrinsics, "frames": frames,
+                                   "conditions": conditions, "shifted": shifted_rows}
         for it in conds:
             params = load_checkpoint(layout.checkpoint(it), scene_id=sid)
             rgb, _ = _render(params, recorded, out, depth=False, batch=batch, device=device)
             q = image_quality(rgb, target)
-            cam_doc["conditions"].append({"iteration": it, "stream": condition_stream(it), **q})
+            conditions.append({"iteration": it, "stream": condition_stream(it), **q})
             log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it, q["psnr"],
                      q["ssim"])
         params = load_checkpoint(layout.checkpoint(final), scene_id=sid)
@@ -217,13 +219,13 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                            sky=sky)
             truth = street.render(shifted, out.K, out.width, out.height)
             q = image_quality(rgb, truth["rgb"])
-            cam_doc["shifted"].append({"offset_m": float(d), "stream": source_stream(d),
+            shifted_rows.append({"offset_m": float(d), "stream": source_stream(d),
                                        "iteration": final, **q,
                                        **depth_errors(dep, truth["depth"])})
             log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", sid, cam_name, source_stream(d),
                      q["psnr"], q["ssim"])
-        by_abs: dict[str, dict] = {}
-        for row in cam_doc["shifted"]:
+        by_abs: dict[str, list[dict]] = {}
+        for row in shifted_rows:
             by_abs.setdefault(f"{abs(row['offset_m']):g}", []).append(row)
         cam_doc["shifted_by_abs_offset"] = {
             k: {"psnr": float(np.mean([r["psnr"] for r in rows])),

@@ -92,8 +92,8 @@ def rotation_to_quaternion(rotation) -> np.ndarray:
         q[1 + i] = 0.25 * s
         q[1 + j] = (r[j, i] + r[i, j]) / s
         q[1 + k] = (r[k, i] + r[i, k]) / s
-    q = np.asarray(q)
-    return q if q[0] >= 0 else -q
+    out = np.asarray(q)
+    return out if out[0] >= 0 else -out
 
 
 def is_rigid(pose, tol: float = 1e-5) -> np.ndarray:

@@ -16,12 +16,13 @@ import numpy as np
 
 from paradrive.manifest import MediaFile
 from paradrive.pairs import media_uri
+from paradrive.stages.records import ClipRecord, ClipsRecord
 from paradrive.streams import format_offset
 
 TRUTH_DIR = "truth"
 TRUTH_CODEC = "ffv1"   # lossless: the target is the ray caster's pixels exactly
 
-Truth = Callable[[dict, float, np.ndarray], "MediaFile | None"]
+Truth = Callable[[ClipRecord, float, np.ndarray], "MediaFile | None"]
 
 
 def truth_file(camera: str, clip: str, offset_m: float) -> str:
@@ -31,7 +32,7 @@ def truth_file(camera: str, clip: str, offset_m: float) -> str:
     return f"{TRUTH_DIR}/{camera}/{clip}/truth{format_offset(offset_m)}{container_suffix(TRUTH_CODEC)}"
 
 
-def no_truth(clip: dict, offset_m: float, novel_c2w: np.ndarray) -> None:
+def no_truth(clip: ClipRecord, offset_m: float, novel_c2w: np.ndarray) -> None:
     """A real log: the novel view is unknown."""
     return None
 
@@ -46,29 +47,27 @@ def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
     return dict(fallback or {})
 
 
-def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: dict) -> Truth:
+def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: ClipsRecord) -> Truth:
     """``truth(clip, offset_m, novel_c2w)`` for the scene of ``clips`` (its clips.json):
     renders and encodes the street's view from ``novel_c2w`` (F, 4, 4) into ``build_dir`` for a
     synthetic scene; ``no_truth`` for any other."""
-    if clips.get("dataset") != "synthetic":
+    if clips.dataset != "synthetic":
         return no_truth
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.uri import parse_uri
     from paradrive.video import encode_video
 
-    street = street_from_uri(parse_uri(str(clips["source"])),
-                             scene_ingest_params(Path(scene_dir), None))
-    width, height = int(clips["width"]), int(clips["height"])
-    sid = str(clips["scene_id"])
+    street = street_from_uri(parse_uri(clips.source), scene_ingest_params(Path(scene_dir), None))
+    width, height, sid = clips.width, clips.height, clips.scene_id
 
-    def truth(clip: dict, offset_m: float, novel_c2w: np.ndarray) -> MediaFile:
-        fx, fy, cx, cy = clips["cameras"][clip["camera"]]["intrinsics"]
+    def truth(clip: ClipRecord, offset_m: float, novel_c2w: np.ndarray) -> MediaFile:
+        fx, fy, cx, cy = clips.cameras[clip.camera].intrinsics
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         rgb = street.render(novel_c2w, K, width, height)["rgb"]
-        uri = media_uri(sid, truth_file(clip["camera"], clip["clip"], offset_m))
+        uri = media_uri(sid, truth_file(clip.camera, clip.clip, offset_m))
         path = Path(build_dir) / uri
         path.parent.mkdir(parents=True, exist_ok=True)
-        info = encode_video(path, rgb, float(clips["fps"]), codec=TRUTH_CODEC)
+        info = encode_video(path, rgb, clips.fps, codec=TRUTH_CODEC)
         return MediaFile(src=path, uri=uri, sha256=info["sha256"], bytes=info["bytes"])
 
     return truth

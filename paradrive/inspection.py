@@ -67,7 +67,7 @@ def summarize(build_dir: str | Path) -> dict:
                      "condition": {it: {"psnr": _mean(p), "ssim": _mean(s)}
                                    for it, (p, s) in sorted(cps.items())}}
                for sid, cps in sorted(by_scene.items())}
-    overall = defaultdict(lambda: ([], []))
+    overall: defaultdict[int, tuple[list, list]] = defaultdict(lambda: ([], []))
     for i in range(n):
         it = f"{int(cols['condition_iteration'][i]):06d}"
         overall[it][0].append(cols["condition_psnr"][i])
@@ -159,7 +159,7 @@ def _pick_pairs(rows: list[dict], count: int) -> list[dict]:
     offsets = sorted({r["offset_m"] for r in pool}, key=lambda d: (abs(d), -d))
     picks = [offsets[int(round(k))] for k in np.linspace(0, len(offsets) - 1, min(count, len(offsets)))]
     iterations = sorted({r["condition_iteration"] for r in pool})
-    chosen = []
+    chosen: list[dict] = []
     for k, d in enumerate(picks):
         it = iterations[k % len(iterations)]
         chosen.extend(r for r in pool if r["offset_m"] == d and r["condition_iteration"] == it)

@@ -335,7 +335,7 @@ class SceneMirror:
             return
         for parent in sorted({r.rsplit("/", 1)[0] for r in rpaths}):
             self.fs.makedirs(parent, exist_ok=True)
-        temps = [temporary_name(r).as_posix() for r in rpaths]
+        temps = [temporary_name(Path(r)).as_posix() for r in rpaths]
         self.fs.put(lpaths, temps)
         for t, r in zip(temps, rpaths):
             self.fs.mv(t, r)
@@ -350,3 +350,28 @@ class SceneMirror:
         shutil.rmtree(self.local, ignore_errors=True)
         self.record_path.unlink(missing_ok=True)
         self.log_local.unlink(missing_ok=True)
+
+
+def data_root(data: str, storage_options: list[str], cache: Path | None, drop_cache: bool) -> DataRoot:
+    """The build's DataRoot from --data and the storage flags (which need a URL --data)."""
+    import json
+
+    options = {}
+    for item in storage_options:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            # the argument itself is not repeated: a mistyped one may be a secret
+            raise ConfigError("--storage-option: an argument without KEY= (not shown); write "
+                              "KEY=VALUE, e.g. endpoint_url=http://host:9000")
+        try:
+            options[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.strip()] = value
+    if not is_url(data) and (options or drop_cache):
+        raise ConfigError(f"--storage-option and --drop-cache apply to a URL --data (s3://…); "
+                          f"{data!r} is a folder")
+    root = DataRoot.of(data, storage_options=options, cache_dir=str(cache) if cache else None,
+                       drop_cache=drop_cache)
+    if root.remote:
+        root.filesystem()  # a missing backend (s3fs, gcsfs…) is a usage error before any work
+    return root

@@ -41,6 +41,7 @@ def parse_uri(text: str) -> SceneURI:
     scene = None
     # Query and fragment may appear in either order; paths never contain '?' or '#'.
     m = re.match(r"^(?P<path>[^?#]*)(?P<tail>.*)$", rest)
+    assert m is not None  # the pattern matches any string
     path, tail = m.group("path"), m.group("tail")
     for part in re.findall(r"[?#][^?#]*", tail):
         if part.startswith("?"):

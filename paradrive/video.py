@@ -184,76 +184,87 @@ def each_frame(path: str | Path, indices: Sequence[int] | None,
     """Decode the frames ``indices`` (None = all) of ``path`` and hand each to ``sink(index,
     rgb_uint8_hwc)`` once, in frame order, without holding the whole clip. Arguments as in
     ``decode_frames``."""
-    import av
-
     path = Path(path)
     wanted = None if indices is None else sorted(set(int(i) for i in indices))
     if wanted is not None and (not wanted or wanted[0] < 0):
         raise ValueError(f"frame indices must be non-negative and non-empty, got {indices!r}")
-    got: set[int] = set()
+    got = _FrameWalk(path, wanted, sink, size, stats).run(seek, threads)
+    if got is None:  # no timestamps to place a sought frame, or the seek overshot: start over
+        got = _FrameWalk(path, wanted, sink, size, stats).run(False, threads)
+    if wanted is None and not got:
+        raise ParaDriveError(f"{path}: video has no frames; re-run the clip stage")
+    missing = [i for i in (wanted or ()) if i not in (got or ())]
+    if missing:
+        raise ParaDriveError(f"{path}: frames {missing[:5]} not in the video; the manifest and "
+                             f"the video disagree, re-run the clip and manifest stages")
 
-    def convert(frame) -> np.ndarray:
-        if size is not None:
-            frame = frame.reformat(width=size[1], height=size[0], format="rgb24",
+
+class _FrameWalk:
+    """One pass of the decoder over a video, handing the wanted frames to ``sink``."""
+
+    def __init__(self, path: Path, wanted: list[int] | None, sink: Callable[[int, np.ndarray], None],
+                 size: tuple[int, int] | None, stats: dict | None):
+        self.path, self.wanted, self.sink, self.size, self.stats = path, wanted, sink, size, stats
+        self.lookup = set(wanted or ())
+        self.got: set[int] = set()
+
+    def convert(self, frame) -> np.ndarray:
+        if self.size is not None:
+            frame = frame.reformat(width=self.size[1], height=self.size[0], format="rgb24",
                                    interpolation="AREA")
             return frame.to_ndarray()
         return frame.to_ndarray(format="rgb24")
 
-    def again() -> None:
-        got.clear()
-        each_frame(path, indices, sink, size=size, seek=False, threads=threads, stats=stats)
+    def run(self, seek: bool, threads: int) -> set[int] | None:
+        """The indices handed over; None when a seek landed where frames cannot be placed."""
+        import av
 
-    try:
-        container = av.open(str(path))
-    except (av.error.FFmpegError, OSError) as exc:
-        raise ParaDriveError(f"{path}: cannot open video ({exc}); the file is missing or "
-                             f"corrupt, run `paradrive inspect --verify` on the build") from exc
-    counter = 0
-    with container:
-        stream = container.streams.video[0]
-        if threads != 1:
-            stream.thread_type = "AUTO"
-            stream.codec_context.thread_count = max(0, int(threads))
+        try:
+            container = av.open(str(self.path))
+        except (av.error.FFmpegError, OSError) as exc:
+            raise ParaDriveError(f"{self.path}: cannot open video ({exc}); the file is missing or "
+                                 f"corrupt, run `paradrive inspect --verify` on the build") from exc
+        with container:
+            stream = container.streams.video[0]
+            if threads != 1:
+                stream.thread_type = "AUTO"
+                stream.codec_context.thread_count = max(0, int(threads))
+            try:
+                return self._decode(container, stream, seek)
+            except av.error.FFmpegError as exc:
+                raise ParaDriveError(f"{self.path}: video is corrupt ({exc}); re-run the clip stage "
+                                     f"for its scene, or `paradrive inspect --verify` the build") from exc
+
+    def _decode(self, container, stream, seek: bool) -> set[int] | None:
         rate = stream.average_rate or stream.guessed_rate
         start = stream.start_time or 0
         tb = stream.time_base
-        first, last = (None, None) if wanted is None else (wanted[0], wanted[-1])
-        wanted_lookup = set(wanted or ())
-        sought = False
-        if seek and first and rate and tb:
+        first = None if self.wanted is None else self.wanted[0]
+        sought = bool(seek and first and rate and tb)
+        if sought:
             target = start + int(math.floor(first / float(rate) / float(tb)))
             container.seek(target, stream=stream, backward=True, any_frame=False)
-            sought = True
-        try:
-            for frame in container.decode(stream):
-                idx = _frame_index(frame, start, tb, rate)
-                counter += 1
-                if stats is not None:
-                    stats["decoded"] = stats.get("decoded", 0) + 1
-                if sought and counter == 1 and (idx is None or idx > first):
-                    # No timestamps to place a sought frame, or the seek overshot: start over.
-                    return again()
-                if idx is None:
-                    idx = counter - 1
-                if wanted is None:
-                    sink(idx, convert(frame))
-                    got.add(idx)
-                    continue
-                if idx in got or idx < first:
-                    continue
-                if idx > last:
-                    break
-                if idx in wanted_lookup:
-                    sink(idx, convert(frame))
-                    got.add(idx)
-                if len(got) == len(wanted):
-                    break
-        except av.error.FFmpegError as exc:
-            raise ParaDriveError(f"{path}: video is corrupt ({exc}); re-run the clip stage for "
-                                 f"its scene, or `paradrive inspect --verify` the build") from exc
-    if wanted is None and not got:
-        raise ParaDriveError(f"{path}: video has no frames; re-run the clip stage")
-    missing = [i for i in (wanted or ()) if i not in got]
-    if missing:
-        raise ParaDriveError(f"{path}: frames {missing[:5]} not in the video; the manifest and "
-                             f"the video disagree, re-run the clip and manifest stages")
+        for counter, frame in enumerate(container.decode(stream), start=1):
+            idx = _frame_index(frame, start, tb, rate)
+            if self.stats is not None:
+                self.stats["decoded"] = self.stats.get("decoded", 0) + 1
+            if sought and counter == 1 and (idx is None or idx > first):
+                return None
+            if self._take(counter - 1 if idx is None else idx, frame):
+                break
+        return self.got
+
+    def _take(self, idx: int, frame) -> bool:
+        """Hand frame ``idx`` over when wanted; True once nothing more is wanted."""
+        if self.wanted is None:
+            self.sink(idx, self.convert(frame))
+            self.got.add(idx)
+            return False
+        if idx in self.got or idx < self.wanted[0]:
+            return False
+        if idx > self.wanted[-1]:
+            return True
+        if idx in self.lookup:
+            self.sink(idx, self.convert(frame))
+            self.got.add(idx)
+        return len(self.got) == len(self.wanted)

@@ -108,3 +108,11 @@ def s3_bucket():
         yield options
     finally:
         server.stop()
+
+
+def stage_params(stage: str, overrides: dict | None = None, profile: str | None = None):
+    """A stage's typed ``Params``: the profile's values (paper defaults when None) with
+    ``overrides``, as the runner would hand them to the stage."""
+    from paradrive.pipeline import StageRegistry
+
+    return StageRegistry().resolve(profile, {stage: dict(overrides or {})}).typed(stage)

@@ -8,6 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive import geometry
 from paradrive.streams import ClipWindow, clip_windows, condition_stream, format_offset, frames_needed, source_stream
 from paradrive.stages.clip import write_clips
@@ -80,7 +82,7 @@ def clipped(request, tmp_path_factory):
     assert not report.failures(), report.failures()[0].error
     scene_dir = root / "data" / "scenes" / SID
     return {"dir": scene_dir, "doc": json.loads((scene_dir / "clips" / "clips.json").read_text()),
-            "render": config.params["render"], "clip": config.params["clip"]}
+            "render": config.params["render"], "clip": config.params["clip"], "config": config}
 
 
 def _stream_names(render_params) -> list[str]:
@@ -174,7 +176,7 @@ def test_depth_sequences_are_copied_next_to_the_clips(clipped):
 
 def test_ffv1_clips_are_lossless_mkv(clipped, copy_tree):
     scene_dir = copy_tree(clipped["dir"])
-    write_clips(scene_dir, {**clipped["clip"], "codec": "ffv1", "depth": False})
+    write_clips(scene_dir, stage_params("clip", {**clipped["clip"], "codec": "ffv1", "depth": False}))
     doc = json.loads((scene_dir / "clips" / "clips.json").read_text())
     clip = doc["clips"][0]
     s = clip["streams"]["cond@%06d" % clipped["render"]["condition_checkpoints"][-1]]
@@ -188,7 +190,7 @@ def test_ffv1_clips_are_lossless_mkv(clipped, copy_tree):
 
 def test_re_encoding_gives_identical_files(clipped, copy_tree):
     scene_dir = copy_tree(clipped["dir"])
-    write_clips(scene_dir, clipped["clip"])
+    write_clips(scene_dir, config_clip(clipped))
     again = json.loads((scene_dir / "clips" / "clips.json").read_text())
     assert again == clipped["doc"]
     assert not list(scene_dir.glob("**/.*.tmp-*"))
@@ -200,7 +202,7 @@ def test_clip_depth_needs_render_depth(clipped, copy_tree):
     doc["depth"] = False
     (scene_dir / "renders" / "renders.json").write_text(json.dumps(doc))
     with pytest.raises(SceneError, match="render.depth=true"):
-        write_clips(scene_dir, clipped["clip"])
+        write_clips(scene_dir, config_clip(clipped))
     assert (scene_dir / "clips" / "clips.json").read_text() == json.dumps(clipped["doc"], indent=2) + "\n"
 
 
@@ -208,16 +210,20 @@ def test_a_missing_render_names_the_file(clipped, copy_tree):
     scene_dir = copy_tree(clipped["dir"])
     (scene_dir / "renders/front/source+1m/000002.png").unlink()
     with pytest.raises(SceneError, match=r"source\+1m/000002.png"):
-        write_clips(scene_dir, clipped["clip"])
+        write_clips(scene_dir, config_clip(clipped))
 
 
 def test_short_scene_writes_no_clips_but_records_why(clipped, copy_tree):
     from paradrive.stages.render import render_scene
 
     scene_dir = copy_tree(clipped["dir"])
-    render_scene(scene_dir, {**clipped["render"], "clip_frames": 121, "clips": ["front", "middle", "rear"]})
-    summary = write_clips(scene_dir, clipped["clip"])
+    render_scene(scene_dir, stage_params("render", {**clipped["render"], "clip_frames": 121, "clips": ["front", "middle", "rear"]}))
+    summary = write_clips(scene_dir, config_clip(clipped)).summary()
     doc = json.loads((scene_dir / "clips" / "clips.json").read_text())
     assert summary["clips"] == 0 and doc["clips"] == []
     assert doc["skipped"] == [{"camera": "front", "clip": c, "reason": "scene has 24 frames, a clip needs 121"}
                               for c in ("front", "middle", "rear")]
+
+
+def config_clip(clipped: dict):
+    return stage_params("clip", clipped["clip"])

@@ -8,6 +8,8 @@ import shutil
 
 import numpy as np
 import pytest
+
+from conftest import stage_params
 import torch
 from torch.utils.data import DataLoader
 
@@ -26,8 +28,8 @@ def build(tmp_path_factory):
     data = tmp_path_factory.mktemp("data")
     scenes = [write_clip_scene(data, "synthetic-a"), write_clip_scene(data, "synthetic-b")]
     build_dir = tmp_path_factory.mktemp("manifests") / "b"
-    build_manifest(build_dir, [scenes_entry(s) for s in scenes], {"shard_rows": 40,
-                                                                  "row_group_rows": 8})
+    build_manifest(build_dir, [scenes_entry(s) for s in scenes], stage_params("manifest", {"shard_rows": 40,
+                                                                  "row_group_rows": 8}))
     return build_dir
 
 
@@ -142,7 +144,7 @@ def test_recammaster_camera_is_target_relative_to_the_first_source_frame(tmp_pat
                              offsets=(2.0,), conditions=(100,), num_frames=121, width=32,
                              height=32, gop=30)
     build = tmp_path / "b"
-    build_manifest(build, [scenes_entry(scene)], {})
+    build_manifest(build, [scenes_entry(scene)], stage_params("manifest", {}))
     ds = PairDataset(build, pose_format="recammaster", output_size=(16, 16))
     s = ds[0]
     assert s["camera"].shape == (31, 12) and s["target"].shape == (121, 3, 16, 16)

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 import torch
 from simulated_device import DEVICE, DeviceMismatch, OnDevice, simulated_device, to_cpu
-from test_gs_fit import TINY_FIT, _copy_scene, stage_params
+from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError
@@ -61,13 +62,13 @@ def test_a_cpu_tensor_meeting_a_device_tensor_fails_as_it_does_on_cuda():
 def _fit_on(device: str, scene: Path, **kwargs) -> dict:
     context, name = _on(device)
     with context:
-        return fit_scene(scene, stage_params("smoke", **FIT, device=name), **kwargs)
+        return fit_scene(scene, fit_params("smoke", **FIT, device=name), **kwargs)
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, tiny_scene, tmp_path):
     cpu = _copy_scene(tiny_scene, tmp_path / "cpu")
-    fit_scene(cpu, stage_params("smoke", **FIT, device="cpu"))
+    fit_scene(cpu, fit_params("smoke", **FIT, device="cpu"))
     dev = _copy_scene(tiny_scene, tmp_path / "dev")
     partial = _fit_on(device, dev, stop_after=14)
     assert not partial["complete"] and (dev / "gs" / "state.pt").is_file()
@@ -89,7 +90,7 @@ def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, tiny_s
 @pytest.mark.parametrize("device", DEVICES)
 def test_checkpoint_renders_on_a_device_as_on_the_cpu(device, tiny_scene, tmp_path):
     scene = _copy_scene(tiny_scene, tmp_path / "scene")
-    fit_scene(scene, stage_params("smoke", **FIT, device="cpu"))
+    fit_scene(scene, fit_params("smoke", **FIT, device="cpu"))
     cam = json.loads((scene / "scene.json").read_text())["cameras"]["front"]
     K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
     frames = json.loads((scene / "scene.json").read_text())["frames"][:3]
@@ -112,7 +113,7 @@ def test_a_cpu_tensor_slipped_into_the_fit_fails_on_the_device(tiny_scene, tmp_p
 
     monkeypatch.setattr(strategy_module, "split_noise", cpu_noise)
     scene = _copy_scene(tiny_scene, tmp_path / "scene")
-    fit_scene(scene, stage_params("smoke", **FIT, device="cpu"), stop_after=9)  # fine on the CPU
+    fit_scene(scene, fit_params("smoke", **FIT, device="cpu"), stop_after=9)  # fine on the CPU
     with pytest.raises(DeviceMismatch, match="same device"):
         _fit_on("simulated", _copy_scene(tiny_scene, tmp_path / "dev"))
 

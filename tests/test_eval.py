@@ -19,7 +19,7 @@ def evaluated(request, tmp_path_factory):
     smoke = request.getfixturevalue("smoke_scene")
     scene_dir = smoke["data_dir"] / "scenes" / SID
     out = tmp_path_factory.mktemp("eval")
-    doc = evaluate_scene(scene_dir, config.params["render"], max_frames=4, out_dir=out)
+    doc = evaluate_scene(scene_dir, config.typed("render"), max_frames=4, out_dir=out)
     return {"doc": doc, "out": out, "config": config, "data_dir": smoke["data_dir"]}
 
 

@@ -25,7 +25,7 @@ SHORT_FIT = {"checkpoints": [60], "threads": 1, "init_points": 2000, "sky_points
 def fit_params(**overrides) -> dict:
     from paradrive.pipeline.specs import StageRegistry
 
-    return StageRegistry().resolve("smoke", {"fit": {**SHORT_FIT, **overrides}}).params["fit"]
+    return StageRegistry().resolve("smoke", {"fit": {**SHORT_FIT, **overrides}}).typed("fit")
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def fitted(street_scene, tmp_path_factory):
             shutil.copytree(street_scene["dir"], d)
             p = fit_params(**TERMS[name])
             fit_scene(d, p)
-            cache[name] = load_ply(d / "gs" / f"ckpt_{p['checkpoints'][-1]:06d}.ply")
+            cache[name] = load_ply(d / "gs" / f"ckpt_{p.checkpoints[-1]:06d}.ply")
         return cache[name]
 
     return get

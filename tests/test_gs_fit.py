@@ -32,10 +32,10 @@ TINY_FIT = {
 }
 
 
-def stage_params(profile: str | None = None, **overrides) -> dict:
+def fit_params(profile: str | None = None, **overrides):
     from paradrive.pipeline.specs import StageRegistry
 
-    return StageRegistry().resolve(profile, {"fit": overrides} if overrides else None).params["fit"]
+    return StageRegistry().resolve(profile, {"fit": overrides} if overrides else None).typed("fit")
 
 
 def _copy_scene(src: Path, dst: Path) -> Path:
@@ -62,12 +62,12 @@ def test_psnr_and_ssim_of_identical_and_noisy_images():
 # --------------------------------------------------------------------------- quality
 
 def test_smoke_fit_psnr_rises_across_checkpoints_and_reaches_25db(smoke_scene):
-    params = stage_params("smoke")
+    params = fit_params("smoke")
     scene_dir = smoke_scene["data_dir"] / "scenes" / smoke_scene["report"].results[0].scene_id
     doc = json.loads((scene_dir / "gs" / "fit.json").read_text())
     assert doc["complete"]
     its = [c["iteration"] for c in doc["checkpoints"]]
-    assert its == sorted(params["checkpoints"])
+    assert its == params.checkpoints
     values = [c["psnr"] for c in doc["checkpoints"]]
     assert all(b > a for a, b in zip(values, values[1:])), values
     assert values[-1] >= 25.0, values
@@ -78,18 +78,19 @@ def test_smoke_fit_psnr_rises_across_checkpoints_and_reaches_25db(smoke_scene):
 
 # --------------------------------------------------------------------------- outputs and resume
 
-def _run_fit_process(scene_dir: Path, params: dict, tmp: Path) -> subprocess.Popen:
+def _run_fit_process(scene_dir: Path, params, tmp: Path) -> subprocess.Popen:
     cfg = tmp / f"params-{scene_dir.name}.json"
-    cfg.write_text(json.dumps(params))
+    cfg.write_text(json.dumps(params.source))
     code = ("import json, sys\nfrom paradrive.gs.fit import fit_scene\n"
-            "fit_scene(sys.argv[1], json.load(open(sys.argv[2])))\n")
+            "from paradrive.stages.fit import Params\n"
+            "fit_scene(sys.argv[1], Params.of('fit', json.load(open(sys.argv[2]))))\n")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.Popen([sys.executable, "-c", code, str(scene_dir), str(cfg)], cwd=REPO,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
 def test_killed_fit_resumes_to_byte_identical_checkpoints(tiny_scene, tmp_path):
-    params = stage_params("smoke", **TINY_FIT)
+    params = fit_params("smoke", **TINY_FIT)
     ref = _copy_scene(tiny_scene, tmp_path / "ref")
     killed = _copy_scene(tiny_scene, tmp_path / "killed")
 
@@ -119,7 +120,7 @@ def test_killed_fit_resumes_to_byte_identical_checkpoints(tiny_scene, tmp_path):
     out, _ = proc.communicate(timeout=600)
     assert proc.returncode == 0, out.decode()
 
-    for it in params["checkpoints"]:
+    for it in params.checkpoints:
         name = f"ckpt_{it:06d}.ply"
         assert (ref / "gs" / name).read_bytes() == (killed / "gs" / name).read_bytes(), name
     assert first.stat().st_mtime_ns == kept, "a checkpoint written before the kill was rewritten"
@@ -228,12 +229,12 @@ def test_lidar_init_filters_points_and_colours_them_from_images(tiny_scene):
 
     scene = load_scene(tiny_scene)
     views = load_views(scene, None, 1)
-    p = stage_params("smoke", **{**TINY_FIT, "init": "lidar", "init_points": 800})
+    p = fit_params("smoke", **{**TINY_FIT, "init": "lidar", "init_points": 800})
     raw, is_sky, desc = initial_model(scene, views, p, scene_scale_of(scene.c2w("front")),
                                       __import__("logging").getLogger("test"))
     assert desc["method"] == "lidar" and desc["points"] == 800
-    assert int(is_sky.sum()) == p["sky_points"]
-    assert raw["means"].shape[0] == 800 + p["sky_points"]
+    assert int(is_sky.sum()) == p.sky_points
+    assert raw["means"].shape[0] == 800 + p.sky_points
     rgb = raw["sh0"][:800, 0] * 0.28209479177387814 + 0.5
     # every point takes the image colour at its pixel in the first frame that sees it
     expected, seen = _first_view_colours(raw["means"][:800].double(), sorted(views, key=lambda v: v.frame))
@@ -276,14 +277,14 @@ def test_lidar_free_fit_runs_when_the_scene_has_no_lidar(tiny_scene, tmp_path):
 
     scene_dir = _copy_scene(tiny_scene, tmp_path / "nolidar")
     shutil.rmtree(scene_dir / "lidar", ignore_errors=True)
-    params = stage_params("smoke", **{**TINY_FIT, "checkpoints": [1, 30], "init": "auto", "reset_every": 1000})
+    params = fit_params("smoke", **{**TINY_FIT, "checkpoints": [1, 30], "init": "auto", "reset_every": 1000})
     doc = fit_scene(scene_dir, params)
-    assert doc["init"]["method"] == "frustum"
-    assert [c["iteration"] for c in doc["checkpoints"]] == [1, 30]
-    first, last = doc["checkpoints"]
-    assert last["psnr"] > first["psnr"] + 1.0, doc["checkpoints"]   # it learns the street
+    assert doc.init.method == "frustum"
+    assert [c.iteration for c in doc.checkpoints] == [1, 30]
+    first, last = doc.checkpoints
+    assert last.psnr > first.psnr + 1.0, doc.checkpoints   # it learns the street
     q = load_ply(scene_dir / "gs" / "ckpt_000030.ply")
-    assert q["means"].shape[0] == doc["checkpoints"][-1]["num_gaussians"]
+    assert q["means"].shape[0] == doc.checkpoints[-1].num_gaussians
 
 
 def _first_view_colours(points: torch.Tensor, views) -> tuple[torch.Tensor, torch.Tensor]:

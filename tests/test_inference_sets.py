@@ -9,6 +9,8 @@ from collections import Counter
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive import geometry
 from paradrive.data import PairDataset
 from paradrive.video import decode_frames
@@ -114,7 +116,7 @@ def test_the_adapter_reads_rows_with_and_without_a_target(inference_build, tmp_p
     rows, media, summary = scene_rows(inference_build["data_dir"] / "scenes" / SCENE,
                                       truth=lambda clip, offset, c2w: None)
     publish(tmp_path / "real", rows, media, scenes=[summary], skipped=[],
-            params={"kind": "inference"})
+            params=stage_params("manifest", {"kind": "inference"}))
     table = read_pairs(tmp_path / "real").to_pylist()
     assert len(table) == 24 and {r["target_uri"] for r in table} == {None}
     sample = PairDataset(tmp_path / "real")[3]
@@ -165,7 +167,8 @@ def test_eval_build_scores_the_conditions_as_eval_scores_the_final_checkpoint(in
     doc = score_videos(inference_build["dir"], videos)
     assert len(doc["missing"]) == 24  # the other scene's rows
     params = inference_build["config"].params
-    truth = evaluate_scene(inference_build["data_dir"] / "scenes" / SCENE, params["render"],
+    truth = evaluate_scene(inference_build["data_dir"] / "scenes" / SCENE,
+                           inference_build["config"].typed("render"),
                            ingest_params=params["ingest"], max_frames=None,
                            out_dir=tmp_path / "eval")
     shifted = {r["offset_m"]: r for r in truth["cameras"]["front"]["shifted"]}

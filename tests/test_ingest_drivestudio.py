@@ -7,6 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import export
@@ -36,7 +38,7 @@ def waymo_folder(source, tmp_path_factory):
 @pytest.fixture(scope="module")
 def waymo_scene(waymo_folder, tmp_path_factory):
     out = tmp_path_factory.mktemp("scenes") / "drivestudio-023"
-    ingest(f"drivestudio:{waymo_folder}", out, {"cameras": list(CAMS), "image_ext": "png"})
+    ingest(f"drivestudio:{waymo_folder}", out, stage_params("ingest", {"cameras": list(CAMS), "image_ext": "png"}))
     return load_scene(out)
 
 
@@ -88,7 +90,7 @@ def test_ten_column_lidar_files_are_read_too(waymo_folder, source, tmp_path):
         rows = np.fromfile(path, dtype=np.float32).reshape(-1, 14)
         np.concatenate([rows[:, :6], rows[:, 10:]], 1).tofile(path)  # no flow columns
     out = tmp_path / "s"
-    ingest(f"drivestudio:{folder}", out, {"cameras": ["front"], "sky_masks": False})
+    ingest(f"drivestudio:{folder}", out, stage_params("ingest", {"cameras": ["front"], "sky_masks": False}))
     assert np.abs(np.load(out / "lidar" / "000001.npy") - source.lidar(1)).max() < 1e-3
     assert not (out / "masks").exists()
 
@@ -97,7 +99,7 @@ def test_nuscenes_flavour_uses_the_front_camera_as_ego(source, tmp_path):
     folder = export.export_drivestudio(source, tmp_path / "processed_10Hz" / "mini" / "001",
                                        flavour="nuscenes")
     out = tmp_path / "s"
-    ingest(f"drivestudio:{folder}", out, {"cameras": list(CAMS), "image_ext": "png"})
+    ingest(f"drivestudio:{folder}", out, stage_params("ingest", {"cameras": list(CAMS), "image_ext": "png"}))
     scene = load_scene(out)
     ego0 = export.GLOBAL @ source.c2w["front"][0] @ geometry.invert(OPENCV_TO_FLU)
     for cam in CAMS:
@@ -114,8 +116,8 @@ def test_nuscenes_flavour_uses_the_front_camera_as_ego(source, tmp_path):
 
 def test_fps_query_overrides(waymo_folder, tmp_path):
     out = tmp_path / "s"
-    ingest(f"drivestudio:{waymo_folder}?fps=12", out, {"cameras": ["front"], "max_frames": 2,
-                                                        "lidar": False})
+    ingest(f"drivestudio:{waymo_folder}?fps=12", out, stage_params("ingest", {"cameras": ["front"], "max_frames": 2,
+                                                        "lidar": False}))
     scene = load_scene(out)
     assert scene.fps == 12.0 and len(scene.frames) == 2
 
@@ -130,13 +132,13 @@ def test_missing_image_is_named(waymo_folder, tmp_path):
     folder = _copy(waymo_folder, tmp_path)
     (folder / "images" / "002_1.jpg").unlink()
     with pytest.raises(SceneError, match=r"frame 2 camera front_left image is missing \(.*002_1.jpg\)"):
-        ingest(f"drivestudio:{folder}", tmp_path / "s", {"cameras": list(CAMS)})
+        ingest(f"drivestudio:{folder}", tmp_path / "s", stage_params("ingest", {"cameras": list(CAMS)}))
     assert not (tmp_path / "s").exists()
 
 
 def test_camera_without_calibration_is_named(waymo_folder, tmp_path):
     with pytest.raises(SceneError, match=r"calibration missing for camera\(s\) side_left"):
-        ingest(f"drivestudio:{waymo_folder}", tmp_path / "s", {"cameras": ["side_left"]})
+        ingest(f"drivestudio:{waymo_folder}", tmp_path / "s", stage_params("ingest", {"cameras": ["side_left"]}))
 
 
 def test_nan_ego_pose_is_reported(waymo_folder, tmp_path):
@@ -145,17 +147,17 @@ def test_nan_ego_pose_is_reported(waymo_folder, tmp_path):
     pose[0, 3] = np.nan
     np.savetxt(folder / "ego_pose" / "002.txt", pose)
     with pytest.raises(SceneError, match=r"frame 2 ego pose has NaN \(.*ego_pose/002.txt\)"):
-        ingest(f"drivestudio:{folder}", tmp_path / "s", {"cameras": ["front"]})
+        ingest(f"drivestudio:{folder}", tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def test_gap_in_frames_is_reported(waymo_folder, tmp_path):
     folder = _copy(waymo_folder, tmp_path)
     (folder / "ego_pose" / "001.txt").unlink()
     with pytest.raises(SceneError, match=r"frame 001 is missing"):
-        ingest(f"drivestudio:{folder}", tmp_path / "s", {"cameras": ["front"]})
+        ingest(f"drivestudio:{folder}", tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def test_not_a_scene_folder_is_reported(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SceneError, match="not a DriveStudio scene folder"):
-        ingest(f"drivestudio:{tmp_path / 'empty'}", tmp_path / "s", {})
+        ingest(f"drivestudio:{tmp_path / 'empty'}", tmp_path / "s", stage_params("ingest", {}))

@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive.errors import SceneError
 from paradrive.ingest import export
 from paradrive.stages.ingest import ingest
@@ -39,7 +41,7 @@ URI = "nuscenes:{root}?version=v1.0-mini#scene-0061"
 @pytest.fixture(scope="module")
 def scene(dataroot, tmp_path_factory):
     out = tmp_path_factory.mktemp("scenes") / "nuscenes-scene-0061"
-    ingest(URI.format(root=dataroot), out, {"cameras": list(CAMS), "image_ext": "png"})
+    ingest(URI.format(root=dataroot), out, stage_params("ingest", {"cameras": list(CAMS), "image_ext": "png"}))
     return load_scene(out)
 
 
@@ -92,7 +94,7 @@ def test_jpeg_log_images_are_copied_as_they_are(source, tmp_path):
     export.export_nuscenes(source, root, cameras=["front"], frames=3, image_format="jpg",
                            lidar=False, scene_name="scene-0061")
     out = tmp_path / "s"
-    ingest(URI.format(root=root), out, {"cameras": ["front"]})
+    ingest(URI.format(root=root), out, stage_params("ingest", {"cameras": ["front"]}))
     scene = load_scene(out)
     rows = json.loads((root / "v1.0-mini" / "sample_data.json").read_text())
     first = next(r for r in rows if r["prev"] == "" and "CAM_FRONT" in r["filename"])
@@ -120,7 +122,7 @@ def test_missing_table_is_named(dataroot, tmp_path):
     root = _copy(dataroot, tmp_path)
     (root / "v1.0-mini" / "sample_data.json").unlink()
     with pytest.raises(SceneError, match=r"table sample_data.json is missing \(.*v1.0-mini/sample_data.json\); "):
-        ingest(URI.format(root=root), tmp_path / "s", {"cameras": ["front"]})
+        ingest(URI.format(root=root), tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
     assert not (tmp_path / "s").exists()
 
 
@@ -129,12 +131,12 @@ def test_missing_sweep_image_is_named(dataroot, tmp_path):
     victim = next((root / "sweeps" / "CAM_FRONT").iterdir())
     victim.unlink()
     with pytest.raises(SceneError, match=r"image of sample_data \w+ \(front, frame \d\) is missing"):
-        ingest(URI.format(root=root), tmp_path / "s", {"cameras": ["front"]})
+        ingest(URI.format(root=root), tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def test_camera_without_calibration_is_named(dataroot, tmp_path):
     with pytest.raises(SceneError, match=r"calibration missing for camera\(s\) back"):
-        ingest(URI.format(root=dataroot), tmp_path / "s", {"cameras": ["front", "back"]})
+        ingest(URI.format(root=dataroot), tmp_path / "s", stage_params("ingest", {"cameras": ["front", "back"]}))
 
 
 def test_non_monotonic_timestamps_are_reported(dataroot, tmp_path):
@@ -151,7 +153,7 @@ def test_non_monotonic_timestamps_are_reported(dataroot, tmp_path):
                 r["timestamp"] = stamp
     _edit(root, "sample_data", rewind)
     with pytest.raises(SceneError, match=r"\(frame 2, front\) timestamp \d+ us is not after .*\(non-monotonic timestamps\)"):
-        ingest(URI.format(root=root), tmp_path / "s", {"cameras": ["front"]})
+        ingest(URI.format(root=root), tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def test_nan_ego_pose_is_reported(dataroot, tmp_path):
@@ -161,9 +163,9 @@ def test_nan_ego_pose_is_reported(dataroot, tmp_path):
         rows[4]["translation"][1] = float("nan")
     _edit(root, "ego_pose", poison)
     with pytest.raises(SceneError, match=r"ego_pose \w+ has NaN \(.*ego_pose.json\); fix or drop"):
-        ingest(URI.format(root=root), tmp_path / "s", {"cameras": ["front"], "lidar": False})
+        ingest(URI.format(root=root), tmp_path / "s", stage_params("ingest", {"cameras": ["front"], "lidar": False}))
 
 
 def test_unknown_scene_name_is_reported(dataroot, tmp_path):
     with pytest.raises(SceneError, match=r"no scene 'scene-9999'"):
-        ingest(f"nuscenes:{dataroot}?version=v1.0-mini#scene-9999", tmp_path / "s", {})
+        ingest(f"nuscenes:{dataroot}?version=v1.0-mini#scene-9999", tmp_path / "s", stage_params("ingest", {}))

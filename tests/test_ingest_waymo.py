@@ -9,6 +9,8 @@ import shutil
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import export
@@ -52,7 +54,7 @@ def segment(source, tmp_path_factory):
 @pytest.fixture(scope="module")
 def ingested(segment, tmp_path_factory):
     out = tmp_path_factory.mktemp("scenes") / "waymo-1234"
-    summary = ingest(f"waymo:{segment}", out, {"cameras": list(CAMS), "image_ext": "png"})
+    summary = ingest(f"waymo:{segment}", out, stage_params("ingest", {"cameras": list(CAMS), "image_ext": "png"}))
     return summary, load_scene(out)
 
 
@@ -107,7 +109,7 @@ def test_top_lidar_range_image_becomes_world_points(source, ingested):
 
 def test_jpeg_images_are_copied_without_reencoding(segment, tmp_path):
     out = tmp_path / "waymo-1234"
-    ingest(f"waymo:{segment}", out, {"cameras": ["front_left"], "max_frames": 2, "lidar": False})
+    ingest(f"waymo:{segment}", out, stage_params("ingest", {"cameras": ["front_left"], "max_frames": 2, "lidar": False}))
     scene = load_scene(out)
     frame = next(f for _, f in waymo.iter_frames(segment, "x"))
     original = next(bytes(im.image) for im in frame.images if im.name == 2)
@@ -133,7 +135,7 @@ def test_folder_lists_segments_and_fragment_picks_one(segment, tmp_path):
 
 def test_camera_missing_from_the_log_is_named(segment, tmp_path):
     with pytest.raises(SceneError, match=r"calibration missing for camera\(s\) side_left"):
-        ingest(f"waymo:{segment}", tmp_path / "s", {"cameras": ["front", "side_left"]})
+        ingest(f"waymo:{segment}", tmp_path / "s", stage_params("ingest", {"cameras": ["front", "side_left"]}))
     assert not (tmp_path / "s").exists()
 
 
@@ -143,7 +145,7 @@ def test_crc_mismatch_names_segment_and_record(segment, tmp_path):
     raw[len(raw) // 2] ^= 0xFF
     bad.write_bytes(bytes(raw))
     with pytest.raises(SceneError) as err:
-        ingest(f"waymo:{bad}", tmp_path / "s", {"cameras": ["front"]})
+        ingest(f"waymo:{bad}", tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
     text = str(err.value)
     assert "scene waymo-1234" in text or "scene s" in text
     assert "CRC mismatch" in text and "record" in text and str(bad) in text and "re-download" in text
@@ -154,7 +156,7 @@ def test_truncated_segment_is_reported(segment, tmp_path):
     bad = tmp_path / SEGMENT
     bad.write_bytes(segment.read_bytes()[:-1000])
     with pytest.raises(SceneError, match=r"record 3 .*truncated record"):
-        ingest(f"waymo:{bad}", tmp_path / "s", {"cameras": ["front"]})
+        ingest(f"waymo:{bad}", tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def _log(source, **changes):
@@ -168,7 +170,7 @@ def test_non_monotonic_timestamps_are_reported(source, tmp_path):
     path = tmp_path / "seg.tfrecord"
     export.export_waymo(_log(source, timestamps_us=stamps), path, lidar=False)
     with pytest.raises(SceneError, match=r"frame 2 timestamp 100000 us is not after .*non-monotonic.*record 2"):
-        ingest(f"waymo:{path}", tmp_path / "s", {"cameras": ["front"]})
+        ingest(f"waymo:{path}", tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def test_nan_vehicle_pose_is_reported(source, tmp_path):
@@ -177,7 +179,7 @@ def test_nan_vehicle_pose_is_reported(source, tmp_path):
     path = tmp_path / "seg.tfrecord"
     export.export_waymo(_log(source, ego2world=ego), path, lidar=False)
     with pytest.raises(SceneError, match=r"frame 1 vehicle pose has NaN \(.*seg.tfrecord record 1\); fix or drop"):
-        ingest(f"waymo:{path}", tmp_path / "s", {"cameras": ["front"]})
+        ingest(f"waymo:{path}", tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 
 def test_image_pose_is_used_not_the_frame_pose(source, tmp_path):
@@ -186,7 +188,7 @@ def test_image_pose_is_used_not_the_frame_pose(source, tmp_path):
     path = tmp_path / "seg.tfrecord"
     export.export_waymo(_log(source, c2w=shifted), path, lidar=False)
     out = tmp_path / "s"
-    ingest(f"waymo:{path}", out, {"cameras": ["front"], "image_ext": "png"})
+    ingest(f"waymo:{path}", out, stage_params("ingest", {"cameras": ["front"], "image_ext": "png"}))
     scene = load_scene(out)
     assert np.abs(scene.c2w("front") - shifted["front"]).max() < 1e-6
     assert np.abs(scene.ego2world() - source.ego2world).max() < 1e-6

@@ -8,6 +8,8 @@ import shutil
 
 import numpy as np
 import pytest
+
+from conftest import stage_params
 import typer
 from typer.testing import CliRunner
 
@@ -27,7 +29,7 @@ def build(tmp_path_factory):
     rng = np.random.default_rng(0)
     np.save(lidar / "000000.npy", (rng.uniform([-5, -12, -1], [30, 12, 3], (4000, 3))).astype(np.float32))
     build_dir = tmp_path_factory.mktemp("manifests") / "b"
-    build_manifest(build_dir, [scenes_entry(s) for s in scenes], {"media": "copy"})
+    build_manifest(build_dir, [scenes_entry(s) for s in scenes], stage_params("manifest", {"media": "copy"}))
     return build_dir
 
 

@@ -17,6 +17,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from conftest import stage_params
+
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.pairs import SCHEMA, make_pair_id, read_index, read_pairs
@@ -83,6 +85,7 @@ def write_clip_scene(data_dir: Path, scene_id: str, *, dataset: str = "synthetic
     ext = "mp4" if codec == "libx264" else "mkv"
     doc = {"schema_version": 1, "scene_id": scene_id, "dataset": dataset,
            "source": f"synthetic:{scene_id}", "fps": fps, "width": width, "height": height,
+           "codec": codec,
            "cameras": {"front": {"intrinsics": [50.0, 50.0, width / 2, height / 2]}},
            "fit": {"iteration": 30000, "train_psnr": 31.2, "train_ssim": 0.93},
            "clips": [], "skipped": [{"camera": "front", "clip": "extra", "reason": "too short"}]}
@@ -134,8 +137,8 @@ def two_scene_data(tmp_path_factory):
 def built(tmp_path_factory, two_scene_data):
     build_dir = tmp_path_factory.mktemp("manifests") / "b1"
     params = {"shard_rows": 50, "row_group_rows": 16, "media": "hardlink"}
-    build_manifest(build_dir, [scenes_entry(s) for s in two_scene_data], params,
-                   fingerprint="fp-1")
+    build_manifest(build_dir, [scenes_entry(s) for s in two_scene_data],
+                   stage_params("manifest", params), fingerprint="fp-1")
     return build_dir
 
 
@@ -240,14 +243,14 @@ def test_index_lists_shards_with_rows_bytes_and_sha256(built):
 def test_shards_can_be_capped_by_bytes(tmp_path, two_scene_data):
     build = tmp_path / "bybytes"
     index = build_manifest(build, [scenes_entry(two_scene_data[0])],
-                           {"shard_rows": 1000, "shard_bytes": 20_000})
+                           stage_params("manifest", {"shard_rows": 1000, "shard_bytes": 20_000}))
     rows = [s["rows"] for s in index["shards"]]
     assert sum(rows) == 72 and len(rows) > 1
 
 
 def test_adding_scenes_keeps_the_old_rows(tmp_path, two_scene_data, built):
     single = tmp_path / "single"
-    build_manifest(single, [scenes_entry(two_scene_data[0])], {"shard_rows": 7})
+    build_manifest(single, [scenes_entry(two_scene_data[0])], stage_params("manifest", {"shard_rows": 7}))
     old = read_pairs(single).to_pandas().set_index("pair_id")
     both = read_pairs(built).to_pandas().set_index("pair_id")
     assert len(old) == 72
@@ -259,12 +262,12 @@ def test_adding_scenes_keeps_the_old_rows(tmp_path, two_scene_data, built):
 def test_republishing_keeps_foreign_files_and_drops_stale_shards(tmp_path, two_scene_data):
     build = tmp_path / "b"
     entries = [scenes_entry(s) for s in two_scene_data]
-    build_manifest(build, entries, {"shard_rows": 10})
+    build_manifest(build, entries, stage_params("manifest", {"shard_rows": 10}))
     assert len(list(build.glob("pairs-*.parquet"))) == 15
     (build / "ledger.sqlite").write_bytes(b"ledger")
     (build / "logs").mkdir()
     (build / "logs" / "run.log").write_text("log")
-    build_manifest(build, entries[:1], {"shard_rows": 100})
+    build_manifest(build, entries[:1], stage_params("manifest", {"shard_rows": 100}))
     assert sorted(p.name for p in build.glob("pairs-*.parquet")) == ["pairs-00000.parquet"]
     assert (build / "ledger.sqlite").read_bytes() == b"ledger"
     assert (build / "logs" / "run.log").read_text() == "log"
@@ -277,12 +280,12 @@ def test_media_hardlinks_share_the_inode_and_copy_does_not(tmp_path, two_scene_d
     src = two_scene_data[0] / "clips/front/middle/target.mp4"
     for mode, same in (("hardlink", True), ("copy", False)):
         build = tmp_path / mode
-        build_manifest(build, [scenes_entry(two_scene_data[0])], {"media": mode})
+        build_manifest(build, [scenes_entry(two_scene_data[0])], stage_params("manifest", {"media": mode}))
         dst = build / "media/synthetic-a/clips/front/middle/target.mp4"
         assert (os.stat(dst).st_ino == os.stat(src).st_ino) is same
         assert dst.read_bytes() == src.read_bytes()
     build = tmp_path / "symlink"
-    build_manifest(build, [scenes_entry(two_scene_data[0])], {"media": "symlink"})
+    build_manifest(build, [scenes_entry(two_scene_data[0])], stage_params("manifest", {"media": "symlink"}))
     assert (build / "media/synthetic-a/clips/front/middle/target.mp4").is_symlink()
 
 
@@ -296,7 +299,7 @@ def test_a_bad_scene_is_skipped_with_its_reason(tmp_path, two_scene_data):
     (bad / "clips/clips.json").write_text(json.dumps(doc))
     victim = bad / "clips/front/rear/cond@000500.mp4"
     victim.write_bytes(victim.read_bytes()[:-10] + b"0123456789")
-    index = build_manifest(tmp_path / "b", [scenes_entry(two_scene_data[0]), scenes_entry(bad)], {})
+    index = build_manifest(tmp_path / "b", [scenes_entry(two_scene_data[0]), scenes_entry(bad)], stage_params("manifest", {}))
     assert index["totals"]["rows"] == 72
     (skip,) = index["skipped_scenes"]
     assert skip["scene_id"] == "synthetic-bad"
@@ -306,7 +309,7 @@ def test_a_bad_scene_is_skipped_with_its_reason(tmp_path, two_scene_data):
 def test_no_usable_scene_is_an_error_naming_clips_json(tmp_path):
     (tmp_path / "scenes" / "x").mkdir(parents=True)
     with pytest.raises(ParaDriveError, match="clips.json is missing"):
-        build_manifest(tmp_path / "b", [{"scene_id": "x", "scene_dir": str(tmp_path / "scenes/x")}], {})
+        build_manifest(tmp_path / "b", [{"scene_id": "x", "scene_dir": str(tmp_path / "scenes/x")}], stage_params("manifest", {}))
     assert not (tmp_path / "b" / "index.json").exists()
 
 

@@ -8,6 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.pipeline import StageRegistry, run_build
@@ -232,7 +234,7 @@ def test_missing_checkpoint_names_the_file_and_the_fix(rendered, copy_tree):
     it = rendered["params"]["condition_checkpoints"][0]
     (scene_dir / "gs" / f"ckpt_{it:06d}.ply").unlink()
     with pytest.raises(SceneError) as err:
-        render_scene(scene_dir, rendered["params"])
+        render_scene(scene_dir, stage_params("render", rendered["params"]))
     text = str(err.value)
     assert f"ckpt_{it:06d}.ply" in text and "fit.checkpoints" in text and SID in text
     # the renders already there are untouched
@@ -242,12 +244,12 @@ def test_missing_checkpoint_names_the_file_and_the_fix(rendered, copy_tree):
 def test_unknown_camera_is_a_scene_error(rendered, copy_tree):
     scene_dir = copy_tree(rendered["dir"])
     with pytest.raises(SceneError, match="side_left"):
-        render_scene(scene_dir, {**rendered["params"], "cameras": ["front", "side_left"]})
+        render_scene(scene_dir, stage_params("render", {**rendered["params"], "cameras": ["front", "side_left"]}))
 
 
 def test_short_scene_skips_its_clips_with_a_reason(rendered, copy_tree):
     scene_dir = copy_tree(rendered["dir"])
-    summary = render_scene(scene_dir, {**rendered["params"], "clip_frames": 30})
+    summary = render_scene(scene_dir, stage_params("render", {**rendered["params"], "clip_frames": 30})).summary()
     doc = json.loads((scene_dir / "renders" / "renders.json").read_text())
     cam = doc["cameras"]["front"]
     assert summary["skipped_clips"] == 1 and cam["windows"] == [] and cam["streams"] == {}

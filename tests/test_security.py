@@ -10,6 +10,8 @@ import re
 import shutil
 
 import pytest
+
+from conftest import stage_params
 import torch
 
 from paradrive.io import PathEscapeError, UnsafeFileError
@@ -45,7 +47,7 @@ def _fit_params() -> dict:
 
     return StageRegistry().resolve("smoke", {"fit": {
         "checkpoints": [2, 4], "threads": 1, "init_points": 500, "sky_points": 100,
-        "eval_views": 2, "state_interval": 2, "keep_state": True}}).params["fit"]
+        "eval_views": 2, "state_interval": 2, "keep_state": True}}).typed("fit")
 
 
 def test_a_pickled_fit_state_is_refused_and_the_fit_starts_over(tiny_scene, tmp_path, caplog):
@@ -60,7 +62,7 @@ def test_a_pickled_fit_state_is_refused_and_the_fit_starts_over(tiny_scene, tmp_
     assert not marker.exists()
     assert any(str(state) in r.getMessage() and "starting over" in r.getMessage()
                and "pickle" in r.getMessage() for r in caplog.records)
-    assert doc["complete"] and [c["iteration"] for c in doc["checkpoints"]] == [2, 4]
+    assert doc.complete and [c.iteration for c in doc.checkpoints] == [2, 4]
     # the state the fit wrote in its place holds tensors and plain data only
     saved = torch.load(state, weights_only=True)
     assert saved["version"] == STATE_VERSION and saved["step"] == 4
@@ -137,7 +139,7 @@ def clip_build(tmp_path_factory):
     data = tmp_path_factory.mktemp("data")
     scene = write_clip_scene(data, "synthetic-a", clips=("middle",))
     build_dir = tmp_path_factory.mktemp("manifests") / "b"
-    build_manifest(build_dir, [scenes_entry(scene)], {"media": "copy"})
+    build_manifest(build_dir, [scenes_entry(scene)], stage_params("manifest", {"media": "copy"}))
     return build_dir
 
 
@@ -242,7 +244,7 @@ def test_a_symlink_build_reads_its_links_into_the_scene_folder(tmp_path):
     scene = write_clip_scene(tmp_path / "data", "synthetic-a", clips=("middle",),
                              offsets=(1.0,), conditions=(100,))
     build = tmp_path / "b"
-    build_manifest(build, [scenes_entry(scene)], {"media": "symlink"})
+    build_manifest(build, [scenes_entry(scene)], stage_params("manifest", {"media": "symlink"}))
     ds = PairDataset(build, verify_checksums=True)
     assert ds[0]["target"].shape[0] == 8
     assert verify_build(build)["ok"]
@@ -278,7 +280,7 @@ def test_eval_refuses_a_scene_whose_image_path_leads_out(tiny_scene, tmp_path):
     doc = json.loads((scene / "scene.json").read_text())
     doc["frames"][2]["cameras"]["front"]["image"] = "../../../outside.jpg"
     (scene / "scene.json").write_text(json.dumps(doc))
-    render = StageRegistry().resolve("smoke").params["render"]
+    render = StageRegistry().resolve("smoke").typed("render")
     with pytest.raises(SceneError, match=r"frame 2 camera front image: path '../../../outside.jpg' "
                                          r"must be relative"):
         evaluate_scene(scene, render)

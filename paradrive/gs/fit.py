@@ -62,7 +62,7 @@ log_default = logging.getLogger("paradrive.gs.fit")
 
 # --------------------------------------------------------------------------- parameters
 
-def _fingerprint(p: FitParams) -> str:
+def _fingerprint(p: dict[str, Any]) -> str:
     keep = {k: p[k] for k in sorted(p) if k not in ("keep_state", "state_interval", "eval_views")}
     return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -190,7 +190,7 @@ def _rng_state(gen: torch.Generator) -> dict:
     kind, keys, pos, has_gauss, cached = np.random.get_state()
     version, internal, gauss_next = random.getstate()
     return {"train": gen.get_state(), "torch": torch.get_rng_state(),
-            "numpy": {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
+            "numpy": {"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys).astype(np.int64)),
                       "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
             "python": {"version": int(version), "internal": [int(x) for x in internal],
                        "gauss_next": gauss_next}}
@@ -259,7 +259,7 @@ def _eval_indices(n_views: int, n_eval: int) -> list[int]:
 
 # --------------------------------------------------------------------------- the fit
 
-def fit_scene(scene: SceneLayout | str | os.PathLike, p: FitParams, *,
+def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
               log: Optional[logging.Logger] = None,
               progress: Optional[Callable[[int, int], None]] = None,
               stop_after: Optional[int] = None) -> FitRecord:
@@ -270,7 +270,7 @@ def fit_scene(scene: SceneLayout | str | os.PathLike, p: FitParams, *,
     """
     from paradrive.scene import load_scene
 
-    layout = scene if isinstance(scene, SceneLayout) else SceneLayout(Path(scene))
+    layout = SceneLayout.at(scene)
     layout.gs_dir.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(layout.gs_dir)
     device = resolve_device(p.device)
@@ -281,177 +281,193 @@ def fit_scene(scene: SceneLayout | str | os.PathLike, p: FitParams, *,
 
 def _fit(scene, layout: SceneLayout, p: FitParams, device: torch.device,
          log: logging.Logger, progress, stop_after) -> FitRecord:
-    fp = _fingerprint({**p.source, "checkpoints": p.checkpoints})
-    cps = p.checkpoints
-    total = cps[-1]
-    views = load_views(scene, p.cameras, p.downscale)
-    scene_scale = scene_scale_of(torch.stack([v.c2w for v in views]))
-    strategy = DensifyStrategy(prune_opa=p.prune_opa, grow_grad2d=p.grow_grad2d,
-                               grow_scale3d=p.grow_scale3d,
-                               prune_scale3d=p.prune_scale3d,
-                               refine_start_iter=p.refine_start_iter,
-                               refine_stop_iter=p.refine_stop_iter,
-                               reset_every=p.reset_every, refine_every=p.refine_every,
-                               max_gaussians=p.max_gaussians)
-    backend = resolve_backend(p.backend, device)
-    # the training order and split samples come from a CPU generator on every device, so a fit
-    # resumed on another machine draws the same numbers
-    gen = torch.Generator(device="cpu").manual_seed(p.seed + 1)
-    state_path = layout.fit_state
-    saved = None
-    if state_path.is_file():
-        try:
-            saved = load_tensors(state_path)
-        except Exception as exc:  # an older version's state, a foreign file, one that needs pickle
-            log.warning("fit: %s not loaded (%s); starting over", state_path, exc)
-        if saved is not None and not isinstance(saved, dict):
-            log.warning("fit: %s is not a resume state; starting over", state_path)
-            saved = None
-        if saved is not None and (saved.get("version") != STATE_VERSION or saved.get("fingerprint") != fp):
-            log.warning("fit: %s was made with other parameters; starting over", state_path)
-            saved = None
+    run = _Fit(scene, layout, p, device, log)
+    total = p.iterations
+    while run.step < total:
+        if stop_after is not None and run.step >= stop_after:
+            run.save_state()
+            return run.record(False)
+        run.iterate()
+        if run.step in p.checkpoints:
+            run.checkpoint()
+        elif run.step % max(p.state_interval, 1) == 0:
+            run.save_state()
+        if progress is not None and (run.step % 10 == 0 or run.step == total):
+            progress(run.step, total)
+    record = run.record(True)
+    if not p.keep_state:
+        layout.fit_state.unlink(missing_ok=True)
+    return record
 
-    if saved is not None:
-        raw = saved["params"]
-        extra = saved["extra"]
-        strat_state = dict(saved["strategy"])
-        step = int(saved["step"])
-        metrics = list(saved["metrics"])
-        elapsed0 = float(saved["elapsed"])
-        cpu0 = float(extra.pop("cpu_seconds", 0.0))
-        order, cursor = saved["order"].clone(), int(saved["cursor"])
-        log.info("fit: %s resumes at iteration %d", scene.scene_id, step)
-    else:
-        raw, is_sky, init_desc = initial_model(scene, views, p, scene_scale, log)
-        extra = {"init": init_desc, "scene_scale": scene_scale}
-        strat_state = strategy.initialize_state(len(is_sky), scene_scale, is_sky, device=device)
-        step, metrics, elapsed0, cpu0 = 0, [], 0.0, 0.0
-        order, cursor = torch.randperm(len(views), generator=gen), 0
 
-    params = {k: torch.nn.Parameter(raw[k].to(device).contiguous()) for k in PARAM_KEYS}
-    optimizers = _make_optimizers(params, p, scene_scale)
-    strat_state = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in strat_state.items()}
-    if saved is not None:
-        for k, o in optimizers.items():
-            o.load_state_dict(saved["optimizers"][k])
-        _set_rng_state(gen, saved["rng"])
-        del saved
+def _load_state(path: Path, fp: str, log: logging.Logger) -> dict | None:
+    """The resume state at ``path`` when it is one and was made with the same parameters."""
+    if not path.is_file():
+        return None
+    try:
+        saved = load_tensors(path)
+    except Exception as exc:  # an older version's state, a foreign file, one that needs pickle
+        log.warning("fit: %s not loaded (%s); starting over", path, exc)
+        return None
+    if not isinstance(saved, dict):
+        log.warning("fit: %s is not a resume state; starting over", path)
+        return None
+    if saved.get("version") != STATE_VERSION or saved.get("fingerprint") != fp:
+        log.warning("fit: %s was made with other parameters; starting over", path)
+        return None
+    return saved
 
-    densify = extra.setdefault("densify", {})   # running totals, saved with the state
-    lr0 = p.lr_means * scene_scale
-    gamma = (p.lr_means_final / p.lr_means) ** (1.0 / max(total, 1))
-    lam = p.ssim_lambda
-    sky_w = p.sky_depth_weight
-    sky_radius = p.sky_radius
-    has_sky = int(strat_state["is_sky"].sum()) > 0 and any(v.sky is not None for v in views)
-    depth_w = p.depth_weight
-    depth_inv = p.depth_inverse
-    depth_targets = (lidar_depth_targets(scene, views, device) if depth_w > 0
-                     else [None] * len(views))
-    flat_w = p.flatten_weight
-    ratio_w, ratio_max = p.shape_ratio_weight, p.shape_ratio_max
-    ratio_every = max(p.shape_ratio_every, 1)
-    eval_idx = _eval_indices(len(views), p.eval_views)
-    max_deg = p.sh_degree
-    interval = max(p.sh_degree_interval, 1)
-    state_every = max(p.state_interval, 1)
-    gpu_views = [(v.viewmat()[None].to(device), v.K[None].to(device)) for v in views]
-    t_start = time.perf_counter()
-    c_start = time.process_time()
 
-    def elapsed() -> float:
-        return elapsed0 + time.perf_counter() - t_start
+class _Fit:
+    """One fit in progress: the model, its optimizers and densification state, the training
+    order and the clocks; :meth:`iterate` takes one step, the rest writes what a step earned."""
 
-    def cpu_seconds() -> float:
-        return cpu0 + time.process_time() - c_start
+    def __init__(self, scene, layout: SceneLayout, p: FitParams, device: torch.device,
+                 log: logging.Logger):
+        self.scene, self.layout, self.p, self.device, self.log = scene, layout, p, device, log
+        self.fp = _fingerprint({**p.source, "checkpoints": p.checkpoints})
+        self.views = views = load_views(scene, p.cameras, p.downscale)
+        scene_scale = scene_scale_of(torch.stack([v.c2w for v in views]))
+        self.strategy = DensifyStrategy(
+            prune_opa=p.prune_opa, grow_grad2d=p.grow_grad2d, grow_scale3d=p.grow_scale3d,
+            prune_scale3d=p.prune_scale3d, refine_start_iter=p.refine_start_iter,
+            refine_stop_iter=p.refine_stop_iter, reset_every=p.reset_every,
+            refine_every=p.refine_every, max_gaussians=p.max_gaussians)
+        self.backend = resolve_backend(p.backend, device)
+        # the training order and split samples come from a CPU generator on every device, so a
+        # fit resumed on another machine draws the same numbers
+        self.gen = torch.Generator(device="cpu").manual_seed(p.seed + 1)
+        saved = _load_state(layout.fit_state, self.fp, log)
+        raw = self._resume(saved) if saved is not None else self._start(scene_scale)
+        self.params = {k: torch.nn.Parameter(raw[k].to(device).contiguous()) for k in PARAM_KEYS}
+        self.optimizers = _make_optimizers(self.params, p, scene_scale)
+        self.strat_state = {k: (v.to(device) if isinstance(v, torch.Tensor) else v)
+                            for k, v in self.strat_state.items()}
+        if saved is not None:
+            for k, o in self.optimizers.items():
+                o.load_state_dict(saved["optimizers"][k])
+            _set_rng_state(self.gen, saved["rng"])
+        self.densify = self.extra.setdefault("densify", {})   # running totals, saved with the state
+        self.lr0 = p.lr_means * scene_scale
+        self.gamma = (p.lr_means_final / p.lr_means) ** (1.0 / max(p.iterations, 1))
+        self.has_sky = (int(self.strat_state["is_sky"].sum()) > 0
+                        and any(v.sky is not None for v in views))
+        self.depth_targets = (lidar_depth_targets(scene, views, device) if p.depth_weight > 0
+                              else [None] * len(views))
+        self.eval_idx = _eval_indices(len(views), p.eval_views)
+        self.gpu_views = [(v.viewmat()[None].to(device), v.K[None].to(device)) for v in views]
+        self.t_start, self.c_start = time.perf_counter(), time.process_time()
 
-    def save_state() -> None:
-        _save_state(state_path, step=step, params=params, optimizers=optimizers,
-                    strategy_state=strat_state, gen=gen, order=order, cursor=cursor,
-                    metrics=metrics, elapsed=elapsed(), fingerprint=fp,
-                    extra={**extra, "cpu_seconds": cpu_seconds()})
+    def _resume(self, saved: dict) -> Params:
+        self.extra = saved["extra"]
+        self.strat_state = dict(saved["strategy"])
+        self.step = int(saved["step"])
+        self.metrics = list(saved["metrics"])
+        self.elapsed0 = float(saved["elapsed"])
+        self.cpu0 = float(self.extra.pop("cpu_seconds", 0.0))
+        self.order, self.cursor = saved["order"].clone(), int(saved["cursor"])
+        self.log.info("fit: %s resumes at iteration %d", self.scene.scene_id, self.step)
+        return saved["params"]
 
-    def write_summary(complete: bool) -> FitRecord:
-        record = FitRecord(scene_id=scene.scene_id, complete=complete, fingerprint=fp,
-                           iterations=total, checkpoints=metrics, eval_views=len(eval_idx),
-                           resolution=[views[0].width, views[0].height], n_views=len(views),
-                           cameras=sorted({v.camera for v in views}), device=str(device), **extra)
-        record.save(layout.fit_json)
-        return record
+    def _start(self, scene_scale: float) -> Params:
+        raw, is_sky, init_desc = initial_model(self.scene, self.views, self.p, scene_scale, self.log)
+        self.extra = {"init": init_desc, "scene_scale": scene_scale}
+        self.strat_state = self.strategy.initialize_state(len(is_sky), scene_scale, is_sky,
+                                                          device=self.device)
+        self.step, self.metrics, self.elapsed0, self.cpu0 = 0, [], 0.0, 0.0
+        self.order, self.cursor = torch.randperm(len(self.views), generator=self.gen), 0
+        return raw
 
-    while step < total:
-        if stop_after is not None and step >= stop_after:
-            save_state()
-            return write_summary(False)
-        if cursor >= len(order):
-            order, cursor = torch.randperm(len(views), generator=gen), 0
-        vi = int(order[cursor])
-        cursor += 1
-        view = views[vi]
-        viewmat, K = gpu_views[vi]
-        for group in optimizers["means"].param_groups:
-            group["lr"] = lr0 * gamma**step
-        deg = min(step // interval, max_deg)
-        use_sky = has_sky and view.sky is not None and sky_w > 0
-        target = depth_targets[vi]
-        out, alphas, info = render_gaussians(params, viewmat, K, view.width, view.height, sh_degree=deg,
-                                   render_mode="RGB+ED" if use_sky or target is not None else "RGB",
-                                   backend=backend)
+    def elapsed(self) -> float:
+        return self.elapsed0 + time.perf_counter() - self.t_start
+
+    def cpu_seconds(self) -> float:
+        return self.cpu0 + time.process_time() - self.c_start
+
+    def iterate(self) -> None:
+        """One training step: render a view, take the loss, step the optimizers, densify."""
+        p, step = self.p, self.step
+        if self.cursor >= len(self.order):
+            self.order, self.cursor = torch.randperm(len(self.views), generator=self.gen), 0
+        vi = int(self.order[self.cursor])
+        self.cursor += 1
+        for group in self.optimizers["means"].param_groups:
+            group["lr"] = self.lr0 * self.gamma**step
+        loss, info = self._loss(vi, min(step // max(p.sh_degree_interval, 1), p.sh_degree))
+        loss.backward()
+        for o in self.optimizers.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
+        changed = self.strategy.step_post_backward(self.params, self.optimizers, self.strat_state,
+                                                   step, info, self.gen)
+        for key, count in changed.items():
+            self.densify[key] = self.densify.get(key, 0) + count
+        self.step += 1
+
+    def _loss(self, vi: int, deg: int) -> tuple[torch.Tensor, dict]:
+        p, view, device = self.p, self.views[vi], self.device
+        viewmat, K = self.gpu_views[vi]
+        use_sky = self.has_sky and view.sky is not None and p.sky_depth_weight > 0
+        target = self.depth_targets[vi]
+        out, _, info = render_gaussians(self.params, viewmat, K, view.width, view.height,
+                                        sh_degree=deg, backend=self.backend,
+                                        render_mode="RGB+ED" if use_sky or target is not None else "RGB")
         pred = out[0, ..., :3]
         gt = view.rgb().to(device)
+        lam = p.ssim_lambda
         loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
         if use_sky:
             sky = view.sky.to(device)
             if sky.any():
                 depth = out[0, ..., 3][sky]
-                loss = loss + sky_w * F.relu(1.0 - depth / (0.5 * sky_radius)).mean()
+                loss = loss + p.sky_depth_weight * F.relu(1.0 - depth / (0.5 * p.sky_radius)).mean()
         if target is not None:
-            loss = loss + depth_w * depth_loss(out[0, ..., 3], target, depth_inv)
-        solid = ~strat_state["is_sky"]
-        if flat_w > 0:
-            loss = loss + flat_w * flatten_loss(params["scales"], solid)
-        if ratio_w > 0 and step % ratio_every == 0:
-            loss = loss + ratio_w * shape_ratio_loss(params["scales"], ratio_max, solid)
-        loss.backward()
-        for o in optimizers.values():
-            o.step()
-            o.zero_grad(set_to_none=True)
-        changed = strategy.step_post_backward(params, optimizers, strat_state, step, info, gen)
-        for key, count in changed.items():
-            densify[key] = densify.get(key, 0) + count
-        del out, alphas, info, loss, pred
-        step += 1
-        if step in cps:
-            save_ply(layout.checkpoint(step), params)
-            m = evaluate(params, views, eval_idx, max_deg, device, backend)
-            metrics = [x for x in metrics if x["iteration"] != step]
-            metrics.append({"iteration": step, **m, "num_gaussians": int(params["means"].shape[0]),
-                            "seconds": round(elapsed(), 3),
-                            "cpu_seconds": round(cpu_seconds(), 3), "peak_rss_mb": round(peak_rss_mb(), 1)})
-            if device.type == "cuda" and torch.cuda.is_available():
-                metrics[-1]["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
-            log.info("fit: %s iteration %d: PSNR %.2f dB, SSIM %.4f, %d Gaussians, %.1f s",
-                     scene.scene_id, step, m["psnr"], m["ssim"], params["means"].shape[0], elapsed())
-            save_state()
-            write_summary(step >= total)
-        elif step % state_every == 0:
-            save_state()
-        if progress is not None and (step % 10 == 0 or step == total):
-            progress(step, total)
+            loss = loss + p.depth_weight * depth_loss(out[0, ..., 3], target, p.depth_inverse)
+        solid = ~self.strat_state["is_sky"]
+        if p.flatten_weight > 0:
+            loss = loss + p.flatten_weight * flatten_loss(self.params["scales"], solid)
+        if p.shape_ratio_weight > 0 and self.step % max(p.shape_ratio_every, 1) == 0:
+            loss = loss + p.shape_ratio_weight * shape_ratio_loss(self.params["scales"],
+                                                                 p.shape_ratio_max, solid)
+        return loss, info
 
-    doc = write_summary(True)
-    if not p.keep_state:
-        state_path.unlink(missing_ok=True)
-    return doc
+    def checkpoint(self) -> None:
+        """The PLY of this iteration, its metrics, the resume state and fit.json."""
+        step, params, device = self.step, self.params, self.device
+        save_ply(self.layout.checkpoint(step), params)
+        m = evaluate(params, self.views, self.eval_idx, self.p.sh_degree, device, self.backend)
+        entry = {"iteration": step, **m, "num_gaussians": int(params["means"].shape[0]),
+                 "seconds": round(self.elapsed(), 3), "cpu_seconds": round(self.cpu_seconds(), 3),
+                 "peak_rss_mb": round(peak_rss_mb(), 1)}
+        if device.type == "cuda" and torch.cuda.is_available():
+            entry["peak_gpu_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+        self.metrics = [x for x in self.metrics if x["iteration"] != step] + [entry]
+        self.log.info("fit: %s iteration %d: PSNR %.2f dB, SSIM %.4f, %d Gaussians, %.1f s",
+                      self.scene.scene_id, step, m["psnr"], m["ssim"], params["means"].shape[0],
+                      self.elapsed())
+        self.save_state()
+        self.record(step >= self.p.iterations)
+
+    def save_state(self) -> None:
+        _save_state(self.layout.fit_state, step=self.step, params=self.params,
+                    optimizers=self.optimizers, strategy_state=self.strat_state, gen=self.gen,
+                    order=self.order, cursor=self.cursor, metrics=self.metrics,
+                    elapsed=self.elapsed(), fingerprint=self.fp,
+                    extra={**self.extra, "cpu_seconds": self.cpu_seconds()})
+
+    def record(self, complete: bool) -> FitRecord:
+        views = self.views
+        record = FitRecord(scene_id=self.scene.scene_id, complete=complete, fingerprint=self.fp,
+                           iterations=self.p.iterations, checkpoints=self.metrics,
+                           eval_views=len(self.eval_idx),
+                           resolution=[views[0].width, views[0].height], n_views=len(views),
+                           cameras=sorted({v.camera for v in views}), device=str(self.device),
+                           **self.extra)
+        record.save(self.layout.fit_json)
+        return record
 
 
-# --------------------------------------------------------------------------- entry points
-
-def run_stage(ctx) -> dict:
-    """Stage entry (``stages/fit.yaml``): fit ``ctx.scene_dir`` with ``ctx.params``."""
-    return fit_scene(ctx.scene_dir, ctx.params, log=getattr(ctx, "log", None),
-                     progress=getattr(ctx, "progress", None))
-
+# --------------------------------------------------------------------------- views
 
 @torch.no_grad()
 def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, height: int, *,

@@ -498,27 +498,3 @@ def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: dict)
         export_nuscenes(street, out, scene_name=name)
         return f"nuscenes:{out}?version=v1.0-mini#{name}"
     return f"drivestudio:{export_drivestudio(street, out / name)}"
-
-
-def register(app) -> None:
-    import typer
-
-    @app.command("export")
-    def export_cmd(
-        fmt: str = typer.Argument(..., help="waymo, nuscenes or drivestudio"),
-        out: Path = typer.Argument(..., help="Folder to write the log into."),
-        scene: str = typer.Option("synthetic:demo?seed=7", "--scene", help="A synthetic scene URI."),
-        profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes and cameras apply."),
-        set_: List[str] = typer.Option([], "--set", help="Override an ingest parameter: ingest.param=value (e.g. ingest.cameras=[front]). Repeatable."),
-    ) -> None:
-        """Write a synthetic scene as a real log (known answers) and print the URI that ingests it.
-
-        The log carries the cameras its ingest keeps with these parameters (ingest.cameras)."""
-        from paradrive.pipeline import StageRegistry, parse_overrides
-
-        params = StageRegistry().resolve(profile, parse_overrides(set_)).params["ingest"]
-        try:
-            print(export_scene(scene, fmt, out, params))
-        except (ValueError, SceneError) as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)

@@ -193,7 +193,7 @@ class Ledger:
         with self._write() as c:
             cur = c.execute("INSERT INTO runs (started_at, executor, scenes, command) VALUES (?, ?, ?, ?)",
                             (time.time(), executor, scenes, command))
-            self.run_id = int(cur.lastrowid)
+            self.run_id = int(cur.lastrowid or 0)
         return self.run_id
 
     def set_data_root(self, location: str) -> None:

@@ -212,67 +212,24 @@ class RayExecutor:
              locks) -> list[StageResult]:
         capacity = Capacity.of_nodes(ray.nodes())
         all_stages = sorted({s for t in tasks for s in t.stages})
-        options = self.plan(config, all_stages, capacity)
-        remote = ray.remote(_run_task)
-        config_ref = ray.put(config)
         total = ray.cluster_resources()  # the whole cluster: enough queued to keep every node busy
         window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
-
-        results: list[StageResult] = []
+        dispatch = _Dispatch(self, ray, self.plan(config, all_stages, capacity), ray.put(config),
+                             (data_dir, force, locks), on_start, on_result)
         queue = deque(t for t in tasks if t.stages)
-        in_flight: dict[Any, tuple[SceneTask, int, int]] = {}  # ref -> (task, stage index, try)
-
-        def emit(result: StageResult) -> None:
-            results.append(result)
-            if on_result:
-                on_result(result)
-
-        def submit(task: SceneTask, index: int, attempt: int = 1) -> None:
-            stage = task.stages[index]
-            if on_start:
-                on_start(task.scene_uri, stage)
-            # Ray does not retry by itself: the driver does, so every try is seen and counted.
-            ref = remote.options(**options[stage], max_retries=0, retry_exceptions=False,
-                                 name=f"{stage}:{_scene_id(task.scene_uri)}").remote(
-                config_ref, stage, task.scene_uri, data_dir, force, locks)
-            in_flight[ref] = (task, index, attempt)
-
         try:
-            while queue or in_flight:
-                while queue and len(in_flight) < window:
-                    submit(queue.popleft(), 0)
-                ready, _ = ray.wait(list(in_flight), num_returns=1)
+            while queue or dispatch.in_flight:
+                while queue and len(dispatch.in_flight) < window:
+                    dispatch.submit(queue.popleft(), 0)
+                ready, _ = ray.wait(list(dispatch.in_flight), num_returns=1)
                 for ref in ready:
-                    task, index, attempt = in_flight.pop(ref)
-                    stage = task.stages[index]
-                    try:
-                        result, where = ray.get(ref)
-                        self.placements[(result.scene_id, stage)] = where
-                    except Exception as exc:  # the task was lost: worker died, node gone, ...
-                        if attempt <= self.max_retries:
-                            log.warning("%s of %s lost (%s: %s); try %d of %d", stage,
-                                        _scene_id(task.scene_uri), type(exc).__name__,
-                                        (str(exc).strip().splitlines() or [""])[0], attempt + 1,
-                                        self.max_retries + 1)
-                            submit(task, index, attempt + 1)
-                            continue
-                        result = lost_result(task.scene_uri, stage, exc, self.max_retries)
-                    emit(result)
-                    if result.status == "failed":
-                        for later in task.stages[index + 1:]:
-                            emit(blocked_result(result, later))
-                    elif index + 1 < len(task.stages):
-                        submit(task, index + 1)  # a started scene goes before a new one
+                    dispatch.collect(ref)
         except BaseException:
             # The driver stops (Ctrl-C, an error in a callback): withdraw what it submitted, so
             # a shared cluster does not go on working for nobody. Atomic writes keep outputs whole.
-            for ref in in_flight:
-                try:
-                    ray.cancel(ref)
-                except Exception:
-                    pass
+            dispatch.cancel_all()
             raise
-        return results
+        return dispatch.results
 
 
 def _scene_id(scene_uri: str) -> str:
@@ -291,3 +248,60 @@ def lost_result(scene_uri: str, stage: str, exc: BaseException, retries: int) ->
                        error=f"scene {sid}: {stage} lost on the Ray cluster after "
                              f"{retries + 1} attempt(s): {type(exc).__name__}: {reason}; "
                              f"re-run the build to finish it (outputs are written atomically)")
+
+
+class _Dispatch:
+    """The tasks a Ray run has in flight: submit a scene's next stage, collect a finished one
+    (retrying a lost task, blocking the stages after a failed one)."""
+
+    def __init__(self, executor: RayExecutor, ray, options: dict, config_ref, args: tuple,
+                 on_start, on_result):
+        self.executor, self.ray, self.options, self.config_ref = executor, ray, options, config_ref
+        self.args, self.on_start, self.on_result = args, on_start, on_result
+        self.remote = ray.remote(_run_task)
+        self.results: list[StageResult] = []
+        self.in_flight: dict[Any, tuple[SceneTask, int, int]] = {}  # ref -> (task, stage index, try)
+
+    def emit(self, result: StageResult) -> None:
+        self.results.append(result)
+        if self.on_result:
+            self.on_result(result)
+
+    def submit(self, task: SceneTask, index: int, attempt: int = 1) -> None:
+        stage = task.stages[index]
+        if self.on_start:
+            self.on_start(task.scene_uri, stage)
+        # Ray does not retry by itself: the driver does, so every try is seen and counted.
+        ref = self.remote.options(**self.options[stage], max_retries=0, retry_exceptions=False,
+                                  name=f"{stage}:{_scene_id(task.scene_uri)}").remote(
+            self.config_ref, stage, task.scene_uri, *self.args)
+        self.in_flight[ref] = (task, index, attempt)
+
+    def collect(self, ref) -> None:
+        task, index, attempt = self.in_flight.pop(ref)
+        stage = task.stages[index]
+        retries = self.executor.max_retries
+        try:
+            result, where = self.ray.get(ref)
+            self.executor.placements[(result.scene_id, stage)] = where
+        except Exception as exc:  # the task was lost: worker died, node gone, ...
+            if attempt <= retries:
+                log.warning("%s of %s lost (%s: %s); try %d of %d", stage,
+                            _scene_id(task.scene_uri), type(exc).__name__,
+                            (str(exc).strip().splitlines() or [""])[0], attempt + 1, retries + 1)
+                self.submit(task, index, attempt + 1)
+                return
+            result = lost_result(task.scene_uri, stage, exc, retries)
+        self.emit(result)
+        if result.status == "failed":
+            for later in task.stages[index + 1:]:
+                self.emit(blocked_result(result, later))
+        elif index + 1 < len(task.stages):
+            self.submit(task, index + 1)  # a started scene goes before a new one
+
+    def cancel_all(self) -> None:
+        for ref in self.in_flight:
+            try:
+                self.ray.cancel(ref)
+            except Exception:
+                pass

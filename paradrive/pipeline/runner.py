@@ -322,7 +322,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             if not reason:
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
                 return StageResult(scene_id, stage, "skipped", fingerprint=fp,
-                                   summary=marker.get("summary", {}))
+                                   summary=(marker or {}).get("summary", {}))
             log.info("%s: to run: %s", stage, reason)
             check_inputs(scene_id, stage, upstream, size_of)
             func = load_entry(spec)

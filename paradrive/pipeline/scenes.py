@@ -44,7 +44,12 @@ def expand_scene_inputs(items: list[str]) -> list[str]:
     for item in items:
         uris.extend(_expand(str(item).strip(), base=Path.cwd(), depth=0, within=None))
     seen: set[str] = set()
-    return [u for u in uris if not (u in seen or seen.add(u))]
+    out = []
+    for u in uris:
+        if u not in seen:
+            seen.add(u)
+            out.append(u)
+    return out
 
 
 def _inside(path: Path, folder: Path, what: str) -> None:
@@ -104,7 +109,7 @@ def nuscenes_versions(root: Path) -> list[Path]:
 
 
 def nuscenes_scene_uris(root: Path) -> list[str]:
-    uris = []
+    uris: list[str] = []
     for version_dir in nuscenes_versions(root):
         table = version_dir / "scene.json"
         try:

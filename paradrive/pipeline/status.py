@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+from collections.abc import Sequence
 from typing import List
 
 import typer
@@ -36,9 +37,9 @@ def open_ledger(build: str, manifests: Path) -> Ledger:
     return Ledger.open_existing(manifests, build)
 
 
-def scene_locks(ledger: Ledger, data: str | None = None, storage_options: list[str] = ()) -> list[dict]:
+def scene_locks(ledger: Ledger, data: str | None = None, storage_options: Sequence[str] = ()) -> list[dict]:
     """The build's scenes locked now: scene_id and the holder's build, host, pid, start."""
-    from paradrive.cli import data_root
+    from paradrive.storage import data_root
 
     location = data or ledger.meta().get("data_root")
     if not location:
@@ -64,7 +65,7 @@ def _secs(value: float | None) -> str:
     return f"{value:.1f}s"
 
 
-def render(summary: dict, console: Console, *, all_scenes: bool = False) -> None:
+def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -> None:
     counts = summary["counts"]
     run = summary["last_run"]
     if run:
@@ -170,7 +171,7 @@ def status(
     if as_json:
         print(dumps(summary))
         return
-    render(summary, Console(), all_scenes=all_scenes)
+    print_status(summary, Console(), all_scenes=all_scenes)
 
 
 def register(app: typer.Typer) -> None:

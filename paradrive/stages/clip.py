@@ -163,9 +163,10 @@ def _under(tmp_root: Path, rel: str) -> Path:
     return Path(tmp_root.name, *Path(rel).parts[1:])
 
 
-def write_clips(layout: SceneLayout, params: Params, *, log: logging.Logger | None = None,
+def write_clips(layout: SceneLayout | Path, params: Params, *, log: logging.Logger | None = None,
                 progress: Progress | None = None) -> ClipsRecord:
     """Encode every stream of every clip window listed in ``renders/renders.json``."""
+    layout = SceneLayout.at(layout)
     scene = load_scene(layout.root, check_files=False)
     renders = RendersRecord.load(layout.renders_json, scene.scene_id)
     check_renders(renders, params, layout)

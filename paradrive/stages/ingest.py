@@ -52,8 +52,9 @@ class IngestSummary(dict[str, Any]):
         return dict(self)
 
 
-def ingest(scene_uri: str, layout: SceneLayout, params: Params) -> IngestSummary:
-    """Ingest ``scene_uri`` into the scene folder of ``layout``."""
+def ingest(scene_uri: str, layout: SceneLayout | Path, params: Params) -> IngestSummary:
+    """Ingest ``scene_uri`` into the scene folder ``layout``."""
+    layout = SceneLayout.at(layout)
     uri = parse_uri(scene_uri)
     reader = importlib.import_module(READERS[uri.kind])
     scene_dir = layout.root

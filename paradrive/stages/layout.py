@@ -48,6 +48,11 @@ class SceneLayout:
     def of(cls, data_dir: str | Path, scene_id: str) -> SceneLayout:
         return cls(Path(data_dir) / SCENES_DIR / checked_scene_id(scene_id))
 
+    @classmethod
+    def at(cls, folder: SceneLayout | str | Path) -> SceneLayout:
+        """The layout of a scene folder given as a layout or a path."""
+        return folder if isinstance(folder, SceneLayout) else cls(Path(folder))
+
     @property
     def scene_id(self) -> str:
         return self.root.name

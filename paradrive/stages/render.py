@@ -156,7 +156,7 @@ class _Renderer:
         streams = {}
         for stream in self.params.streams() if frames else []:
             c2w = (geometry.lateral_shift(recorded, ego, stream.offset_m)
-                   if stream.kind == "source" else recorded)
+                   if stream.offset_m is not None else recorded)
             folder = self.root / stream_dir(plan.name, stream.name)
             folder.mkdir(parents=True)
             if stream.kind == "target":
@@ -213,10 +213,11 @@ class _Renderer:
             write_image(folder / "alpha" / frame_file(pos), a8[..., None])
 
 
-def render_scene(layout: SceneLayout, params: Params, *, log: logging.Logger | None = None,
+def render_scene(layout: SceneLayout | Path, params: Params, *, log: logging.Logger | None = None,
                  progress: Progress | None = None) -> RendersRecord:
     """Render every stream of the scene with the render stage's ``params``; writes ``renders/``."""
     log = log or log_default
+    layout = SceneLayout.at(layout)
     scene = load_scene(layout.root)
     check_params(params, scene, layout)
     plans = [plan_camera(scene, name, params, log) for name in params.cameras]
