@@ -12,7 +12,7 @@ PYTEST_ARGS ?=
 profile_flag = $(if $(PROFILE),--profile $(PROFILE),)
 build_args = --scene '$(SCENE)' $(profile_flag) --data $(DATA) --manifests $(MANIFESTS) --build $(BUILD)
 
-.PHONY: setup setup-test ingest fit render clip manifest build demo inspect eval status train test bench clean
+.PHONY: setup setup-test ingest fit render clip manifest build demo inspect eval status train lint test bench clean
 
 .venv/.installed: pyproject.toml scripts/setup.sh
 	scripts/setup.sh
@@ -57,7 +57,13 @@ train: setup
 	$(PARADRIVE) train --build $(MANIFESTS)/$(BUILD) --stage 1 --config $(TRAIN_CONFIG)
 	$(PARADRIVE) train --build $(MANIFESTS)/$(BUILD) --stage 2 --config $(TRAIN_CONFIG)
 
-test: setup-test
+# The lint and type gate first (ruff: style, one typing style, complexity limits; mypy on the
+# package), then the suite.
+lint: setup-test
+	$(PY) -m ruff check paradrive tests bench
+	$(PY) -m mypy
+
+test: setup-test lint
 	$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)
 
 bench: setup-test

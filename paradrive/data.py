@@ -75,7 +75,8 @@ def output_geometry(width: int, height: int, output_size: tuple[int, int] | None
 
 
 def adjust_intrinsics(intrinsics: Sequence[float], geo: dict) -> np.ndarray:
-    fx, fy, cx, cy = geometry.scale_intrinsics(*map(float, intrinsics), geo["sx"], geo["sy"])
+    f_x, f_y, c_x, c_y = (float(v) for v in intrinsics)
+    fx, fy, cx, cy = geometry.scale_intrinsics(f_x, f_y, c_x, c_y, geo["sx"], geo["sy"])
     y0, x0 = geo["crop"]
     return np.array([fx, fy, cx - x0, cy - y0], dtype=np.float32)
 
@@ -135,21 +136,21 @@ class PairDataset(Dataset):
         self.dtype = dtype
         self._shards = shard_paths(self.build, self.index)
         tables = []
-        for path, entry in zip(self._shards, self.index["shards"]):
+        for path, entry in zip(self._shards, self.index.shards):
             if not path.is_file():
                 raise ParaDriveError(f"{path} is listed in {self.build / 'index.json'} but missing;"
                                      f" re-run the manifest stage or re-publish the build")
             table = pq.read_table(path, columns=list(_ROW_COLUMNS))
-            if table.num_rows != entry["rows"]:
+            if table.num_rows != entry.rows:
                 raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
-                                     f"{entry['rows']}; the build is inconsistent, re-run the "
+                                     f"{entry.rows}; the build is inconsistent, re-run the "
                                      f"manifest stage")
             check_row_uris(table.select(["pair_id", "source_uri", "condition_uri",
                                          "target_uri"]).to_pydict(), str(path))
             tables.append(table)
         self._rows = {name: [v for t in tables for v in t.column(name).to_pylist()] for name in _ROW_COLUMNS}
         self._starts = np.cumsum([0] + [t.num_rows for t in tables])
-        self._pid = None
+        self._pid: int | None = None
         self._files: dict[int, Any] = {}
         self._group_cache: dict[tuple[int, int], dict] = {}
         self._verified: set[str] = set()
@@ -247,7 +248,7 @@ class PairDataset(Dataset):
                   for role in ("source", "condition", "target") if row[f"{role}_uri"] is not None}
         rel = row["rel_pose"][frames]
         f = len(frames)
-        sample.update({
+        sample.update(**{
             "rel_pose": torch.from_numpy(np.ascontiguousarray(rel, dtype=np.float32)),
             "identity_pose": torch.eye(4).expand(f, 4, 4).clone(),
             "intrinsics": torch.from_numpy(adjust_intrinsics(row["intrinsics"], geo)),

@@ -131,12 +131,6 @@ def relative_pose(c2w_target, c2w_source) -> np.ndarray:
     return invert(c2w_target) @ as_pose(c2w_source)
 
 
-def relative_to_first(poses) -> np.ndarray:
-    """Poses (N, 4, 4) expressed relative to the first one: inv(P0) · Pi."""
-    poses = as_pose(poses)
-    return invert(poses[0]) @ poses
-
-
 def scale_intrinsics(fx: float, fy: float, cx: float, cy: float, sx: float, sy: float):
     """Intrinsics after resizing an image by (sx, sy): fx, cx scale by sx and fy, cy by sy."""
     return fx * sx, fy * sy, cx * sx, cy * sy

@@ -112,8 +112,8 @@ def score_videos(build_dir: str | Path, videos_dir: str | Path) -> dict:
 
     build_dir, videos_dir = Path(build_dir), Path(videos_dir)
     index = read_index(build_dir)
-    if index.get("kind") != "inference":
-        raise ParaDriveError(f"{build_dir}: a {index.get('kind', 'training')} build; scoring "
+    if index.kind != "inference":
+        raise ParaDriveError(f"{build_dir}: a {index.kind} build; scoring "
                              f"needs an inference set (paradrive build --kind inference)")
     rows = read_pairs(build_dir, ["pair_id", "offset_m", "target_uri"]).to_pylist()
     scored, missing, no_target = [], [], 0

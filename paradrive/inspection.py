@@ -13,13 +13,15 @@ import os
 from collections import Counter, defaultdict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, sha256_file
 from paradrive.pairs import build_file, read_index, read_pairs, shard_paths
+from paradrive.stages.layout import SceneLayout
+from paradrive.stages.records import IndexRecord
 from paradrive.streams import format_offset
 
 __all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "register"]
@@ -67,23 +69,23 @@ def summarize(build_dir: str | Path) -> dict:
                      "condition": {it: {"psnr": _mean(p), "ssim": _mean(s)}
                                    for it, (p, s) in sorted(cps.items())}}
                for sid, cps in sorted(by_scene.items())}
-    overall: defaultdict[int, tuple[list, list]] = defaultdict(lambda: ([], []))
+    overall: defaultdict[str, tuple[list, list]] = defaultdict(lambda: ([], []))
     for i in range(n):
         it = f"{int(cols['condition_iteration'][i]):06d}"
         overall[it][0].append(cols["condition_psnr"][i])
         overall[it][1].append(cols["condition_ssim"][i])
     return {
-        "build": str(build_dir), "name": index.get("build"), "rows": n,
-        "shards": len(index["shards"]), "config_fingerprint": index.get("config_fingerprint"),
-        "software": index.get("software"), "created_at": index.get("created_at"),
-        "totals": index.get("totals"), "counts": counts,
+        "build": str(build_dir), "name": index.build, "rows": n,
+        "shards": len(index.shards), "config_fingerprint": index.config_fingerprint,
+        "software": index.software, "created_at": index.created_at,
+        "totals": index.totals.model_dump(), "counts": counts,
         "quality": {"by_checkpoint": {it: {"psnr": _mean(p), "ssim": _mean(s)}
                                       for it, (p, s) in sorted(overall.items())},
                     "scenes": quality},
-        "skipped_scenes": index.get("skipped_scenes", []),
-        "kind": index.get("kind", "training"),
-        "exclude_splits": index.get("exclude_splits", []),
-        "excluded_scenes": index.get("excluded_scenes", []),
+        "skipped_scenes": [s.model_dump() for s in index.skipped_scenes],
+        "kind": index.kind,
+        "exclude_splits": [s.model_dump() for s in index.exclude_splits],
+        "excluded_scenes": [s.model_dump() for s in index.excluded_scenes],
     }
 
 
@@ -112,8 +114,8 @@ def verify_build(build_dir: str | Path, threads: int | None = None) -> dict:
     """
     build_dir = Path(build_dir)
     index = read_index(build_dir)
-    jobs = [(path, s["bytes"], s["sha256"], "shard")
-            for path, s in zip(shard_paths(build_dir, index), index["shards"])]
+    jobs = [(path, s.bytes, s.sha256, "shard")
+            for path, s in zip(shard_paths(build_dir, index), index.shards)]
     problems = [p for p in (_check_file(*j) for j in jobs) if p]
     if problems:  # rows cannot be trusted when a shard is bad
         return {"ok": False, "checked_files": len(jobs), "problems": problems}
@@ -205,7 +207,7 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
                                 row["pair_id"], fill=(0, 0, 0), font=font)
         y += head
         shift = f"shifted {format_offset(row['offset_m'])}"
-        if index.get("kind") == "inference":
+        if index.kind == "inference":
             labels = [("source", "recorded camera", ""),
                       ("condition", shift, f"ckpt {row['condition_iteration']}"),
                       ("target", f"true view, {shift}", "")]
@@ -263,7 +265,7 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
     first_it = min(r["condition_iteration"] for r in rows)
     rows = [r for r in rows if r["condition_iteration"] == first_it]
     pv.OFF_SCREEN = True
-    plotter = pv.Plotter(off_screen=True, window_size=(size, size))
+    plotter: Any = pv.Plotter(off_screen=True, window_size=[size, size])
     plotter.set_background("white")
     points = _lidar_points(index, scene_id, data_dir)
     if points is not None:
@@ -305,15 +307,16 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
     return out
 
 
-def _lidar_points(index: dict, scene_id: str, data_dir, max_points: int = 60_000):
+def _lidar_points(index: IndexRecord, scene_id: str, data_dir, max_points: int = 60_000):
     candidates = []
     if data_dir is not None:
-        candidates.append(Path(data_dir) / "scenes" / scene_id)
-    for s in index.get("scenes", []):
-        if s.get("scene_id") == scene_id and s.get("scene_dir"):
-            candidates.append(Path(s["scene_dir"]))
-    for folder in candidates:
-        files = sorted((folder / "lidar").glob("*.npy")) if (folder / "lidar").is_dir() else []
+        candidates.append(SceneLayout.of(data_dir, scene_id))
+    for s in index.scenes:
+        if s.scene_id == scene_id and s.scene_dir:
+            candidates.append(SceneLayout(Path(s.scene_dir)))
+    for layout in candidates:
+        folder = layout.lidar_dir
+        files = sorted(folder.glob("*.npy")) if folder.is_dir() else []
         if files:
             files = files[:: max(1, len(files) // 20)]
             pts = np.concatenate([np.load(f).astype(np.float32).reshape(-1, 3) for f in files])

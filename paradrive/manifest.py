@@ -38,7 +38,7 @@ from paradrive.errors import ParaDriveError, SceneError
 from paradrive.io import PathEscapeError, path_inside, sha256_file, temporary_name, write_json
 from paradrive.pairs import COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri
 from paradrive.stages.layout import INDEX_JSON, MEDIA_DIR, SHARD_GLOB, SHARD_PATTERN, SceneLayout
-from paradrive.stages.records import ClipRecord, ClipsRecord
+from paradrive.stages.records import ClipRecord, ClipsRecord, IndexRecord
 
 if TYPE_CHECKING:
     from paradrive.stages.manifest import Params as ManifestParams
@@ -330,7 +330,7 @@ def place_file(src: Path, dst: Path, mode: str, sha256: str | None = None) -> st
 
 def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             scenes: list[dict], skipped: list[dict], params: ManifestParams, fingerprint: str = "",
-            build: str | None = None, log=None, selection: dict | None = None) -> dict:
+            build: str | None = None, log=None, selection: dict | None = None) -> IndexRecord:
     """Write shards, media and index under ``build_dir`` as one published build; returns the index.
 
     ``selection`` ({exclude_splits, excluded_scenes}) records which split files left which
@@ -367,27 +367,21 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
                 continue
             done = place_file(m.src, build_dir / m.uri, mode, m.sha256)
             placed[done] = placed.get(done, 0) + 1
-        index = {
+        index = IndexRecord.model_validate({
             "format": INDEX_FORMAT, "schema_version": SCHEMA_VERSION,
-            "build": build or build_dir.name,
-            "kind": params.kind,
+            "build": build or build_dir.name, "kind": params.kind,
             "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "software": {"paradrive": paradrive.__version__, "pyarrow": pa.__version__},
-            "config_fingerprint": fingerprint,
-            "params": params.source,
-            "sort": ["pair_id"],
+            "config_fingerprint": fingerprint, "params": params.source, "sort": ["pair_id"],
             "columns": [{"name": f.name, "type": str(f.type)} for f in SCHEMA],
             "shards": entries,
             "totals": {"rows": table.num_rows, "shards": len(entries),
                        "shard_bytes": sum(e["bytes"] for e in entries),
                        "media_files": len(media), "media_bytes": sum(m.bytes for m in media),
                        "scenes": len(scenes), "scenes_skipped": len(skipped)},
-            "media": {"mode": mode, "placed": placed},
-            "scenes": scenes,
-            "skipped_scenes": skipped,
-            **(selection or {"exclude_splits": [], "excluded_scenes": []}),
-        }
-        write_json(staging / INDEX_JSON, index)
+            "media": {"mode": mode, "placed": placed}, "scenes": scenes, "skipped_scenes": skipped,
+            **(selection or {"exclude_splits": [], "excluded_scenes": []})})
+        index.save(staging / INDEX_JSON)
         # Commit: withdraw the old index, swap the shards, then the new index lands last.
         (build_dir / INDEX_JSON).unlink(missing_ok=True)
         for e in entries:

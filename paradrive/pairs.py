@@ -14,10 +14,12 @@ from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+from pydantic import ValidationError
 
 from paradrive.errors import ParaDriveError
 from paradrive.io import check_relative, path_inside
 from paradrive.stages.layout import INDEX_JSON, MEDIA_DIR, BuildLayout
+from paradrive.stages.records import IndexRecord
 from paradrive.streams import format_offset
 
 SCHEMA_VERSION = 1
@@ -87,14 +89,14 @@ def check_row_uris(columns: dict, where: str) -> None:
                 checked.add(uri)
 
 
-def build_file(build_dir: str | Path, uri: object, what: str, index: dict) -> Path:
+def build_file(build_dir: str | Path, uri: object, what: str, index: IndexRecord) -> Path:
     """The file a build-relative ``uri`` names, checked to stay inside the build.
 
     A build published with ``media: symlink`` links each media file to the scene's own clip in
     the data folder: such a link may lead out, but only to ``<...>/<scene_id>/<file>`` named
     like the URI, never to an arbitrary file.
     """
-    linked = (index.get("media") or {}).get("mode") == "symlink"
+    linked = index.media.mode == "symlink"
     tail = Path(str(uri)).parts[1:] if str(uri).startswith(MEDIA_DIR + "/") else ()
 
     def scene_clip(resolved: Path) -> bool:
@@ -105,7 +107,7 @@ def build_file(build_dir: str | Path, uri: object, what: str, index: dict) -> Pa
 
 # --------------------------------------------------------------------------- reading
 
-def read_index(build_dir: str | Path) -> dict:
+def read_index(build_dir: str | Path) -> IndexRecord:
     """The build's ``index.json``; a clear error when the folder holds no published build."""
     build_dir = Path(build_dir)
     path = build_dir / INDEX_JSON
@@ -120,20 +122,26 @@ def read_index(build_dir: str | Path) -> dict:
     except json.JSONDecodeError as exc:
         raise ParaDriveError(f"{path} is not valid JSON ({exc}); re-run the manifest stage "
                              f"(paradrive build --stages manifest --force)") from exc
-    if index.get("format") != INDEX_FORMAT:
+    if not isinstance(index, dict) or index.get("format") != INDEX_FORMAT:
         raise ParaDriveError(f"{path} is not a paradrive pair index (format "
-                             f"{index.get('format')!r})")
+                             f"{index.get('format') if isinstance(index, dict) else None!r})")
     if index.get("schema_version") != SCHEMA_VERSION:
         raise ParaDriveError(f"{path}: manifest schema_version {index.get('schema_version')!r} "
                              f"is not {SCHEMA_VERSION}; rebuild it with this paradrive version")
-    return index
+    try:
+        return IndexRecord.model_validate(index)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ParaDriveError(f"{path}: field '{where}': {err['msg']}; re-run the manifest stage "
+                             f"(paradrive build --stages manifest --force)") from exc
 
 
-def shard_paths(build_dir: str | Path, index: dict | None = None) -> list[Path]:
+def shard_paths(build_dir: str | Path, index: IndexRecord | None = None) -> list[Path]:
     build_dir = Path(build_dir)
     index = index or read_index(build_dir)
-    return [path_inside(build_dir, s.get("file"), f"{build_dir / INDEX_JSON}: shard {k}")
-            for k, s in enumerate(index["shards"])]
+    return [path_inside(build_dir, s.file, f"{build_dir / INDEX_JSON}: shard {k}")
+            for k, s in enumerate(index.shards)]
 
 
 def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> pa.Table:

@@ -196,18 +196,19 @@ def exclude(uris: list[str], names: list[str], splits_dir: str | Path | None = N
 
 def select(uris: list[str], name: str, splits_dir: str | Path | None = None) -> list[str]:
     """Exactly the scenes of split ``name`` among ``uris``; every line must match one log."""
-    (split,) = load_splits([name], splits_dir) or [None]
+    found = load_splits([name], splits_dir)
+    split = found[0] if found else None
     if split is None:
         raise ConfigError("--split none selects nothing; name a split")
-    found = _matches(uris, [split])
-    matched = {(ln.file, ln.number) for lines in found.values() for ln in lines}
+    matches = _matches(uris, [split])
+    matched = {(ln.file, ln.number) for lines in matches.values() for ln in lines}
     missing = [ln for ln in split.lines if (ln.file, ln.number) not in matched]
     if missing:
         more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
         raise ConfigError(f"split {split.name}: {len(missing)} line(s) match no log among the "
                           f"{len(uris)} scenes given: {', '.join(ln.where for ln in missing[:3])}"
                           f"{more}; pass the folder that holds them (--scenes)")
-    return [u for u in uris if u in found]
+    return [u for u in uris if u in matches]
 
 
 __all__ = ["Selection", "Split", "SplitLine", "default_splits_dir", "exclude", "load_split",

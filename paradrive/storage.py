@@ -35,6 +35,7 @@ from typing import Any, Iterable
 
 from paradrive.errors import ConfigError
 from paradrive.io import is_temporary, temporary_name, write_json
+from paradrive.stages.layout import LOGS_DIR, SCENES_DIR, DataLayout, SceneLayout
 from paradrive.redact import redact, redact_options
 
 OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"})
@@ -124,7 +125,7 @@ class DataRoot:
 
     def scene_location(self, scene_id: str) -> str:
         """Where the scene lives, to show or record (a URL without its credentials)."""
-        return f"{self}/scenes/{scene_id}" if self.remote else str(self.local / "scenes" / scene_id)
+        return f"{self}/{SCENES_DIR}/{scene_id}" if self.remote else str(SceneLayout.of(self.local, scene_id).root)
 
     def mirror(self, scene_id: str) -> "SceneMirror | None":
         """The scene's remote/local pair for a URL root; None for a local folder."""
@@ -147,7 +148,7 @@ def local_scene(root: DataRoot, scene_id: str) -> Path:
             mirror.pull()
         except StorageError as exc:
             raise ConfigError(f"cannot read the scene: {exc}") from exc
-    return root.local / "scenes" / scene_id
+    return SceneLayout.of(root.local, scene_id).root
 
 
 def _token(info: dict) -> str:
@@ -189,10 +190,10 @@ class SceneMirror:
         self.root = root
         self.scene_id = scene_id
         self.fs, base = root.filesystem()
-        self.remote = f"{base}/scenes/{scene_id}"
-        self.local = root.local / "scenes" / scene_id
-        self.log_remote = f"{base}/logs/{scene_id}.log"
-        self.log_local = root.local / "logs" / f"{scene_id}.log"
+        self.remote = f"{base}/{SCENES_DIR}/{scene_id}"
+        self.local = SceneLayout.of(root.local, scene_id).root
+        self.log_remote = f"{base}/{LOGS_DIR}/{scene_id}.log"
+        self.log_local = DataLayout(root.local).log(scene_id)
         self.record_path = root.local / ".sync" / f"{scene_id}.json"
         protocol = self.fs.protocol if isinstance(self.fs.protocol, str) else self.fs.protocol[0]
         self.whole_objects = protocol in OBJECT_STORES

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from fractions import Fraction
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +23,7 @@ import numpy as np
 from paradrive.errors import ParaDriveError
 from paradrive.io import atomic_path, sha256_file
 
-__all__ = ["CODECS", "container_suffix", "encode_video", "decode_video", "iter_video",
-           "probe_video", "decode_frames", "each_frame"]
+__all__ = ["CODECS", "container_suffix", "encode_video", "decode_frames", "each_frame"]
 
 # codec -> (container suffix, FFmpeg container format, default pixel format)
 CODECS = {
@@ -66,12 +66,12 @@ def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: flo
         raise ValueError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}")
     if path.suffix != suffix:
         raise ValueError(f"{path}: a {codec} stream goes in a '{suffix}' file")
-    pix_fmt = pix_fmt or default_pix
+    pix_fmt = str(pix_fmt or default_pix)
     rate = _rate(fps)
-    count, size = 0, None
+    count, size = 0, (0, 0)
     with atomic_path(path) as tmp:
         with av.open(str(tmp), mode="w", format=fmt) as container:
-            stream = None
+            stream: Any = None
             for frame in frames:
                 frame = np.ascontiguousarray(frame)
                 if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
@@ -110,37 +110,6 @@ def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: flo
                 container.mux(packet)
     return {"frames": count, "width": int(size[1]), "height": int(size[0]),
             "bytes": path.stat().st_size, "sha256": sha256_file(path)}
-
-
-def iter_video(path: str | os.PathLike) -> Iterator[np.ndarray]:
-    """Decoded frames of the first video stream of ``path``, uint8 RGB (H, W, 3), in order."""
-    import av
-
-    with av.open(str(path)) as container:
-        stream = container.streams.video[0]
-        for frame in container.decode(stream):
-            yield frame.to_ndarray(format="rgb24")
-
-
-def decode_video(path: str | os.PathLike) -> np.ndarray:
-    """All frames of ``path`` as uint8 (F, H, W, 3)."""
-    frames = list(iter_video(path))
-    if not frames:
-        raise ValueError(f"{path}: no video frames")
-    return np.stack(frames)
-
-
-def probe_video(path: str | os.PathLike) -> dict:
-    """Codec, size, pixel format, frame rate and the number of frames (counted by decoding)."""
-    import av
-
-    with av.open(str(path)) as container:
-        stream = container.streams.video[0]
-        info = {"codec": stream.codec_context.name, "width": stream.codec_context.width,
-                "height": stream.codec_context.height, "pix_fmt": stream.codec_context.pix_fmt,
-                "fps": float(stream.average_rate or stream.base_rate or 0)}
-        info["frames"] = sum(1 for _ in container.decode(stream))
-    return info
 
 
 # --------------------------------------------------------------------------- decoding
@@ -239,7 +208,7 @@ class _FrameWalk:
         rate = stream.average_rate or stream.guessed_rate
         start = stream.start_time or 0
         tb = stream.time_base
-        first = None if self.wanted is None else self.wanted[0]
+        first = 0 if self.wanted is None else self.wanted[0]
         sought = bool(seek and first and rate and tb)
         if sought:
             target = start + int(math.floor(first / float(rate) / float(tb)))

@@ -17,7 +17,9 @@ from paradrive.errors import SceneError
 from paradrive.io import sha256_file
 from paradrive.pipeline import run_build
 from paradrive.scene import load_scene, read_image
-from paradrive.video import decode_video, probe_video
+from video_probe import probe_video
+
+from paradrive.video import decode_frames
 
 from test_render import SCENE, SID, smoke_params
 
@@ -110,7 +112,7 @@ def test_every_stream_decodes_to_the_clip_frame_count_and_matches_its_checksum(c
 def test_decoded_frames_are_the_rendered_frames_in_order(clipped):
     clip = clipped["doc"]["clips"][1]
     for name in ("target", "source-4m"):
-        decoded = decode_video(clipped["dir"] / clip["streams"][name]["file"]).astype(int)
+        decoded = decode_frames(clipped["dir"] / clip["streams"][name]["file"]).astype(int)
         pngs = np.stack([read_image(clipped["dir"] / "renders/front" / name / f"{i:06d}.png")
                          for i in range(clip["frame_start"], clip["frame_start"] + 4)]).astype(int)
         err = np.abs(decoded[:, None] - pngs[None]).mean(axis=(2, 3, 4))   # decoded x png
@@ -181,7 +183,7 @@ def test_ffv1_clips_are_lossless_mkv(clipped, copy_tree):
     clip = doc["clips"][0]
     s = clip["streams"]["cond@%06d" % clipped["render"]["condition_checkpoints"][-1]]
     assert s["file"].endswith(".mkv") and doc["codec"] == "ffv1"
-    decoded = decode_video(scene_dir / s["file"])
+    decoded = decode_frames(scene_dir / s["file"])
     name = s["file"].rsplit("/", 1)[1][:-4]
     pngs = np.stack([read_image(scene_dir / "renders/front" / name / f"{i:06d}.png") for i in range(4)])
     assert np.array_equal(decoded, pngs)

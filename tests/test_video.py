@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from paradrive.video import container_suffix, decode_video, encode_video, iter_video, probe_video
+from video_probe import probe_video
+
+from paradrive.video import container_suffix, decode_frames, each_frame, encode_video
 
 
 def _frames(n: int = 9, h: int = 48, w: int = 64) -> list[np.ndarray]:
@@ -21,7 +23,7 @@ def _frames(n: int = 9, h: int = 48, w: int = 64) -> list[np.ndarray]:
 def test_h264_round_trip_keeps_frame_count_order_and_size(tmp_path):
     frames = _frames()
     info = encode_video(tmp_path / "a.mp4", frames, 10.0, crf=18, preset="ultrafast")
-    decoded = decode_video(tmp_path / "a.mp4")
+    decoded = decode_frames(tmp_path / "a.mp4")
     assert info["frames"] == 9 and decoded.shape == (9, 48, 64, 3)
     # the blue channel carries 20 * frame index: decoded order matches
     blue = decoded[..., 2].reshape(9, -1).mean(1)
@@ -37,7 +39,7 @@ def test_ffv1_is_lossless_in_mkv(tmp_path):
     frames = [rng.integers(0, 256, (30, 41, 3), dtype=np.uint8) for _ in range(5)]
     assert container_suffix("ffv1") == ".mkv"
     encode_video(tmp_path / "a.mkv", frames, 12.5, codec="ffv1")
-    assert np.array_equal(decode_video(tmp_path / "a.mkv"), np.stack(frames))
+    assert np.array_equal(decode_frames(tmp_path / "a.mkv"), np.stack(frames))
     assert probe_video(tmp_path / "a.mkv")["codec"] == "ffv1"
 
 
@@ -67,10 +69,11 @@ def test_wrong_container_mixed_sizes_and_empty_input_are_errors(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_iter_video_streams_frames(tmp_path):
+def test_each_frame_hands_over_every_frame_once_in_order(tmp_path):
     encode_video(tmp_path / "a.mkv", _frames(4), 10.0, codec="ffv1")
-    shapes = [f.shape for f in iter_video(tmp_path / "a.mkv")]
-    assert shapes == [(48, 64, 3)] * 4
+    seen = []
+    each_frame(tmp_path / "a.mkv", None, lambda i, rgb: seen.append((i, rgb.shape)))
+    assert seen == [(i, (48, 64, 3)) for i in range(4)]
 
 
 def test_gop_sets_the_keyframe_interval(tmp_path):

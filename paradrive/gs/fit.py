@@ -46,7 +46,7 @@ from paradrive.stages.records import FitRecord
 from . import init as gsinit
 from .init import View
 from .losses import DepthTarget, depth_loss, flatten_loss, lidar_depth_target, shape_ratio_loss
-from .model import (PARAM_KEYS, Params, cat_params, deterministic_torch, new_params, render_gaussians,
+from .model import (PARAM_KEYS, Gaussians, Params, cat_params, deterministic_torch, new_params, render_gaussians,
                     scene_scale_of, sh_degree_of)
 from .ply import load_ply, save_ply
 from .strategy import DensifyStrategy
@@ -236,7 +236,7 @@ def _save_state(path: Path, *, step, params, optimizers, strategy_state, gen, or
 # --------------------------------------------------------------------------- evaluation
 
 @torch.no_grad()
-def evaluate(params: Params, views: Sequence[View], indices: Sequence[int], sh_degree: int,
+def evaluate(params: Gaussians, views: Sequence[View], indices: Sequence[int], sh_degree: int,
              device: torch.device, backend: str = "auto") -> dict:
     """Mean PSNR (dB) and SSIM of renders against the training images of ``indices``."""
     ps, ss = [], []
@@ -341,8 +341,8 @@ class _Fit:
         raw = self._resume(saved) if saved is not None else self._start(scene_scale)
         self.params = {k: torch.nn.Parameter(raw[k].to(device).contiguous()) for k in PARAM_KEYS}
         self.optimizers = _make_optimizers(self.params, p, scene_scale)
-        self.strat_state = {k: (v.to(device) if isinstance(v, torch.Tensor) else v)
-                            for k, v in self.strat_state.items()}
+        self.strat_state: dict[str, Any] = {k: (v.to(device) if isinstance(v, torch.Tensor) else v)
+                                            for k, v in self.strat_state.items()}
         if saved is not None:
             for k, o in self.optimizers.items():
                 o.load_state_dict(saved["optimizers"][k])
@@ -416,7 +416,7 @@ class _Fit:
         gt = view.rgb().to(device)
         lam = p.ssim_lambda
         loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
-        if use_sky:
+        if use_sky and view.sky is not None:
             sky = view.sky.to(device)
             if sky.any():
                 depth = out[0, ..., 3][sky]

@@ -19,11 +19,16 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from typing import Dict, Optional
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Optional
 
 import torch
 
-Params = Dict[str, torch.Tensor]
+if TYPE_CHECKING:
+    import numpy as np
+
+Params = dict[str, torch.Tensor]
+Gaussians = Mapping[str, torch.Tensor]   # what a render reads: plain tensors or fit Parameters
 
 SH_C0 = 0.28209479177387814
 PARAM_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")
@@ -34,7 +39,7 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-def sh_degree_of(params: Params) -> int:
+def sh_degree_of(params: Gaussians) -> int:
     """The SH degree the parameters hold (from the shape of ``shN``)."""
     k = 1 + params["shN"].shape[1]
     d = int(round(math.sqrt(k))) - 1
@@ -84,7 +89,7 @@ def cat_params(a: Params, b: Params) -> Params:
     return {k: torch.cat([a[k], b[k]], 0) for k in PARAM_KEYS}
 
 
-def activated(params: Params) -> dict:
+def activated(params: Gaussians) -> dict:
     """Activated tensors as the rasterizer takes them.
 
     Returns means (N, 3), quats (N, 4) (unnormalised; the rasterizer normalises),
@@ -99,7 +104,7 @@ def activated(params: Params) -> dict:
     }
 
 
-def render_gaussians(params: Params, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
+def render_gaussians(params: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
            sh_degree: Optional[int] = None, render_mode: str = "RGB",
            backgrounds: Optional[torch.Tensor] = None, **kwargs):
     """Render the Gaussians from C cameras.
@@ -119,7 +124,7 @@ def render_gaussians(params: Params, viewmats: torch.Tensor, Ks: torch.Tensor, w
                      backgrounds=backgrounds, render_mode=render_mode, **kwargs)
 
 
-def scene_scale_of(c2w: torch.Tensor | "np.ndarray") -> float:  # noqa: F821
+def scene_scale_of(c2w: torch.Tensor | np.ndarray) -> float:
     """3DGS scene extent: 1.1 x the largest distance of a camera centre from their mean.
 
     c2w: (F, 4, 4) camera-to-world. Floored at 1 m so a standing camera still gets a scale.

@@ -21,7 +21,7 @@ import torch
 
 from paradrive.io import atomic_path
 
-from .model import num_sh_bases
+from .model import Gaussians, num_sh_bases
 
 __all__ = ["save_ply", "load_ply", "ply_property_names"]
 
@@ -38,7 +38,7 @@ def _to_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().to(torch.float32).numpy()
 
 
-def params_to_array(params: Dict[str, torch.Tensor]) -> np.ndarray:
+def params_to_array(params: Gaussians) -> np.ndarray:
     """(N, P) float32 rows in PLY property order."""
     n = params["means"].shape[0]
     shn = _to_numpy(params["shN"])                      # (N, K-1, 3)
@@ -50,7 +50,7 @@ def params_to_array(params: Dict[str, torch.Tensor]) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate(cols, 1), dtype="<f4")
 
 
-def save_ply(path: str | os.PathLike, params: Dict[str, torch.Tensor]) -> Path:
+def save_ply(path: str | os.PathLike, params: Gaussians) -> Path:
     """Write ``params`` (see :mod:`paradrive.gs.model`) as a 3DGS PLY, atomically."""
     path = Path(path)
     k = 1 + params["shN"].shape[1]

@@ -69,7 +69,7 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
             + _SH_C3[6] * x * (xx - 3.0 * yy) * coeffs[..., 15, :])
 
 
-def _quat_to_rotmat(quats: Tensor) -> Tensor:
+def quat_to_rotmat(quats: Tensor) -> Tensor:
     """(N, 4) wxyz, any norm -> (N, 3, 3) rotation."""
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
@@ -87,7 +87,7 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height,
     Returns means2d (C, N, 2), conics (C, N, 3) = (a, b, c) of the inverse 2D covariance,
     depths (C, N) camera z, radii_xy (C, N, 2) int32 box half-sizes (0 = culled).
     """
-    R = _quat_to_rotmat(quats)
+    R = quat_to_rotmat(quats)
     M = R * scales[:, None, :]
     cov3 = M @ M.transpose(1, 2)  # (N, 3, 3)
     Rv = viewmats[:, :3, :3]

@@ -22,17 +22,9 @@ from typing import Any, Dict
 import torch
 
 from .model import logit
+from .rasterize import quat_to_rotmat
 
 __all__ = ["DensifyStrategy"]
-
-
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    q = torch.nn.functional.normalize(q, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
 
 
 def split_noise(generator: torch.Generator, n: int, device: torch.device) -> torch.Tensor:
@@ -169,7 +161,7 @@ class DensifyStrategy:
             is_new = torch.cat([torch.zeros(len(rest), dtype=torch.bool, device=dev),
                                 torch.ones(2 * n_split, dtype=torch.bool, device=dev)])
             scales = torch.exp(params["scales"].data[sel])                     # (S, 3)
-            rot = _quat_to_rotmat(params["quats"].data[sel])                    # (S, 3, 3)
+            rot = quat_to_rotmat(params["quats"].data[sel])                    # (S, 3, 3)
             noise = split_noise(generator, n_split, dev) * scales               # (2, S, 3)
             offsets = torch.einsum("sij,bsj->bsi", rot, noise).reshape(-1, 3)
             means = torch.cat([params["means"].data[rest],

@@ -95,7 +95,7 @@ def render_views(params: dict, c2w: np.ndarray, K: np.ndarray, width: int, heigh
             z = None
             if one_pass:
                 z, z_alpha = out[..., 3], alpha[..., 0]
-            elif depth:
+            elif depth and solid is not None:
                 ed, z_alpha, _ = render_gaussians(solid, vm, Ks, int(width), int(height), sh_degree=deg,
                                         render_mode="ED", backend=backend)
                 z, z_alpha = ed[..., 0], z_alpha[..., 0]

@@ -112,8 +112,9 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
                 mirror.sync([f"{MARKER_DIR}/*.json"])
         except OSError as exc:  # StorageError: names the URL and the fix
             return StageResult(label, stage, "failed", error=f"build {build}: {exc}")
-        markers = [read_marker(sdir, need) for need in spec.needs]
-        if all(markers):
+        found = [read_marker(sdir, need) for need in spec.needs]
+        markers = [m for m in found if m is not None]
+        if len(markers) == len(found):
             scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),
                            "scene_location": root.scene_location(sid)})
             inputs[sid] = ",".join(m["fingerprint"] for m in markers)
@@ -121,7 +122,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             if mirror:
                 mirrors.append(mirror)
         else:
-            unfinished[sid] = [need for need, m in zip(spec.needs, markers) if not m]
+            unfinished[sid] = [need for need, m in zip(spec.needs, found) if not m]
     result = _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors,
                               Path(manifests_dir) / build, build, force, record)
     result.summary["unfinished"] = unfinished
@@ -222,9 +223,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
             build_uris.append(uri)
     if selection is None:
         selection = default_selection(config, uris)
-    left_out = {e["scene_uri"] for e in selection.excluded}
-    uris = [u for u in uris if u not in left_out]
-    build_uris = [u for u in build_uris if u not in left_out]
+    excluded = {e["scene_uri"] for e in selection.excluded}
+    uris = [u for u in uris if u not in excluded]
+    build_uris = [u for u in build_uris if u not in excluded]
     executor = executor or LocalExecutor()
     report = BuildReport(excluded=list(selection.excluded))
     if scene_stages:
@@ -237,11 +238,11 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
             on_start(f"build:{build}", stage)
         result = run_build_stage(config, stage, build_uris, data_dir, Path(manifests_dir), build,
                                  force=force, record=selection.record())
-        failed_before = {r.scene_id for r in report.results if r.status == "failed"}
+        failed_ids = {r.scene_id for r in report.results if r.status == "failed"}
         left_out = [StageResult(sid, stage, "failed", error=(
             f"{stage}: left out of build {build}: the scene has not finished "
             f"{', '.join(needs)}; a plain re-run (without --stages) builds it"))
-            for sid, needs in result.summary.get("unfinished", {}).items() if sid not in failed_before]
+            for sid, needs in result.summary.get("unfinished", {}).items() if sid not in failed_ids]
         for r in [*left_out, result]:
             report.results.append(r)
             if on_result:

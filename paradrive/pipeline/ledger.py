@@ -37,11 +37,12 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from paradrive.errors import ConfigError
+from paradrive.stages.layout import LEDGER
 from paradrive.redact import redact, redact_argv
 from paradrive.uri import parse_uri
 
 SCHEMA_VERSION = 1
-LEDGER_FILE = "ledger.sqlite"
+LEDGER_FILE = LEDGER
 STATES = ("pending", "running", "done", "skipped", "failed", "blocked")
 FINISHED = ("done", "skipped")
 BROKEN = ("failed", "blocked")

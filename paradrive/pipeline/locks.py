@@ -37,9 +37,10 @@ from pathlib import Path
 from typing import Iterator
 
 from paradrive.errors import ParaDriveError
+from paradrive.stages.layout import LOCKS_DIR, DataLayout
 from paradrive.storage import DataRoot
 
-LOCK_DIR = "locks"
+LOCK_DIR = LOCKS_DIR
 DEFAULT_LOCK_TIMEOUT_S = 3600.0  # a waiting build gives up on a held scene after this long
 LEASE_SECONDS = 60.0             # a URL root's lease lives this long unless its holder renews it
 POLL_SECONDS = 0.25              # how often a waiting build looks at the lock again
@@ -143,7 +144,7 @@ class HeldLock:
 # -- a folder root: flock ---------------------------------------------------------------------
 
 def _lock_file(root: DataRoot, scene_id: str) -> Path:
-    return root.local / LOCK_DIR / f"{scene_id}.lock"
+    return DataLayout(root.local).lock(scene_id)
 
 
 @contextlib.contextmanager

@@ -36,7 +36,7 @@ from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.metrics import peak_rss_mb
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
 from paradrive.stages.base import BuildContext, StageContext
-from paradrive.stages.layout import MARKER_DIR, SceneLayout
+from paradrive.stages.layout import MARKER_DIR, DataLayout, SceneLayout
 from paradrive.redact import redact
 from paradrive.storage import DataRoot, SceneMirror, file_stats, matches
 from paradrive.uri import parse_uri, safe_name
@@ -308,7 +308,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
     data_dir = root.local
     spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
-    with scene_logger(scene_id, data_dir / "logs" / f"{scene_id}.log", root.storage_options) as log:
+    with scene_logger(scene_id, DataLayout(data_dir).log(scene_id), root.storage_options) as log:
         params = config.params[stage]
         t0 = time.time()
         try:

@@ -125,7 +125,7 @@ def _suggest(name: str, options) -> str:
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-def _coerce(stage: str, key: str, param: Param, value: Any, origin: str) -> Any:
+def coerce(stage: str, key: str, param: Param, value: Any, origin: str) -> Any:
     """Check an override against the default's type (ints pass where floats are expected)."""
     default = param.default
     if param.choices is not None and value not in param.choices:
@@ -260,7 +260,7 @@ class StageRegistry:
                     if key not in spec.params:
                         raise ConfigError(f"{origin}: stage '{stage}' has no parameter '{key}'"
                                           f"{_suggest(key, spec.params)}; see {spec.file}")
-                    params[stage][key] = _coerce(stage, key, spec.params[key], value, origin)
+                    params[stage][key] = coerce(stage, key, spec.params[key], value, origin)
                     origins[stage][key] = origin.split(" (")[0]
         return ResolvedConfig(profile=prof.name, params=params, origins=origins,
                               stages_dir=str(self.dir))

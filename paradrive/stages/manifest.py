@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from paradrive.errors import ParaDriveError, SceneError
 from paradrive.manifest import MediaFile, publish, read_clips, scene_rows
 from paradrive.stages.base import BuildContext, StageParams
+from paradrive.stages.records import IndexRecord
 
 
 class Params(StageParams):
@@ -26,18 +27,9 @@ class Params(StageParams):
     exclude_splits: list[str]
 
 
-class IndexSummary(dict[str, Any]):
-    """The published index (a build's ``index.json``), summarised for the stage's marker."""
-
-    def summary(self) -> dict[str, Any]:
-        totals = self["totals"]
-        return {"rows": totals["rows"], "shards": totals["shards"], "scenes": totals["scenes"],
-                "skipped": [s["scene_id"] for s in self["skipped_scenes"]]}
-
-
 def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: Params, *,
                    fingerprint: str = "", build: str | None = None,
-                   log: logging.Logger | None = None, selection: dict | None = None) -> IndexSummary:
+                   log: logging.Logger | None = None, selection: dict | None = None) -> IndexRecord:
     """Rows from every scene in ``scene_dirs`` ([{scene_id, scene_uri, scene_dir}]) published
     under ``build_dir``. A scene whose clips cannot be used is skipped with its reason; no usable
     scene at all is an error."""
@@ -69,11 +61,10 @@ def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: Params
         reasons = "; ".join(s["reason"] for s in skipped) or "no scenes given"
         raise ParaDriveError(f"build {build or Path(build_dir).name}: no usable scene, nothing "
                              f"published ({reasons})")
-    return IndexSummary(publish(build_dir, rows, media, scenes=scenes, skipped=skipped,
-                                params=params, fingerprint=fingerprint, build=build, log=log,
-                                selection=selection))
+    return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
+                   fingerprint=fingerprint, build=build, log=log, selection=selection)
 
 
-def run(ctx: BuildContext[Params]) -> IndexSummary:
+def run(ctx: BuildContext[Params]) -> IndexRecord:
     return build_manifest(ctx.build_dir, ctx.scenes, ctx.params, fingerprint=ctx.fingerprint,
                           build=ctx.build, log=ctx.log, selection=ctx.selection)

@@ -261,3 +261,103 @@ class ClipsRecord(Record):
     def video_hashes(self) -> dict[str, str]:
         """sha256 of every video, by its path relative to the scene folder."""
         return {s.file: s.sha256 for c in self.clips for s in c.streams.values()}
+
+
+# --------------------------------------------------------------------------- index.json
+
+class ColumnRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    type: str
+
+
+class ShardRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    file: str
+    rows: int
+    bytes: int
+    sha256: str
+    first_pair_id: str | None
+    last_pair_id: str | None
+
+
+class IndexTotals(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    rows: int
+    shards: int
+    shard_bytes: int
+    media_files: int
+    media_bytes: int
+    scenes: int
+    scenes_skipped: int
+
+
+class MediaRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    mode: str
+    placed: dict[str, int]
+
+
+class IndexScene(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    scene_id: str
+    dataset: str
+    scene_uri: str
+    scene_dir: str
+    rows: int
+    cameras: list[str]
+    clips: list[str]
+    skipped_clips: list[CameraSkippedClip]
+
+
+class SkippedScene(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    scene_id: str
+    scene_uri: str
+    reason: str
+
+
+class SplitFile(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    file: str
+    sha256: str
+    scenes: int
+
+
+class ExcludedScene(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    scene_id: str
+    scene_uri: str
+    split: str
+    line: str
+
+
+class IndexRecord(BaseModel):
+    """A published build's ``index.json``: its shards, media, scenes and how it was made."""
+
+    model_config = ConfigDict(extra="forbid")
+    format: str
+    schema_version: int
+    build: str
+    kind: str
+    created_at: str
+    software: dict[str, str]
+    config_fingerprint: str
+    params: dict[str, Any]
+    sort: list[str]
+    columns: list[ColumnRecord]
+    shards: list[ShardRecord]
+    totals: IndexTotals
+    media: MediaRecord
+    scenes: list[IndexScene]
+    skipped_scenes: list[SkippedScene]
+    exclude_splits: list[SplitFile]
+    excluded_scenes: list[ExcludedScene]
+
+    def save(self, path: str | Path) -> None:
+        write_json(path, self.model_dump())
+
+    def summary(self) -> dict[str, Any]:
+        return {"rows": self.totals.rows, "shards": self.totals.shards,
+                "scenes": self.totals.scenes, "skipped": [s.scene_id for s in self.skipped_scenes]}

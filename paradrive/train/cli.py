@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import functools
+
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 from rich.console import Console
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import path_inside
 
 console = Console(stderr=True)
@@ -50,7 +52,7 @@ def train(
                                         f"'paradrive train --stage 1' with the same --out, or pass --init")
         dataset = open_dataset(build, cfg)
         trainer = Trainer(cfg, stage, stage_dir, dataset, init=init)
-    except (ValueError, FileNotFoundError, TypeError) as exc:
+    except (ValueError, FileNotFoundError, TypeError, ConfigError) as exc:
         _fail(str(exc))
 
     total = int(cfg["train"]["steps"] if steps is None else steps)
@@ -75,12 +77,12 @@ def train(
             if sample_set is not None:
                 items = open_dataset(sample_set, cfg)
                 # a pair id names the file; one from a shared build must stay inside the folder
-                picks = [(lambda i=i: items[i],
+                picks = [(functools.partial(items.__getitem__, i),
                           path_inside(sample, f"{pid}.mp4", f"{sample_set}: pair {pid}"))
                          for i, pid in enumerate(items.pair_ids)]
             else:
                 item = _find_pair(dataset, pair)
-                picks = [(lambda: item, sample)]
+                picks = [(functools.partial(dict, item), sample)]
         except (ValueError, IndexError, ParaDriveError) as exc:
             _fail(str(exc))
         s = cfg["sample"]

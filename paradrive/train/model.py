@@ -145,7 +145,7 @@ class CameraEncoder(nn.Module):
         self.net = nn.Sequential(nn.Linear(12, dim), nn.SiLU(), nn.Linear(dim, dim))
 
     def forward(self, pose: torch.Tensor) -> torch.Tensor:
-        return self.net(pose[..., :3, :4].flatten(-2).to(self.net[0].weight.dtype))
+        return self.net(pose[..., :3, :4].flatten(-2).to(next(self.net.parameters()).dtype))
 
 
 class VideoDiT(nn.Module):
@@ -238,6 +238,7 @@ class VideoDiT(nn.Module):
         x = seq.flatten(1, 2)
         cond = None
         if self.config.rendering:
+            assert condition is not None, "a rendering model needs the condition video"
             cond = self.embed_condition(condition, rel_pose).flatten(1, 2)
         temb = self.time_embed(timestep_embedding(t.expand(b) if t.ndim == 0 else t, 256).to(x.dtype))
         for block in self.blocks:

@@ -26,10 +26,12 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import torch
 import yaml
+from pydantic import ValidationError
 
 from paradrive.devices import resolve_device
 from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
-from paradrive.pipeline.specs import default_stages_dir
+from paradrive.errors import ConfigError
+from paradrive.pipeline.specs import Param, coerce, default_stages_dir
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.flow import euler_sample, flow_matching_loss
 from paradrive.train.model import ModelConfig, VideoDiT, is_stage2_parameter, load_stage1_weights
@@ -41,38 +43,60 @@ CHECKPOINT_FORMAT = "paradrive-train/1"
 
 
 # -- configs -------------------------------------------------------------------------------------
-def _values(tree: Mapping[str, Any], where: str) -> dict:
-    """{key: {value, doc}} leaves -> {key: value}, recursively."""
-    out = {}
+# One config system with the stages: every setting of a base file is a ``Param`` ({default, doc}),
+# an ``extends:`` file is a profile of plain values, and every override is type-checked against
+# the setting's default as stage parameters are (paradrive.pipeline.specs).
+
+def _params(tree: Mapping[str, Any], where: str) -> dict:
+    """{key: {default, doc}} leaves (nested in sections) -> {key: Param}."""
+    out: dict = {}
     for key, node in tree.items():
-        if isinstance(node, Mapping) and "value" in node:
-            out[key] = node["value"]
+        if isinstance(node, Mapping) and "doc" in node and "default" in node:
+            try:
+                out[key] = Param.model_validate(node)
+            except ValidationError as exc:
+                raise ConfigError(f"{where}.{key}: {exc.errors()[0]['msg']}") from exc
         elif isinstance(node, Mapping):
-            out[key] = _values(node, f"{where}.{key}")
+            out[key] = _params(node, f"{where}.{key}")
         else:
-            raise ValueError(f"{where}.{key}: write {{value: ..., doc: ...}}, got {node!r}")
+            raise ConfigError(f"{where}.{key}: write {{default: ..., doc: ...}}, got {node!r}")
     return out
 
 
-def _merge(base: dict, override: Mapping[str, Any], where: str) -> dict:
-    out = copy.deepcopy(base)
+def _defaults(params: Mapping[str, Any]) -> dict:
+    return {k: (v.default if isinstance(v, Param) else _defaults(v)) for k, v in params.items()}
+
+
+def _merge(values: dict, params: Mapping[str, Any], override: Mapping[str, Any], where: str) -> dict:
+    out = copy.deepcopy(values)
     for key, value in override.items():
-        if key not in out:
-            raise ValueError(f"{where}: unknown setting {key!r}; known: {', '.join(sorted(out))}")
-        if isinstance(out[key], dict):
-            if not isinstance(value, Mapping):
-                raise ValueError(f"{where}.{key} is a section; give its settings, not {value!r}")
-            out[key] = _merge(out[key], value, f"{where}.{key}")
+        if key not in params:
+            raise ConfigError(f"{where}: unknown setting {key!r}; known: {', '.join(sorted(params))}")
+        if isinstance(params[key], Param):
+            out[key] = coerce(where.split(".", 1)[-1] or "train", key, params[key], value, where)
+        elif not isinstance(value, Mapping):
+            raise ConfigError(f"{where}.{key} is a section; give its settings, not {value!r}")
         else:
-            out[key] = value
+            out[key] = _merge(out[key], params[key], value, f"{where}.{key}")
     return out
+
+
+def _load(path: Path) -> tuple[dict, dict]:
+    """(the settings' Params, their values) of a config file, following ``extends``."""
+    doc = yaml.safe_load(path.read_text()) or {}
+    if doc.get("extends"):
+        params, values = _load(path.parent / f"{doc['extends']}.yaml")
+        return params, _merge(values, params, doc.get("params") or {}, path.name)
+    params = _params(doc.get("params") or {}, path.name)
+    return params, _defaults(params)
 
 
 def load_config(source: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> dict:
     """Read a training config: a name in ``stages/train/`` (``default``, ``smoke``) or a YAML path.
 
-    A file may ``extends: <name>`` another and then lists only what it changes. Every leaf is
-    ``{value: ..., doc: ...}``. ``overrides`` (nested dict of plain values) are applied last.
+    A base file declares every setting as ``{default: ..., doc: ...}``; a file that ``extends:``
+    another lists only the values it changes. ``overrides`` (nested dict of plain values) are
+    applied last. Unknown settings and values of the wrong type are ConfigErrors.
     """
     path = Path(source) if source is not None else CONFIG_DIR / "default.yaml"
     if not path.suffix and not path.exists():
@@ -80,14 +104,8 @@ def load_config(source: str | Path | None = None, overrides: Mapping[str, Any] |
     if not path.is_file():
         known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
         raise FileNotFoundError(f"training config {source}: no such file (configs in {CONFIG_DIR}: {known})")
-    doc = yaml.safe_load(path.read_text()) or {}
-    values = _values(doc.get("params") or {}, path.name)
-    if doc.get("extends"):
-        base_path = path.parent / f"{doc['extends']}.yaml"
-        values = _merge(load_config(base_path), values, path.name)
-    if overrides:
-        values = _merge(values, overrides, "override")
-    return values
+    params, values = _load(path)
+    return _merge(values, params, overrides, "override") if overrides else values
 
 
 def parse_set(items: Sequence[str]) -> dict:
