@@ -6,6 +6,9 @@ Layout under ``<data>/scenes/<scene_id>/``::
     images/<cam>/<frame:06d>.<ext>
     masks/sky/<cam>/<frame:06d>.png     (optional, 255 = sky)
     lidar/<frame:06d>.npy               (optional, (M, 3) float32 world points)
+    masks/dynamic/<cam>/<frame:06d>.png (with actors, 255 = a moving actor's box)
+
+Schema 2 adds ``actors`` (paradrive.actors); schema 1 files (no actors) still load.
 """
 
 from __future__ import annotations
@@ -18,10 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from paradrive import geometry
+from paradrive.actors import Actor, actor_from_json
 from paradrive.errors import SceneError
 from paradrive.io import PathEscapeError, atomic_path, check_relative, path_inside, write_json
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# versions load_scene reads: 1 is 2 without actors
+READABLE_VERSIONS = (1, 2)
 CAMERA_NAMES = ("front", "front_left", "front_right", "side_left", "side_right",
                 "back", "back_left", "back_right")
 
@@ -138,6 +144,7 @@ class Scene:
     frames: list[Frame]
     root: Path | None = None
     extra: dict = field(default_factory=dict)
+    actors: list[Actor] = field(default_factory=list)
 
     # ---------------------------------------------------------------- poses
     def c2w(self, camera: str) -> np.ndarray:
@@ -205,7 +212,8 @@ class Scene:
         doc = {"schema_version": SCHEMA_VERSION, "scene_id": self.scene_id, "dataset": self.dataset,
                "source": self.source, "fps": float(self.fps), "world": "first ego pose",
                "cameras": {k: v.to_json() for k, v in self.cameras.items()},
-               "frames": [f.to_json() for f in self.frames]}
+               "frames": [f.to_json() for f in self.frames],
+               "actors": [a.to_json() for a in self.actors]}
         for key, value in self.extra.items():
             doc.setdefault(key, value)
         return doc
@@ -231,10 +239,12 @@ def scene_from_json(doc: dict, root: Path | None = None) -> Scene:
                         cameras={k: FrameCamera(image=v["image"], c2w=geometry.as_pose(v["c2w"]))
                                  for k, v in f["cameras"].items()})
                   for f in doc["frames"]]
-        known = {"schema_version", "scene_id", "dataset", "source", "fps", "world", "cameras", "frames"}
+        known = {"schema_version", "scene_id", "dataset", "source", "fps", "world", "cameras",
+                 "frames", "actors"}
         return Scene(scene_id=doc["scene_id"], dataset=doc["dataset"], source=doc["source"],
                      fps=float(doc["fps"]), cameras=cameras, frames=frames, root=root,
-                     extra={k: v for k, v in doc.items() if k not in known})
+                     extra={k: v for k, v in doc.items() if k not in known},
+                     actors=[actor_from_json(a) for a in doc.get("actors", [])])
     except (KeyError, TypeError, ValueError) as exc:
         raise SceneError(f"scene.json is malformed: {type(exc).__name__}: {exc}", scene_id=sid,
                          path=where, fix="re-run ingest for this scene") from exc
@@ -253,9 +263,9 @@ def load_scene(scene_dir: str | Path, *, check_files: bool = True) -> Scene:
         raise SceneError(f"scene.json is not valid JSON ({exc})", scene_id=root.name, path=path,
                          fix="re-run ingest for this scene") from exc
     scene = scene_from_json(doc, root)
-    if doc.get("schema_version") != SCHEMA_VERSION:
-        raise SceneError(f"scene.json schema_version {doc.get('schema_version')!r} is not "
-                         f"{SCHEMA_VERSION}", scene_id=scene.scene_id, path=path,
+    if doc.get("schema_version") not in READABLE_VERSIONS:
+        raise SceneError(f"scene.json schema_version {doc.get('schema_version')!r} is not one of "
+                         f"{READABLE_VERSIONS}", scene_id=scene.scene_id, path=path,
                          fix="re-ingest the scene with this version of paradrive")
     validate_scene(scene, check_files=check_files)
     return scene

@@ -13,6 +13,7 @@ import os
 import shutil
 from pathlib import Path
 
+from paradrive.actors import write_dynamic_masks
 from paradrive.errors import SceneError
 from paradrive.io import temporary_name
 from paradrive.scene import load_scene, write_scene
@@ -40,6 +41,8 @@ def ingest(scene_uri: str, scene_dir: str | Path, params: dict) -> dict:
         scene = reader.read(uri, tmp, params, scene_dir.name)
         scene.scene_id = scene_dir.name
         write_scene(scene, tmp)
+        if params.get("moving_threshold_m") is not None:
+            write_dynamic_masks(scene, tmp, float(params["moving_threshold_m"]))
         load_scene(tmp)  # validates files too, before anything is published
         scene_dir.mkdir(parents=True, exist_ok=True)
         for name in INGEST_ENTRIES:
@@ -53,7 +56,7 @@ def ingest(scene_uri: str, scene_dir: str | Path, params: dict) -> dict:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return {"frames": len(scene.frames), "cameras": sorted(scene.cameras),
-            "dataset": scene.dataset}
+            "dataset": scene.dataset, "actors": len(scene.actors)}
 
 
 def run_stage(ctx) -> dict:

@@ -9,6 +9,9 @@ back). Writers:
   calibrated_sensor, sensor, log, ...) with keyframes and sweeps, images, LIDAR_TOP .pcd.bin;
 - ``export_drivestudio``: a DriveStudio processed scene folder, Waymo or nuScenes flavour.
 
+The source's actors go along: Waymo ``laser_labels``, nuScenes ``sample_annotation`` (keyframes
+only, grouped by ``instance``), DriveStudio ``instances/``.
+
 Poses are written in a "global" frame ``GLOBAL @ scene world`` (far from the origin and rotated)
 so that a reader that forgets to re-anchor the world at the first ego pose fails the tests.
 """
@@ -27,6 +30,7 @@ from typing import Callable, List
 import numpy as np
 
 from paradrive import geometry
+from paradrive.actors import Actor
 from paradrive.errors import SceneError
 from paradrive.ingest import waymo_proto as wp
 from paradrive.ingest.common import OPENCV_TO_FLU, encode_jpeg, transform_points
@@ -67,6 +71,7 @@ class LogSource:
     sky: Callable[[int, str], np.ndarray | None] = lambda i, cam: None
     lidar: Callable[[int], np.ndarray | None] = lambda i: None
     lidar_origin: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.95]))
+    actors: list[Actor] = field(default_factory=list)
 
     @property
     def frames(self) -> int:
@@ -86,7 +91,8 @@ def source_from_street(street, cameras=None, frames: int | None = None) -> LogSo
     def views(cam):
         if cam not in cache:
             spec = street.cameras[cam]
-            cache[cam] = street.render(c2w[cam], spec.K(), spec.width, spec.height)
+            cache[cam] = street.render(c2w[cam], spec.K(), spec.width, spec.height,
+                                       frames=np.arange(n))
         return cache[cam]
 
     origin = np.array([0.0, 0.0, 1.95])
@@ -103,7 +109,14 @@ def source_from_street(street, cameras=None, frames: int | None = None) -> LogSo
         sky=lambda i, cam: views(cam)["sky"][i],
         lidar=functools.lru_cache(maxsize=None)(
             lambda i: np.asarray(street.lidar_points(i), dtype=np.float64)),
-        lidar_origin=origin)
+        lidar_origin=origin, actors=_first_frames(street.actors(), n))
+
+
+def _first_frames(actors: list[Actor], n: int) -> list[Actor]:
+    """The actors' tracks cut to frames 0 .. n-1 (those left with none are left out)."""
+    cut = [Actor(a.id, a.cls, a.rigid, a.size, a.frames[a.frames < n], a.box2world[a.frames < n])
+           for a in actors]
+    return [a for a in cut if len(a.frames)]
 
 
 def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> LogSource:
@@ -121,7 +134,8 @@ def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> 
         ego2world=scene.ego2world()[:n], timestamps_us=scene.timestamps_us()[:n],
         c2w={c: scene.c2w(c)[:n] for c in names},
         image=lambda i, cam: scene.load_image(i, cam),
-        sky=lambda i, cam: scene.sky_mask(i, cam), lidar=lidar)
+        sky=lambda i, cam: scene.sky_mask(i, cam), lidar=lidar,
+        actors=_first_frames(scene.actors, n))
 
 
 def as_source(street_or_scene, cameras=None, frames=None) -> LogSource:
@@ -148,7 +162,30 @@ def _flat(m) -> list[float]:
     return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(-1)]
 
 
+def _label_name(actor: Actor) -> str:
+    """The log's id of an actor: its id without the ``synthetic:`` prefix."""
+    return actor.id.split(":", 1)[-1]
+
+
 # --------------------------------------------------------------------------- Waymo
+
+WAYMO_LABEL_TYPES = {"vehicle": 1, "pedestrian": 2, "cyclist": 4, "other": 0}
+
+
+def waymo_labels(actors: list[Actor], i: int, ego2world: np.ndarray) -> list[dict]:
+    """Frame ``i``'s laser_labels: each actor's box in that frame's vehicle frame."""
+    labels = []
+    for a in actors:
+        pose = a.pose_at(i)
+        if pose is None:
+            continue
+        box = geometry.invert(ego2world) @ pose
+        labels.append({"box": {"center_x": box[0, 3], "center_y": box[1, 3], "center_z": box[2, 3],
+                               "length": a.size[0], "width": a.size[1], "height": a.size[2],
+                               "heading": float(np.arctan2(box[1, 0], box[0, 0]))},
+                       "type": WAYMO_LABEL_TYPES[a.cls], "id": _label_name(a)})
+    return labels
+
 
 def rotation_to_euler(rot: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
@@ -245,7 +282,8 @@ def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int
                                 "pose_timestamp": src.timestamps_us[i] / 1e6,
                                 "shutter": 0.004})
             frame = {"context": context, "timestamp_micros": int(src.timestamps_us[i]),
-                     "pose": {"transform": _flat(ego_global)}, "images": images}
+                     "pose": {"transform": _flat(ego_global)}, "images": images,
+                     "laser_labels": waymo_labels(src.actors, i, src.ego2world[i])}
             if has_lidar:
                 pts_vehicle = transform_points(geometry.invert(src.ego2world[i]), src.lidar(i))
                 ri = build_range_image(pts_vehicle, lidar_extrinsic, h, w, incl_min, incl_max)
