@@ -224,6 +224,17 @@ def is_moving(actor: Actor, threshold_m: float) -> bool:
     return bool(len(c) and np.linalg.norm(c - c[0], axis=1).max() > threshold_m)
 
 
+def read_tracks(scene_dir: Path) -> list[tuple[str, np.ndarray]]:
+    """(class, box centres (T, 3)) of each actor of ``scene_dir/scene.json``; [] without one."""
+    import json
+
+    path = Path(scene_dir) / "scene.json"
+    if not path.is_file():
+        return []
+    found = [actor_from_json(a) for a in json.loads(path.read_text()).get("actors", [])]
+    return [(a.cls, a.centres()) for a in found]
+
+
 # --------------------------------------------------------------------------- masks
 
 def box_footprint(box2world: np.ndarray, size, c2w: np.ndarray, K: np.ndarray, width: int,

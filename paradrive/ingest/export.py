@@ -305,6 +305,38 @@ def _write_json(path: Path, rows) -> None:
     write_bytes(path, json.dumps(rows, indent=0).encode())
 
 
+NUSCENES_CATEGORIES = {"vehicle": "vehicle.car", "pedestrian": "human.pedestrian.adult",
+                       "cyclist": "vehicle.bicycle", "other": "animal"}
+
+
+def nuscenes_annotations(actors: list[Actor], key_idx: list[int], sample_tokens: list[str],
+                         global_from_world: np.ndarray) -> dict[str, list[dict]]:
+    """category, instance and sample_annotation rows: each actor's boxes at the keyframes, in
+    the global frame, size as nuScenes writes it (width, length, height)."""
+    categories = {cls: {"token": _token("category", name), "name": name, "description": ""}
+                  for cls, name in NUSCENES_CATEGORIES.items()}
+    instances, annotations = [], []
+    for a in actors:
+        keyed = [(k, a.pose_at(i)) for k, i in enumerate(key_idx) if a.pose_at(i) is not None]
+        if not keyed:
+            continue
+        tokens = [_token("sample_annotation", a.id, k) for k, _ in keyed]
+        for j, (k, pose) in enumerate(keyed):
+            box = global_from_world @ pose
+            annotations.append({
+                "token": tokens[j], "sample_token": sample_tokens[k],
+                "instance_token": _label_name(a), "visibility_token": "4", "attribute_tokens": [],
+                "translation": _flat(box[:3, 3]), "size": [a.size[1], a.size[0], a.size[2]],
+                "rotation": _flat(geometry.rotation_to_quaternion(box[:3, :3])),
+                "prev": tokens[j - 1] if j else "", "next": tokens[j + 1] if j + 1 < len(tokens) else "",
+                "num_lidar_pts": 10, "num_radar_pts": 0})
+        instances.append({"token": _label_name(a), "category_token": categories[a.cls]["token"],
+                          "nbr_annotations": len(tokens), "first_annotation_token": tokens[0],
+                          "last_annotation_token": tokens[-1]})
+    return {"category": list(categories.values()), "instance": instances,
+            "sample_annotation": annotations}
+
+
 def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
                     frames: int | None = None, version: str = "v1.0-mini",
                     scene_name: str = "scene-0001", keyframe_every: int = 6,
@@ -401,8 +433,8 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
                    "name": scene_name, "description": f"synthetic {src.name}"}],
         "sample": samples, "sample_data": sample_data, "ego_pose": ego_poses,
         "calibrated_sensor": calibrated, "sensor": sensors,
-        "category": [], "attribute": [], "visibility": [], "instance": [],
-        "sample_annotation": [], "map": [],
+        "attribute": [], "visibility": [], "map": [],
+        **nuscenes_annotations(src.actors, key_idx, sample_tokens, global_from_world),
     }
     for table, rows in tables.items():
         _write_json(root / version / f"{table}.json", rows)
@@ -410,6 +442,28 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
 
 
 # --------------------------------------------------------------------------- DriveStudio
+
+DRIVESTUDIO_CLASS_NAMES = {"vehicle": "Vehicle", "pedestrian": "Pedestrian", "cyclist": "Cyclist"}
+
+
+def drivestudio_instances(actors: list[Actor], frames: int, global_from_world: np.ndarray,
+                          flavour: str) -> tuple[dict, dict]:
+    """(instances_info, frame_instances) as DriveStudio's preprocessors write them: instances
+    numbered 0.., each with per-frame obj_to_world (global) and box_size (length, width, height)."""
+    info: dict[str, dict] = {}
+    per_frame: dict[str, list[int]] = {str(i): [] for i in range(frames)}
+    names = DRIVESTUDIO_CLASS_NAMES if flavour == "waymo" else NUSCENES_CATEGORIES
+    for a in actors:
+        if a.cls not in names:
+            continue
+        number = len(info)
+        info[str(number)] = {"id": _label_name(a), "class_name": names[a.cls], "frame_annotations": {
+            "frame_idx": [int(f) for f in a.frames],
+            "obj_to_world": [(global_from_world @ p).tolist() for p in a.box2world],
+            "box_size": [[float(v) for v in a.size]] * len(a.frames)}}
+        for f in a.frames:
+            per_frame[str(int(f))].append(number)
+    return info, per_frame
 
 def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "waymo",
                        cameras=None, frames: int | None = None, distortion=None,
@@ -488,6 +542,10 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
                 rows.tofile(tmp / "lidar" / f"{t}.bin")
         if not sky_masks:
             shutil.rmtree(tmp / "sky_masks")
+        info, per_frame = drivestudio_instances(src.actors, src.frames, global_from_world, flavour)
+        (tmp / "instances").mkdir()
+        (tmp / "instances" / "instances_info.json").write_text(json.dumps(info))
+        (tmp / "instances" / "frame_instances.json").write_text(json.dumps(per_frame))
     return folder
 
 

@@ -296,7 +296,7 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
             s += step
 
     if ego_speed > 0:
-        g_traffic = np.random.default_rng(root.spawn(1)[0])
+        g_traffic = root.spawn(1)[0]
 
         def add_car(g, s, lc, facing):
             length, width = g.uniform(3.9, 4.8), g.uniform(1.72, 1.9)
@@ -338,18 +338,19 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
         movers=movers)
 
 
-def traffic_movers(g, lane_w: float, kerb_l: float, ego_speed: float, s_min: float,
-                   s_max: float, add_car, add_person) -> list[traffic.Mover]:
+def traffic_movers(seed: np.random.SeedSequence, lane_w: float, kerb_l: float, ego_speed: float,
+                   s_min: float, s_max: float, add_car, add_person) -> list[traffic.Mover]:
     """Oncoming cars (left lane), overtaking cars (right lane, faster than the ego) and crossing
-    pedestrians, each lane at its own speed."""
-    oncoming = g.uniform(0.8, 1.2) * ego_speed
-    overtaking = g.uniform(1.3, 1.6) * ego_speed
-    specs = [("car", a) for a in traffic.lane_cars(g, lane_w, -1.0, oncoming, s_min, s_max,
+    pedestrians, each lane at its own speed and from its own stream (a longer street keeps them)."""
+    g_speed, g_on, g_over, g_people = map(np.random.default_rng, seed.spawn(4))
+    oncoming = g_speed.uniform(0.8, 1.2) * ego_speed
+    overtaking = g_speed.uniform(1.3, 1.6) * ego_speed
+    specs = [("car", a) for a in traffic.lane_cars(g_on, lane_w, -1.0, oncoming, s_min, s_max,
                                                    add_car)]
-    specs += [("car", a) for a in traffic.lane_cars(g, -lane_w, 1.0, overtaking, s_min - 20.0,
-                                                    s_max, add_car)]
-    specs += [("person", a) for a in traffic.crossing_people(g, kerb_l + 1.0, ego_speed, s_min,
-                                                             s_max, add_person)]
+    specs += [("car", a) for a in traffic.lane_cars(g_over, -lane_w, 1.0, overtaking,
+                                                    s_min - 20.0, s_max, add_car)]
+    specs += [("person", a) for a in traffic.crossing_people(g_people, kerb_l + 1.0, ego_speed,
+                                                             s_min, s_max, add_person)]
     return [traffic.Mover(f"{kind}-{i:03d}", kind, *args) for i, (kind, args) in enumerate(specs)]
 
 
