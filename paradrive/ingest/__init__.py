@@ -56,7 +56,7 @@ def ingest(scene_uri: str, scene_dir: str | Path, params: dict) -> dict:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return {"frames": len(scene.frames), "cameras": sorted(scene.cameras),
-            "dataset": scene.dataset, "actors": len(scene.actors)}
+            "dataset": scene.dataset}
 
 
 def run_stage(ctx) -> dict:

@@ -154,9 +154,10 @@ def instance_kind(tables, instance: str) -> tuple[str, bool] | None:
 def instance_boxes(rows: list[dict], sample_time: dict[str, int], world_from_global):
     """Keyframe times (K,), box2world (K, 4, 4) and sizes (K, 3) (length, width, height) of one
     instance's annotations, sorted by time; ValueError naming the bad row."""
-    outside = [r["token"] for r in rows if r["sample_token"] not in sample_time]
+    outside = [r for r in rows if r["sample_token"] not in sample_time]
     if outside:
-        raise ValueError(f"sample_annotation {outside[0]} is for a sample this scene does not have")
+        raise ValueError(f"sample_annotation {outside[0]['token']} sample_token "
+                         f"{outside[0]['sample_token']!r} is not a sample of this scene")
     rows = sorted(rows, key=lambda r: sample_time[r["sample_token"]])
     times = np.asarray([sample_time[r["sample_token"]] for r in rows], dtype=np.int64)
     if (np.diff(times) == 0).any():
@@ -175,8 +176,8 @@ def instance_actor(tables, instance: str, rows: list[dict], sample_time: dict[st
     try:
         kind = instance_kind(tables, instance)
     except KeyError as exc:
-        act.log_dropped(key, f"category {exc} is not a nuScenes category (instance.category_token)",
-                        scene_id=scene_id, where=where)
+        act.log_dropped(key, f"category {exc} is not a nuScenes category (instance.json "
+                             "category_token, category.json name)", scene_id=scene_id, where=where)
         return None
     if kind is None:
         return None
