@@ -12,6 +12,7 @@ stay on asphalt. Lateral profile (both sides, from the centre out):
 
 from __future__ import annotations
 
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -182,6 +183,7 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
         pp = np.zeros(8)
         pp[:len(p)] = p
         par.append(pp)
+        return len(boxes) - 1
 
     def facade_params(g, back=False):
         ci = g.integers(len(_FACADE_COLOURS))
@@ -239,12 +241,12 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
             if facing < 0:
                 back_in, front_in = front_in, back_in
             l0, l1 = lc - width / 2, lc + width / 2
-            first = len(boxes)
-            for box, mat in _car_parts(s, length, l0, l1, body_top, cab_h, back_in, front_in):
-                add_box(box, mat, (0.05, 0.05, 0.05) if mat == WHEEL else colour,
-                        p=(facing,) if mat == CAR else ())
+            rows = [add_box(box, mat, (0.05, 0.05, 0.05) if mat == WHEEL else colour,
+                            p=(facing,) if mat == CAR else ())
+                    for box, mat in _car_parts(s, length, l0, l1, body_top, cab_h, back_in,
+                                               front_in)]
             movers.append(traffic.Mover(
-                f"parked-{len(movers):03d}", "car", np.arange(first, len(boxes)),
+                f"parked-{len(movers):03d}", "car", np.array(rows),
                 np.array([s, s + length, l0, l1, 0.0, body_top + cab_h]),
                 yaw=0.0 if facing > 0 else np.pi))
             gap = g_car.uniform(0.8, 6.0) if g_car.random() < 0.8 else g_car.uniform(8, 18)
@@ -296,33 +298,9 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
             s += step
 
     if ego_speed > 0:
-        g_traffic = root.spawn(1)[0]
-
-        def add_car(g, s, lc, facing):
-            length, width = g.uniform(3.9, 4.8), g.uniform(1.72, 1.9)
-            colour = _CAR_COLOURS[g.integers(len(_CAR_COLOURS))] + g.uniform(-0.03, 0.03, 3)
-            body_top, cab_h = 0.28 + g.uniform(0.62, 0.8), g.uniform(0.42, 0.58)
-            back_in, front_in = g.uniform(0.7, 1.1), g.uniform(1.1, 1.5)
-            if facing < 0:
-                back_in, front_in = front_in, back_in
-            first, l0, l1 = len(boxes), lc - width / 2, lc + width / 2
-            for box, mat in _car_parts(s, length, l0, l1, body_top, cab_h, back_in, front_in):
-                add_box(box, mat, (0.05, 0.05, 0.05) if mat == WHEEL else colour,
-                        p=(facing,) if mat == CAR else ())
-            return np.arange(first, len(boxes)), np.array([s, s + length, l0, l1, 0.0,
-                                                           body_top + cab_h])
-
-        def add_person(g, s, lc):
-            height = g.uniform(1.55, 1.9)
-            shirt = traffic.PERSON_COLOURS[g.integers(len(traffic.PERSON_COLOURS))]
-            first = len(boxes)
-            for box, part in _person_parts(s, lc, height):
-                add_box(box, PERSON, ((0.12, 0.12, 0.16), shirt, (0.78, 0.6, 0.48))[part])
-            return np.arange(first, len(boxes)), np.array([s - 0.25, s + 0.25, lc - 0.15,
-                                                           lc + 0.15, 0.0, height])
-
-        movers += traffic_movers(g_traffic, lane_w, kerb_l, ego_speed, s_min, s_max, add_car,
-                                 add_person)
+        movers += traffic_movers(root.spawn(1)[0], lane_w, kerb_l, ego_speed, s_min, s_max,
+                                 functools.partial(_moving_car, add_box),
+                                 functools.partial(_crossing_person, add_box))
 
     return Layout(
         lane_w=lane_w, edge_l=edge_l, kerb_l=kerb_l, facade_l=facade_l,
@@ -336,6 +314,30 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
         sph_rgb=np.array(srgb, np.float64).reshape(-1, 3),
         asphalt=float(asphalt), sun=sun, zenith=np.clip(zenith, 0, 1), horizon=np.clip(horizon, 0, 1),
         movers=movers)
+
+
+def _moving_car(add_box, g, s: float, lc: float, facing: float):
+    """Add a car (rear at s, centred on lc, facing +-s) drawn from g; returns (rows, bbox)."""
+    length, width = g.uniform(3.9, 4.8), g.uniform(1.72, 1.9)
+    colour = _CAR_COLOURS[g.integers(len(_CAR_COLOURS))] + g.uniform(-0.03, 0.03, 3)
+    body_top, cab_h = 0.28 + g.uniform(0.62, 0.8), g.uniform(0.42, 0.58)
+    back_in, front_in = g.uniform(0.7, 1.1), g.uniform(1.1, 1.5)
+    if facing < 0:
+        back_in, front_in = front_in, back_in
+    l0, l1 = lc - width / 2, lc + width / 2
+    rows = [add_box(box, mat, (0.05, 0.05, 0.05) if mat == WHEEL else colour,
+                    p=(facing,) if mat == CAR else ())
+            for box, mat in _car_parts(s, length, l0, l1, body_top, cab_h, back_in, front_in)]
+    return np.array(rows), np.array([s, s + length, l0, l1, 0.0, body_top + cab_h])
+
+
+def _crossing_person(add_box, g, s: float, lc: float):
+    """Add a person standing at road (s, lc) drawn from g; returns (rows, bbox)."""
+    height = g.uniform(1.55, 1.9)
+    shirt = traffic.PERSON_COLOURS[g.integers(len(traffic.PERSON_COLOURS))]
+    rows = [add_box(box, PERSON, ((0.12, 0.12, 0.16), shirt, (0.78, 0.6, 0.48))[part])
+            for box, part in _person_parts(s, lc, height)]
+    return np.array(rows), np.array([s - 0.25, s + 0.25, lc - 0.15, lc + 0.15, 0.0, height])
 
 
 def traffic_movers(seed: np.random.SeedSequence, lane_w: float, kerb_l: float, ego_speed: float,
