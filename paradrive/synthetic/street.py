@@ -235,20 +235,9 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
             lc = side * (park + g_car.uniform(-0.12, 0.12))
             colour = _CAR_COLOURS[g_car.integers(len(_CAR_COLOURS))] + g_car.uniform(-0.03, 0.03, 3)
             facing = 1.0 if g_car.random() < 0.8 else -1.0
-            body_top = 0.28 + g_car.uniform(0.62, 0.8)
-            cab_h = g_car.uniform(0.42, 0.58)
-            back_in, front_in = g_car.uniform(0.7, 1.1), g_car.uniform(1.1, 1.5)
-            if facing < 0:
-                back_in, front_in = front_in, back_in
-            l0, l1 = lc - width / 2, lc + width / 2
-            rows = [add_box(box, mat, (0.05, 0.05, 0.05) if mat == WHEEL else colour,
-                            p=(facing,) if mat == CAR else ())
-                    for box, mat in _car_parts(s, length, l0, l1, body_top, cab_h, back_in,
-                                               front_in)]
-            movers.append(traffic.Mover(
-                f"parked-{len(movers):03d}", "car", np.array(rows),
-                np.array([s, s + length, l0, l1, 0.0, body_top + cab_h]),
-                yaw=0.0 if facing > 0 else np.pi))
+            rows, bbox = _add_car(add_box, g_car, s, lc, length, width, colour, facing)
+            movers.append(traffic.Mover(f"parked-{len(movers):03d}", "car", rows, bbox,
+                                        yaw=0.0 if facing > 0 else np.pi))
             gap = g_car.uniform(0.8, 6.0) if g_car.random() < 0.8 else g_car.uniform(8, 18)
             s += length + gap
 
@@ -320,7 +309,14 @@ def _moving_car(add_box, g, s: float, lc: float, facing: float):
     """Add a car (rear at s, centred on lc, facing +-s) drawn from g; returns (rows, bbox)."""
     length, width = g.uniform(3.9, 4.8), g.uniform(1.72, 1.9)
     colour = _CAR_COLOURS[g.integers(len(_CAR_COLOURS))] + g.uniform(-0.03, 0.03, 3)
-    body_top, cab_h = 0.28 + g.uniform(0.62, 0.8), g.uniform(0.42, 0.58)
+    return _add_car(add_box, g, s, lc, length, width, colour, facing)
+
+
+def _add_car(add_box, g, s: float, lc: float, length: float, width: float, colour,
+             facing: float):
+    """Add a car's boxes, its heights and cabin drawn from g; returns (rows, bbox)."""
+    body_top = 0.28 + g.uniform(0.62, 0.8)
+    cab_h = g.uniform(0.42, 0.58)
     back_in, front_in = g.uniform(0.7, 1.1), g.uniform(1.1, 1.5)
     if facing < 0:
         back_in, front_in = front_in, back_in
