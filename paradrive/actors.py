@@ -218,6 +218,13 @@ def keep_valid(actors: Iterable[Actor], frames: Iterable[int], *, scene_id: str,
     return good
 
 
+def first_frames(actors: Iterable[Actor], n: int) -> list[Actor]:
+    """The actors' tracks cut to frames 0 .. n-1; actors left with no frame are left out."""
+    cut = [Actor(a.id, a.cls, a.rigid, a.size, a.frames[a.frames < n], a.box2world[a.frames < n])
+           for a in actors]
+    return [a for a in cut if len(a.frames)]
+
+
 def is_moving(actor: Actor, threshold_m: float) -> bool:
     """True when the box centre gets farther than ``threshold_m`` from where it starts."""
     c = actor.centres()

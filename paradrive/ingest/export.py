@@ -30,7 +30,7 @@ from typing import Callable, List
 import numpy as np
 
 from paradrive import geometry
-from paradrive.actors import Actor
+from paradrive.actors import Actor, first_frames
 from paradrive.errors import SceneError
 from paradrive.ingest import waymo_proto as wp
 from paradrive.ingest.common import OPENCV_TO_FLU, encode_jpeg, transform_points
@@ -109,14 +109,7 @@ def source_from_street(street, cameras=None, frames: int | None = None) -> LogSo
         sky=lambda i, cam: views(cam)["sky"][i],
         lidar=functools.lru_cache(maxsize=None)(
             lambda i: np.asarray(street.lidar_points(i), dtype=np.float64)),
-        lidar_origin=origin, actors=_first_frames(street.actors(), n))
-
-
-def _first_frames(actors: list[Actor], n: int) -> list[Actor]:
-    """The actors' tracks cut to frames 0 .. n-1 (those left with none are left out)."""
-    cut = [Actor(a.id, a.cls, a.rigid, a.size, a.frames[a.frames < n], a.box2world[a.frames < n])
-           for a in actors]
-    return [a for a in cut if len(a.frames)]
+        lidar_origin=origin, actors=first_frames(street.actors(), n))
 
 
 def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> LogSource:
@@ -135,7 +128,7 @@ def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> 
         c2w={c: scene.c2w(c)[:n] for c in names},
         image=lambda i, cam: scene.load_image(i, cam),
         sky=lambda i, cam: scene.sky_mask(i, cam), lidar=lidar,
-        actors=_first_frames(scene.actors, n))
+        actors=first_frames(scene.actors, n))
 
 
 def as_source(street_or_scene, cameras=None, frames=None) -> LogSource:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from paradrive.actors import first_frames
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
 from paradrive.scene import Frame, FrameCamera, Scene, write_image
@@ -84,10 +85,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
             path = out_dir / "lidar" / f"{i:06d}.npy"
             path.parent.mkdir(parents=True, exist_ok=True)
             np.save(path, pts)
-    actors = [a for a in street.actors() if (a.frames < n).any()]
-    for a in actors:
-        a.frames, a.box2world = a.frames[a.frames < n], a.box2world[a.frames < n]
     return Scene(scene_id=scene_id, dataset="synthetic", source=uri.text, fps=float(street.fps),
-                 cameras=cameras, frames=frames, actors=actors,
+                 cameras=cameras, frames=frames, actors=first_frames(street.actors(), n),
                  extra={"synthetic": {"name": street.name, "seed": street.seed,
                                       "frames": street.frames, "curvature": street.curvature}})
