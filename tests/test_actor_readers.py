@@ -61,6 +61,22 @@ def test_drivestudio_instances_ingest_to_the_exact_tracks(street, truth, tmp_pat
         assert_exact(found[name], true)
 
 
+def test_nuscenes_flavour_drivestudio_places_actors_in_its_own_world(street, truth, tmp_path):
+    """That flavour's world is the first front-camera pose: seen from the camera, every box is
+    where the street puts it."""
+    folder = export.export_drivestudio(street, tmp_path / "processed" / "000", flavour="nuscenes",
+                                       lidar=False)
+    ingest(f"drivestudio:{folder}?fps={street.fps:g}", tmp_path / "scene", PARAMS)
+    scene = load_scene(tmp_path / "scene")
+    found = by_name(scene)
+    assert set(found) == set(truth)
+    cam_scene, cam_street = scene.c2w("front"), street.c2w("front")
+    for name, a in found.items():
+        in_camera = np.linalg.inv(cam_scene[a.frames]) @ a.box2world
+        expected = np.linalg.inv(cam_street[a.frames]) @ truth[name].box2world
+        np.testing.assert_allclose(in_camera, expected, atol=1e-6)
+
+
 def export_nuscenes(street, root):
     export.export_nuscenes(street, root, lidar=False, keyframe_every=KEYFRAME_EVERY)
     return f"nuscenes:{root}?version=v1.0-mini#scene-0001"

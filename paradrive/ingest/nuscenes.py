@@ -145,10 +145,18 @@ def chain(tables, start: dict, scene_samples: set[str], *, scene_id: str, where)
 def instance_kind(tables, instance: str) -> tuple[str, bool] | None:
     """(class, rigid) of an instance by its category; None for static categories.
 
-    KeyError (with the unknown name or token) when the instance or category cannot be told."""
-    row = tables.get("instance", {})[instance]
-    category = tables.get("category", {})[row["category_token"]]
-    return act.class_of_nuscenes(category["name"])
+    KeyError (its message naming the table and field) when the class cannot be told."""
+    row = tables.get("instance", {}).get(instance)
+    if row is None:
+        raise KeyError(f"instance {instance!r} is not in instance.json")
+    category = tables.get("category", {}).get(row.get("category_token"))
+    if category is None:
+        raise KeyError(f"category_token {row.get('category_token')!r} is not in category.json")
+    try:
+        return act.class_of_nuscenes(category.get("name"))
+    except KeyError:
+        raise KeyError(f"category {category.get('name')!r} is not a nuScenes category "
+                       "(category.json name)") from None
 
 
 def instance_boxes(rows: list[dict], sample_time: dict[str, int], world_from_global):
@@ -176,8 +184,7 @@ def instance_actor(tables, instance: str, rows: list[dict], sample_time: dict[st
     try:
         kind = instance_kind(tables, instance)
     except KeyError as exc:
-        act.log_dropped(key, f"category {exc} is not a nuScenes category (instance.json "
-                             "category_token, category.json name)", scene_id=scene_id, where=where)
+        act.log_dropped(key, str(exc.args[0]), scene_id=scene_id, where=where)
         return None
     if kind is None:
         return None
