@@ -165,6 +165,17 @@ def test_a_shifted_truth_view_at_frame_t_shows_each_moving_car_where_its_track_p
     assert abs(float(earlier["depth"][0, v, u]) - depth) > 1.0
 
 
+def test_culling_follows_the_actors_to_where_they_are_at_each_frame(street):
+    K = street.cameras["front"].K() * [[0.4], [0.4], [1.0]]
+    for t in (0, 25):
+        world = street.world_at(t)
+        pose = geometry.lateral_shift(street.c2w("front")[t], street.ego2world()[t], -3.0)
+        fast, _, _ = rc.cast_camera(world.prims, pose, K, 128, 77, world.bounds, cull=True)
+        slow, _, _ = rc.cast_camera(world.prims, pose, K, 128, 77, world.bounds, cull=False)
+        np.testing.assert_array_equal(fast.t, slow.t)
+        np.testing.assert_array_equal(fast.index, slow.index)
+
+
 def test_ingest_writes_dynamic_masks_of_moving_actors_only(tmp_path):
     frames = 8
     scene = load_scene_from_uri(tmp_path / "scene", f"synthetic:demo?frames={frames}&width={W}&height={H}",
