@@ -209,7 +209,8 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
         params = load_checkpoint(layout.checkpoint(final), scene_id=sid)
         rgb, dep = _render(params, recorded, out, depth=True, batch=batch, device=device,
                            sky=sky)
-        truth = street.render(recorded, out.K, out.width, out.height)
+        instants = [scene.frames[p].index for p in frames]  # actors move: truth at those frames
+        truth = street.render(recorded, out.K, out.width, out.height, frames=instants)
         cam_doc["recorded"] = {"iteration": final, **image_quality(rgb, target),
                                "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
                                **depth_errors(dep, truth["depth"])}
@@ -217,7 +218,7 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
             shifted = geometry.lateral_shift(recorded, ego, float(d))
             rgb, dep = _render(params, shifted, out, depth=True, batch=batch, device=device,
                            sky=sky)
-            truth = street.render(shifted, out.K, out.width, out.height)
+            truth = street.render(shifted, out.K, out.width, out.height, frames=instants)
             q = image_quality(rgb, truth["rgb"])
             shifted_rows.append({"offset_m": float(d), "stream": source_stream(d),
                                        "iteration": final, **q,

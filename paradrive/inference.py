@@ -63,7 +63,8 @@ def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: ClipsRec
     def truth(clip: ClipRecord, offset_m: float, novel_c2w: np.ndarray) -> MediaFile:
         fx, fy, cx, cy = clips.cameras[clip.camera].intrinsics
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        rgb = street.render(novel_c2w, K, width, height)["rgb"]
+        # the street at each frame's instant: moving actors where they were then
+        rgb = street.render(novel_c2w, K, width, height, frames=clip.frame_indices)["rgb"]
         uri = media_uri(sid, truth_file(clip.camera, clip.clip, offset_m))
         path = Path(build_dir) / uri
         path.parent.mkdir(parents=True, exist_ok=True)

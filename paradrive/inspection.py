@@ -271,6 +271,7 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
     if points is not None:
         plotter.add_points(points, color=(0.6, 0.6, 0.6), point_size=2, render_points_as_spheres=False,
                            label=f"LiDAR ({len(points)} points)")
+    _draw_actor_tracks(plotter, _scene_folders(index, scene_id, data_dir))
     offsets = sorted({r["offset_m"] for r in rows})
     span = max(1e-6, max(abs(d) for d in offsets))
     drawn_offsets = set()
@@ -307,14 +308,41 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
     return out
 
 
-def _lidar_points(index: IndexRecord, scene_id: str, data_dir, max_points: int = 60_000):
+def _scene_folders(index: IndexRecord, scene_id: str, data_dir) -> list[SceneLayout]:
+    """Where the scene's folder may be: ``data_dir/scenes/<id>``, then what index.json records."""
     candidates = []
     if data_dir is not None:
         candidates.append(SceneLayout.of(data_dir, scene_id))
     for s in index.scenes:
         if s.scene_id == scene_id and s.scene_dir:
             candidates.append(SceneLayout(Path(s.scene_dir)))
-    for layout in candidates:
+    return candidates
+
+
+ACTOR_COLOURS = {"vehicle": (0.95, 0.55, 0.0), "pedestrian": (0.1, 0.6, 0.2),
+                 "cyclist": (0.55, 0.2, 0.7), "other": (0.4, 0.4, 0.4)}
+
+
+def _draw_actor_tracks(plotter, folders: list[SceneLayout]) -> None:
+    """The actors' box centres over time (scene.json), coloured by class, beside the ego path."""
+    import pyvista as pv
+
+    from paradrive.actors import read_tracks
+
+    tracks = next((t for t in (read_tracks(f.root) for f in folders) if t), [])
+    labelled: set[str] = set()
+    for cls, centres in tracks:
+        label = None if cls in labelled else f"{cls} tracks"
+        labelled.add(cls)
+        if np.ptp(centres, axis=0).max() > 1e-3:
+            plotter.add_mesh(pv.lines_from_points(centres), color=ACTOR_COLOURS[cls], line_width=2,
+                             label=label)
+        else:  # a parked car: one dot
+            plotter.add_points(centres[:1], color=ACTOR_COLOURS[cls], point_size=6, label=label)
+
+
+def _lidar_points(index: IndexRecord, scene_id: str, data_dir, max_points: int = 60_000):
+    for layout in _scene_folders(index, scene_id, data_dir):
         folder = layout.lidar_dir
         files = sorted(folder.glob("*.npy")) if folder.is_dir() else []
         if files:

@@ -6,6 +6,9 @@ Layout under ``<data>/scenes/<scene_id>/``::
     images/<cam>/<frame:06d>.<ext>
     masks/sky/<cam>/<frame:06d>.png     (optional, 255 = sky)
     lidar/<frame:06d>.npy               (optional, (M, 3) float32 world points)
+    masks/dynamic/<cam>/<frame:06d>.png (with actors, 255 = a moving actor's box)
+
+Schema 2 adds ``actors`` (paradrive.actors); schema 1 files (no actors) still load.
 """
 
 from __future__ import annotations
@@ -18,10 +21,14 @@ from pathlib import Path
 import numpy as np
 
 from paradrive import geometry
+from paradrive.actors import Actor, actor_from_json
+from paradrive.stages.layout import SceneLayout
 from paradrive.errors import SceneError
 from paradrive.io import PathEscapeError, atomic_path, check_relative, path_inside, write_json
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# versions load_scene reads: 1 is 2 without actors
+READABLE_VERSIONS = (1, 2)
 CAMERA_NAMES = ("front", "front_left", "front_right", "side_left", "side_right",
                 "back", "back_left", "back_right")
 
@@ -138,6 +145,7 @@ class Scene:
     frames: list[Frame]
     root: Path | None = None
     extra: dict = field(default_factory=dict)
+    actors: list[Actor] = field(default_factory=list)
 
     # ---------------------------------------------------------------- poses
     def c2w(self, camera: str) -> np.ndarray:
@@ -173,7 +181,7 @@ class Scene:
 
     def sky_mask_path(self, frame_index: int, camera: str) -> Path:
         index = self.frames[frame_index].index
-        return self._require_root() / "masks" / "sky" / camera / f"{index:06d}.png"
+        return SceneLayout(self._require_root()).sky_mask(camera, index)
 
     def sky_mask(self, frame_index: int, camera: str) -> np.ndarray | None:
         """bool (H, W), True = sky, or None when the scene has no sky masks."""
@@ -185,14 +193,14 @@ class Scene:
     def lidar_frame(self, frame_index: int) -> np.ndarray | None:
         """LiDAR points (M, 3) float32 in the scene world of frame ``frame_index`` (position in
         ``frames``), or None when that frame has none."""
-        path = self._require_root() / "lidar" / f"{self.frames[frame_index].index:06d}.npy"
+        path = SceneLayout(self._require_root()).lidar(self.frames[frame_index].index)
         if not path.is_file():
             return None
         return np.load(path).astype(np.float32).reshape(-1, 3)
 
     def lidar_points(self, max_frames: int | None = None) -> np.ndarray | None:
         """All LiDAR points (M, 3) float32 in the scene world, or None when the scene has none."""
-        folder = self._require_root() / "lidar"
+        folder = SceneLayout(self._require_root()).lidar_dir
         files = sorted(folder.glob("*.npy")) if folder.is_dir() else []
         if not files:
             return None
@@ -205,7 +213,8 @@ class Scene:
         doc = {"schema_version": SCHEMA_VERSION, "scene_id": self.scene_id, "dataset": self.dataset,
                "source": self.source, "fps": float(self.fps), "world": "first ego pose",
                "cameras": {k: v.to_json() for k, v in self.cameras.items()},
-               "frames": [f.to_json() for f in self.frames]}
+               "frames": [f.to_json() for f in self.frames],
+               "actors": [a.to_json() for a in self.actors]}
         for key, value in self.extra.items():
             doc.setdefault(key, value)
         return doc
@@ -227,10 +236,12 @@ def scene_from_json(doc: dict, root: Path | None = None) -> Scene:
                         cameras={k: FrameCamera(image=v["image"], c2w=geometry.as_pose(v["c2w"]))
                                  for k, v in f["cameras"].items()})
                   for f in doc["frames"]]
-        known = {"schema_version", "scene_id", "dataset", "source", "fps", "world", "cameras", "frames"}
+        known = {"schema_version", "scene_id", "dataset", "source", "fps", "world", "cameras",
+                 "frames", "actors"}
         return Scene(scene_id=doc["scene_id"], dataset=doc["dataset"], source=doc["source"],
                      fps=float(doc["fps"]), cameras=cameras, frames=frames, root=root,
-                     extra={k: v for k, v in doc.items() if k not in known})
+                     extra={k: v for k, v in doc.items() if k not in known},
+                     actors=[actor_from_json(a) for a in doc.get("actors", [])])
     except (KeyError, TypeError, ValueError) as exc:
         raise SceneError(f"scene.json is malformed: {type(exc).__name__}: {exc}", scene_id=sid,
                          path=where, fix="re-run ingest for this scene") from exc
@@ -239,7 +250,7 @@ def scene_from_json(doc: dict, root: Path | None = None) -> Scene:
 def load_scene(scene_dir: str | Path, *, check_files: bool = True) -> Scene:
     """Read and validate ``<scene_dir>/scene.json``."""
     root = Path(scene_dir)
-    path = root / "scene.json"
+    path = SceneLayout(root).scene_json
     if not path.is_file():
         raise SceneError("scene.json is missing", scene_id=root.name, path=path,
                          fix="run the ingest stage for this scene first")
@@ -249,9 +260,9 @@ def load_scene(scene_dir: str | Path, *, check_files: bool = True) -> Scene:
         raise SceneError(f"scene.json is not valid JSON ({exc})", scene_id=root.name, path=path,
                          fix="re-run ingest for this scene") from exc
     scene = scene_from_json(doc, root)
-    if doc.get("schema_version") != SCHEMA_VERSION:
-        raise SceneError(f"scene.json schema_version {doc.get('schema_version')!r} is not "
-                         f"{SCHEMA_VERSION}", scene_id=scene.scene_id, path=path,
+    if doc.get("schema_version") not in READABLE_VERSIONS:
+        raise SceneError(f"scene.json schema_version {doc.get('schema_version')!r} is not one of "
+                         f"{READABLE_VERSIONS}", scene_id=scene.scene_id, path=path,
                          fix="re-ingest the scene with this version of paradrive")
     validate_scene(scene, check_files=check_files)
     return scene
@@ -261,7 +272,7 @@ def write_scene(scene: Scene, scene_dir: str | Path | None = None) -> Path:
     """Validate (poses, intrinsics, order; not files) and write ``scene.json`` atomically."""
     root = Path(scene_dir) if scene_dir is not None else scene._require_root()
     validate_scene(scene, check_files=False)
-    path = root / "scene.json"
+    path = SceneLayout(root).scene_json
     write_json(path, scene.to_json())
     scene.root = root
     return path

@@ -47,7 +47,8 @@ def street_scene(tmp_path_factory):
 
 def _true_depth(street, view) -> torch.Tensor:
     """(H, W) z-depth of the street seen from a training view (inf for sky)."""
-    truth = street.render(view.c2w.numpy()[None], view.K.double().numpy(), view.width, view.height)
+    truth = street.render(view.c2w.numpy()[None], view.K.double().numpy(), view.width, view.height,
+                          frames=view.frame)
     return torch.from_numpy(truth["depth"][0])
 
 

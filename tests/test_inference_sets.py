@@ -103,7 +103,7 @@ def test_targets_are_the_ray_casters_shifted_views(inference_build):
                                          row["offset_m"])
         fx, fy, cx, cy = row["intrinsics"]
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        truth = street.render(shifted, K, row["width"], row["height"])["rgb"]
+        truth = street.render(shifted, K, row["width"], row["height"], frames=frames)["rgb"]
         video = decode_frames(inference_build["dir"] / row["target_uri"])
         assert np.array_equal(video, truth), row["pair_id"]
         assert row["condition_psnr"] is not None and row["condition_psnr"] > 10

@@ -121,3 +121,24 @@ def test_sheet_and_trajectory_pictures(build, tmp_path):
     coloured = (np.abs(picture[..., 0] - picture[..., 2]) > 80).sum()
     assert coloured > 500
     assert not [p for p in os.listdir(tmp_path) if ".tmp-" in p]
+
+
+def test_trajectory_picture_draws_actor_tracks_beside_the_camera_paths(build, tmp_path):
+    from PIL import Image
+
+    from paradrive.actors import Actor, box_pose
+    from paradrive.inspection import trajectories_picture
+
+    data = tmp_path / "data"
+    (data / "scenes" / "synthetic-a").mkdir(parents=True)
+    poses = np.stack([box_pose([5.0 + 2.0 * i, 3.5, 0.8], 0.0) for i in range(10)])
+    car = Actor("t:car", "vehicle", True, np.array([4.5, 1.9, 1.6]), np.arange(10), poses)
+    (data / "scenes" / "synthetic-a" / "scene.json").write_text(json.dumps({"actors": [car.to_json()]}))
+
+    def orange_pixels(out, data_dir):
+        trajectories_picture(build, out, scene_id="synthetic-a", data_dir=data_dir)
+        picture = np.asarray(Image.open(out).convert("RGB")).astype(int)
+        return (np.abs(picture - [242, 140, 0]).max(axis=-1) < 40).sum()
+
+    assert orange_pixels(tmp_path / "with.png", data) > 100
+    assert orange_pixels(tmp_path / "without.png", tmp_path / "nowhere") == 0

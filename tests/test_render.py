@@ -162,7 +162,7 @@ def test_depth_exr_holds_metric_z_depth_close_to_the_truth(rendered):
     scene = load_scene(rendered["dir"])
     fx, fy, cx, cy = cam["intrinsics"]
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    truth = street.render(scene.c2w("front")[frames], K, 160, 96)["depth"]
+    truth = street.render(scene.c2w("front")[frames], K, 160, 96, frames=frames)["depth"]
     depth = np.stack(depth)
     solid, surface = np.isfinite(truth), np.isfinite(depth)
     both = solid & surface

@@ -28,7 +28,7 @@ def make_scene(root, n=4, ext="png"):
 def test_scene_json_round_trip(tmp_path):
     scene = make_scene(tmp_path)
     doc = json.loads((tmp_path / "scene.json").read_text())
-    assert doc["schema_version"] == 1 and doc["world"] == "first ego pose"
+    assert doc["schema_version"] == 2 and doc["world"] == "first ego pose"
     assert len(doc["cameras"]["front"]["cam2ego"]) == 16
     assert doc["frames"][2]["cameras"]["front"]["image"] == "images/front/000002.png"
     loaded = load_scene(tmp_path)

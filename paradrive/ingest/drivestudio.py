@@ -19,17 +19,22 @@ nuScenes flavour (``extrinsics/<t:03d>_<cam>.txt``)::
 
 It stores no ego pose: the ego frame is taken as the front camera's pose with vehicle axes
 (x forward, y left, z up), so the world is the first front-camera pose, levelled to those axes.
+Both may hold ``instances/instances_info.json`` (per instance: id, class_name, and per annotated
+frame ``frame_idx``, ``obj_to_world`` (4x4, global) and ``box_size`` (length, width, height)) and
+``instances/frame_instances.json`` (frame -> instances): they become the scene's actors.
 Neither flavour stores timestamps: frames are ``1e6 / fps`` us apart, fps from ``?fps=``, else
 10 (Waymo) or the ``processed_<N>Hz`` folder name (nuScenes, 2 Hz keyframes by default).
 """
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 
+from paradrive import actors as act
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
@@ -99,6 +104,78 @@ def _frame_numbers(folder: Path, sub: str, pattern: str) -> list[int]:
     return sorted(found)
 
 
+# --------------------------------------------------------------------------- instances
+
+def _json_file(path: Path, *, scene_id: str):
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path.name} is not valid JSON ({exc})", scene_id=scene_id, path=path,
+                         fix="re-run DriveStudio's preprocessing (objects) for this scene") from exc
+
+
+def listed_twice(path: Path, *, scene_id: str) -> dict[str, str]:
+    """Instances that frame_instances.json lists twice in one frame: {instance: frame}."""
+    if not path.is_file():
+        return {}
+    twice = {}
+    for frame, listed in dict(_json_file(path, scene_id=scene_id)).items():
+        seen: set[str] = set()
+        for inst in map(str, listed):
+            if inst in seen:
+                twice.setdefault(inst, str(frame))
+            seen.add(inst)
+    return twice
+
+
+def instance_actor(key: str, doc: dict, position: dict[int, int], known: set[int],
+                   world_from_global, *, scene_id: str, where) -> act.Actor | None:
+    """One instance's actor (frames as scene positions), or None (static, or dropped and logged)."""
+    name = f"drivestudio:{doc.get('id', key) if isinstance(doc, dict) else key}"
+    try:
+        kind = act.class_of_name(str(doc["class_name"]))
+        boxes = doc["frame_annotations"]
+        numbers = [int(n) for n in boxes["frame_idx"]]
+        poses, sizes = boxes["obj_to_world"], boxes["box_size"]
+    except (KeyError, TypeError, ValueError) as exc:
+        act.log_dropped(name, f"instance {key} has no valid class_name / frame_annotations "
+                              f"({type(exc).__name__}: {exc})", scene_id=scene_id, where=where)
+        return None
+    if kind is None:
+        return None
+    missing = [n for n in numbers if n not in known]
+    if missing or len(poses) != len(numbers) or len(sizes) != len(numbers):
+        problem = (f"frame_idx {missing[0]} is not a frame of the scene" if missing else
+                   "frame_idx, obj_to_world and box_size differ in length")
+        act.log_dropped(name, problem, scene_id=scene_id, where=where)
+        return None
+    keep = [j for j, n in enumerate(numbers) if n in position]  # frames past max_frames go
+    box2world = [world_from_global @ np.asarray(poses[j], dtype=np.float64) for j in keep]
+    return act.actor_from_boxes(name, kind[0], kind[1], [position[numbers[j]] for j in keep],
+                                box2world, [sizes[j] for j in keep])
+
+
+def instance_actors(folder: Path, numbers: list[int], known: set[int], world_from_global, *,
+                    scene_id: str) -> list[act.Actor]:
+    """The actors of ``instances/`` (none when the folder has no instances_info.json)."""
+    where = folder / "instances" / "instances_info.json"
+    if not where.is_file():
+        return []
+    info = _json_file(where, scene_id=scene_id)
+    twice = listed_twice(folder / "instances" / "frame_instances.json", scene_id=scene_id)
+    position = {n: i for i, n in enumerate(numbers)}
+    found = []
+    for key, doc in dict(info).items():
+        if str(key) in twice:
+            act.log_dropped(f"drivestudio:{key}", f"listed twice in frame {twice[str(key)]} of "
+                            "frame_instances.json (duplicate id)", scene_id=scene_id, where=where)
+            continue
+        actor = instance_actor(str(key), doc, position, known, world_from_global,
+                               scene_id=scene_id, where=where)
+        found += [actor] if actor is not None and len(actor.frames) else []
+    return act.keep_valid(found, range(len(numbers)), scene_id=scene_id, where=where)
+
+
 def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     folder = Path(uri.path).expanduser()
     if not folder.is_dir():
@@ -132,6 +209,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
         raise SceneError(f"frame {gap:03d} is missing (frames must be numbered 000, 001, ...)",
                          scene_id=scene_id, path=folder,
                          fix="re-run DriveStudio's preprocessing for this scene")
+    known = set(numbers)
     limit = max_frames(params)
     if limit is not None:
         numbers = numbers[:limit]
@@ -227,6 +305,8 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
             save_points(out_dir, i, transform_points(pose, pts.astype(np.float64)))
     return Scene(scene_id=scene_id, dataset="drivestudio", source=uri.text, fps=fps,
                  cameras=cameras, frames=frames,
+                 actors=instance_actors(folder, numbers, known, world_from_global,
+                                        scene_id=scene_id),
                  extra={"drivestudio": {"flavour": flavour, "folder": folder.name,
                                         "ego": "vehicle pose" if flavour == "waymo" else
                                         "front camera with vehicle axes (no ego pose stored)"}})

@@ -9,6 +9,9 @@ back). Writers:
   calibrated_sensor, sensor, log, ...) with keyframes and sweeps, images, LIDAR_TOP .pcd.bin;
 - ``export_drivestudio``: a DriveStudio processed scene folder, Waymo or nuScenes flavour.
 
+The source's actors go along: Waymo ``laser_labels``, nuScenes ``sample_annotation`` (keyframes
+only, grouped by ``instance``), DriveStudio ``instances/``.
+
 Poses are written in a "global" frame ``GLOBAL @ scene world`` (far from the origin and rotated)
 so that a reader that forgets to re-anchor the world at the first ego pose fails the tests.
 """
@@ -27,6 +30,7 @@ from typing import Callable, List
 import numpy as np
 
 from paradrive import geometry
+from paradrive.actors import Actor, first_frames
 from paradrive.errors import SceneError
 from paradrive.ingest import waymo_proto as wp
 from paradrive.ingest.common import OPENCV_TO_FLU, encode_jpeg, transform_points
@@ -67,6 +71,7 @@ class LogSource:
     sky: Callable[[int, str], np.ndarray | None] = lambda i, cam: None
     lidar: Callable[[int], np.ndarray | None] = lambda i: None
     lidar_origin: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.95]))
+    actors: list[Actor] = field(default_factory=list)
 
     @property
     def frames(self) -> int:
@@ -86,7 +91,8 @@ def source_from_street(street, cameras=None, frames: int | None = None) -> LogSo
     def views(cam):
         if cam not in cache:
             spec = street.cameras[cam]
-            cache[cam] = street.render(c2w[cam], spec.K(), spec.width, spec.height)
+            cache[cam] = street.render(c2w[cam], spec.K(), spec.width, spec.height,
+                                       frames=np.arange(n))
         return cache[cam]
 
     origin = np.array([0.0, 0.0, 1.95])
@@ -103,7 +109,7 @@ def source_from_street(street, cameras=None, frames: int | None = None) -> LogSo
         sky=lambda i, cam: views(cam)["sky"][i],
         lidar=functools.lru_cache(maxsize=None)(
             lambda i: np.asarray(street.lidar_points(i), dtype=np.float64)),
-        lidar_origin=origin)
+        lidar_origin=origin, actors=first_frames(street.actors(), n))
 
 
 def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> LogSource:
@@ -121,7 +127,8 @@ def source_from_scene(scene: Scene, cameras=None, frames: int | None = None) -> 
         ego2world=scene.ego2world()[:n], timestamps_us=scene.timestamps_us()[:n],
         c2w={c: scene.c2w(c)[:n] for c in names},
         image=lambda i, cam: scene.load_image(i, cam),
-        sky=lambda i, cam: scene.sky_mask(i, cam), lidar=lidar)
+        sky=lambda i, cam: scene.sky_mask(i, cam), lidar=lidar,
+        actors=first_frames(scene.actors, n))
 
 
 def as_source(street_or_scene, cameras=None, frames=None) -> LogSource:
@@ -148,7 +155,30 @@ def _flat(m) -> list[float]:
     return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(-1)]
 
 
+def _label_name(actor: Actor) -> str:
+    """The log's id of an actor: its id without the ``synthetic:`` prefix."""
+    return actor.id.split(":", 1)[-1]
+
+
 # --------------------------------------------------------------------------- Waymo
+
+WAYMO_LABEL_TYPES = {"vehicle": 1, "pedestrian": 2, "cyclist": 4, "other": 0}
+
+
+def waymo_labels(actors: list[Actor], i: int, ego2world: np.ndarray) -> list[dict]:
+    """Frame ``i``'s laser_labels: each actor's box in that frame's vehicle frame."""
+    labels = []
+    for a in actors:
+        pose = a.pose_at(i)
+        if pose is None:
+            continue
+        box = geometry.invert(ego2world) @ pose
+        labels.append({"box": {"center_x": box[0, 3], "center_y": box[1, 3], "center_z": box[2, 3],
+                               "length": a.size[0], "width": a.size[1], "height": a.size[2],
+                               "heading": float(np.arctan2(box[1, 0], box[0, 0]))},
+                       "type": WAYMO_LABEL_TYPES[a.cls], "id": _label_name(a)})
+    return labels
+
 
 def rotation_to_euler(rot: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
@@ -245,7 +275,8 @@ def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int
                                 "pose_timestamp": src.timestamps_us[i] / 1e6,
                                 "shutter": 0.004})
             frame = {"context": context, "timestamp_micros": int(src.timestamps_us[i]),
-                     "pose": {"transform": _flat(ego_global)}, "images": images}
+                     "pose": {"transform": _flat(ego_global)}, "images": images,
+                     "laser_labels": waymo_labels(src.actors, i, src.ego2world[i])}
             if has_lidar:
                 pts_vehicle = transform_points(geometry.invert(src.ego2world[i]), src.lidar(i))
                 ri = build_range_image(pts_vehicle, lidar_extrinsic, h, w, incl_min, incl_max)
@@ -265,6 +296,38 @@ def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int
 
 def _write_json(path: Path, rows) -> None:
     write_bytes(path, json.dumps(rows, indent=0).encode())
+
+
+NUSCENES_CATEGORIES = {"vehicle": "vehicle.car", "pedestrian": "human.pedestrian.adult",
+                       "cyclist": "vehicle.bicycle", "other": "animal"}
+
+
+def nuscenes_annotations(actors: list[Actor], key_idx: list[int], sample_tokens: list[str],
+                         global_from_world: np.ndarray) -> dict[str, list[dict]]:
+    """category, instance and sample_annotation rows: each actor's boxes at the keyframes, in
+    the global frame, size as nuScenes writes it (width, length, height)."""
+    categories = {cls: {"token": _token("category", name), "name": name, "description": ""}
+                  for cls, name in NUSCENES_CATEGORIES.items()}
+    instances, annotations = [], []
+    for a in actors:
+        keyed = [(k, a.pose_at(i)) for k, i in enumerate(key_idx) if a.pose_at(i) is not None]
+        if not keyed:
+            continue
+        tokens = [_token("sample_annotation", a.id, k) for k, _ in keyed]
+        for j, (k, pose) in enumerate(keyed):
+            box = global_from_world @ pose
+            annotations.append({
+                "token": tokens[j], "sample_token": sample_tokens[k],
+                "instance_token": _label_name(a), "visibility_token": "4", "attribute_tokens": [],
+                "translation": _flat(box[:3, 3]), "size": [a.size[1], a.size[0], a.size[2]],
+                "rotation": _flat(geometry.rotation_to_quaternion(box[:3, :3])),
+                "prev": tokens[j - 1] if j else "", "next": tokens[j + 1] if j + 1 < len(tokens) else "",
+                "num_lidar_pts": 10, "num_radar_pts": 0})
+        instances.append({"token": _label_name(a), "category_token": categories[a.cls]["token"],
+                          "nbr_annotations": len(tokens), "first_annotation_token": tokens[0],
+                          "last_annotation_token": tokens[-1]})
+    return {"category": list(categories.values()), "instance": instances,
+            "sample_annotation": annotations}
 
 
 def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
@@ -363,8 +426,8 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
                    "name": scene_name, "description": f"synthetic {src.name}"}],
         "sample": samples, "sample_data": sample_data, "ego_pose": ego_poses,
         "calibrated_sensor": calibrated, "sensor": sensors,
-        "category": [], "attribute": [], "visibility": [], "instance": [],
-        "sample_annotation": [], "map": [],
+        "attribute": [], "visibility": [], "map": [],
+        **nuscenes_annotations(src.actors, key_idx, sample_tokens, global_from_world),
     }
     for table, rows in tables.items():
         _write_json(root / version / f"{table}.json", rows)
@@ -372,6 +435,28 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
 
 
 # --------------------------------------------------------------------------- DriveStudio
+
+DRIVESTUDIO_CLASS_NAMES = {"vehicle": "Vehicle", "pedestrian": "Pedestrian", "cyclist": "Cyclist"}
+
+
+def drivestudio_instances(actors: list[Actor], frames: int, global_from_world: np.ndarray,
+                          flavour: str) -> tuple[dict, dict]:
+    """(instances_info, frame_instances) as DriveStudio's preprocessors write them: instances
+    numbered 0.., each with per-frame obj_to_world (global) and box_size (length, width, height)."""
+    info: dict[str, dict] = {}
+    per_frame: dict[str, list[int]] = {str(i): [] for i in range(frames)}
+    names = DRIVESTUDIO_CLASS_NAMES if flavour == "waymo" else NUSCENES_CATEGORIES
+    for a in actors:
+        if a.cls not in names:
+            continue
+        number = len(info)
+        info[str(number)] = {"id": _label_name(a), "class_name": names[a.cls], "frame_annotations": {
+            "frame_idx": [int(f) for f in a.frames],
+            "obj_to_world": [(global_from_world @ p).tolist() for p in a.box2world],
+            "box_size": [[float(v) for v in a.size]] * len(a.frames)}}
+        for f in a.frames:
+            per_frame[str(int(f))].append(number)
+    return info, per_frame
 
 def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "waymo",
                        cameras=None, frames: int | None = None, distortion=None,
@@ -450,6 +535,10 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
                 rows.tofile(tmp / "lidar" / f"{t}.bin")
         if not sky_masks:
             shutil.rmtree(tmp / "sky_masks")
+        info, per_frame = drivestudio_instances(src.actors, src.frames, global_from_world, flavour)
+        (tmp / "instances").mkdir()
+        (tmp / "instances" / "instances_info.json").write_text(json.dumps(info))
+        (tmp / "instances" / "frame_instances.json").write_text(json.dumps(per_frame))
     return folder
 
 

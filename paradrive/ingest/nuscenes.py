@@ -12,6 +12,10 @@ with ego_0 the first frame's ego pose (world = first ego pose). nuScenes camera 
 already OpenCV-style and its images already undistorted; quaternions are (w, x, y, z).
 With ``lidar`` on, the LIDAR_TOP sweep nearest each frame (``.pcd.bin``, float32 x y z
 intensity ring) becomes world points.
+Actors: ``sample_annotation`` rows grouped by ``instance`` (category from ``category.json``),
+boxes at the 2 Hz keyframes in the global frame with ``size`` = width, length, height;
+each track is interpolated to the camera frames between its first and last annotation
+(linear position, slerp rotation), never extrapolated.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from paradrive import actors as act
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
@@ -32,6 +37,7 @@ from paradrive.scene import Camera, Frame, FrameCamera, Scene
 from paradrive.uri import SceneURI
 
 REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
+OPTIONAL_TABLES = ("log", "category", "instance", "sample_annotation")
 CHANNEL_TO_CAMERA = {"CAM_FRONT": "front", "CAM_FRONT_LEFT": "front_left",
                      "CAM_FRONT_RIGHT": "front_right", "CAM_BACK": "back",
                      "CAM_BACK_LEFT": "back_left", "CAM_BACK_RIGHT": "back_right"}
@@ -53,10 +59,10 @@ def find_version(root: Path, uri: SceneURI, scene_id: str) -> str:
 def load_tables(folder: Path, scene_id: str) -> dict[str, dict[str, dict]]:
     """Each table as {token: row}."""
     tables = {}
-    for name in REQUIRED_TABLES + ("log",):
+    for name in REQUIRED_TABLES + OPTIONAL_TABLES:
         path = folder / f"{name}.json"
         if not path.is_file():
-            if name == "log":
+            if name in OPTIONAL_TABLES:
                 continue
             raise SceneError(f"table {name}.json is missing", scene_id=scene_id, path=path,
                              fix="point the URI at the nuScenes dataroot and version whose "
@@ -132,6 +138,81 @@ def chain(tables, start: dict, scene_samples: set[str], *, scene_id: str, where)
         sd = _get(tables, "sample_data", nxt, scene_id=scene_id, where=where,
                   referrer=f"sample_data {sd['token']}") if nxt else None
     return rows
+
+
+# --------------------------------------------------------------------------- actors
+
+def instance_kind(tables, instance: str) -> tuple[str, bool] | None:
+    """(class, rigid) of an instance by its category; None for static categories.
+
+    KeyError (its message naming the table and field) when the class cannot be told."""
+    row = tables.get("instance", {}).get(instance)
+    if row is None:
+        raise KeyError(f"instance {instance!r} is not in instance.json")
+    category = tables.get("category", {}).get(row.get("category_token"))
+    if category is None:
+        raise KeyError(f"category_token {row.get('category_token')!r} is not in category.json")
+    try:
+        return act.class_of_nuscenes(category.get("name"))
+    except KeyError:
+        raise KeyError(f"category {category.get('name')!r} is not a nuScenes category "
+                       "(category.json name)") from None
+
+
+def instance_boxes(rows: list[dict], sample_time: dict[str, int], world_from_global):
+    """Keyframe times (K,), box2world (K, 4, 4) and sizes (K, 3) (length, width, height) of one
+    instance's annotations, sorted by time; ValueError naming the bad row."""
+    outside = [r for r in rows if r["sample_token"] not in sample_time]
+    if outside:
+        raise ValueError(f"sample_annotation {outside[0]['token']} sample_token "
+                         f"{outside[0]['sample_token']!r} is not a sample of this scene")
+    rows = sorted(rows, key=lambda r: sample_time[r["sample_token"]])
+    times = np.asarray([sample_time[r["sample_token"]] for r in rows], dtype=np.int64)
+    if (np.diff(times) == 0).any():
+        raise ValueError("two sample_annotation rows in one sample (duplicate instance)")
+    poses = [world_from_global @ geometry.make_pose(geometry.quaternion_to_rotation(r["rotation"]),
+                                                    r["translation"]) for r in rows]
+    sizes = [[r["size"][1], r["size"][0], r["size"][2]] for r in rows]  # w, l, h -> l, w, h
+    return times, np.asarray(poses, dtype=np.float64), np.asarray(sizes, dtype=np.float64)
+
+
+def instance_actor(tables, instance: str, rows: list[dict], sample_time: dict[str, int],
+                   stamps: list[int], world_from_global, *, scene_id: str,
+                   where) -> act.Actor | None:
+    """One instance's track over the camera frames, or None (static, or dropped and logged)."""
+    key = f"nuscenes:{instance}"
+    try:
+        kind = instance_kind(tables, instance)
+    except KeyError as exc:
+        act.log_dropped(key, str(exc.args[0]), scene_id=scene_id, where=where)
+        return None
+    if kind is None:
+        return None
+    try:
+        times, poses, sizes = instance_boxes(rows, sample_time, world_from_global)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        act.log_dropped(key, f"{type(exc).__name__}: {exc}", scene_id=scene_id, where=where)
+        return None
+    inside, track = act.interpolate_track(times, poses, np.asarray(stamps))
+    if not inside.any():
+        return None
+    return act.actor_from_boxes(key, kind[0], kind[1], np.flatnonzero(inside), track, sizes)
+
+
+def annotation_actors(tables, samples: list[str], stamps: list[int], world_from_global, *,
+                      scene_id: str, meta: Path) -> list[act.Actor]:
+    """The actors of the scene's instances, at the frames of ``stamps`` (us)."""
+    sample_time = {tok: int(tables["sample"][tok]["timestamp"]) for tok in samples}
+    by_instance: dict[str, list[dict]] = {}
+    for row in tables.get("sample_annotation", {}).values():
+        by_instance.setdefault(row.get("instance_token"), []).append(row)
+    where = meta / "sample_annotation.json"
+    found = [instance_actor(tables, inst, rows, sample_time, stamps, world_from_global,
+                            scene_id=scene_id, where=where)
+             for inst, rows in by_instance.items()
+             if any(r.get("sample_token") in sample_time for r in rows)]
+    return act.keep_valid([a for a in found if a is not None], range(len(stamps)),
+                          scene_id=scene_id, where=where)
 
 
 def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
@@ -258,6 +339,8 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     log = tables.get("log", {}).get(scene_row.get("log_token"), {})
     return Scene(scene_id=scene_id, dataset="nuscenes", source=uri.text,
                  fps=fps_from(stamps, FPS), cameras=cameras, frames=frames,
+                 actors=annotation_actors(tables, samples, stamps, world_from_global,
+                                          scene_id=scene_id, meta=meta),
                  extra={"nuscenes": {"version": version, "scene": scene_row.get("name"),
                                      "scene_token": scene_row["token"],
                                      "location": log.get("location")}})

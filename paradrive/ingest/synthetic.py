@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from paradrive.actors import first_frames
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
 from paradrive.scene import Frame, FrameCamera, Scene, write_image
@@ -13,7 +14,7 @@ from paradrive.uri import SceneURI
 
 # URI query keys and their types; the stage's synthetic_* params are the defaults.
 QUERY_KEYS = {"seed": int, "frames": int, "width": int, "height": int, "curvature": float,
-              "speed": float, "cameras": str}
+              "speed": float, "cameras": str, "traffic": int}
 
 
 def street_from_uri(uri: SceneURI, params: dict | None = None):
@@ -42,6 +43,8 @@ def street_from_uri(uri: SceneURI, params: dict | None = None):
     )
     if "speed" in query:
         kwargs["speed_mps"] = query["speed"]
+    if "traffic" in query:  # traffic=0: parked cars only
+        kwargs["traffic"] = bool(query["traffic"])
     if "cameras" in query:  # the URI's rig wins, like its other keys
         kwargs["cameras"] = query["cameras"]
     else:
@@ -66,7 +69,8 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
         c2w = street.c2w(name)[:n]
         batch = 8
         for start in range(0, n, batch):
-            views = street.render(c2w[start:start + batch], spec.K(), spec.width, spec.height)
+            views = street.render(c2w[start:start + batch], spec.K(), spec.width, spec.height,
+                                  frames=np.arange(start, min(start + batch, n)))
             for j in range(len(views["rgb"])):
                 i = start + j
                 rel = f"images/{name}/{i:06d}.{ext}"
@@ -82,6 +86,6 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
             path.parent.mkdir(parents=True, exist_ok=True)
             np.save(path, pts)
     return Scene(scene_id=scene_id, dataset="synthetic", source=uri.text, fps=float(street.fps),
-                 cameras=cameras, frames=frames,
+                 cameras=cameras, frames=frames, actors=first_frames(street.actors(), n),
                  extra={"synthetic": {"name": street.name, "seed": street.seed,
                                       "frames": street.frames, "curvature": street.curvature}})

@@ -12,6 +12,8 @@ with the camera frame x forward, y left, z up. So, with world = the first vehicl
 Images are undistorted here; the stored intrinsics are the pinhole part.
 With ``lidar`` on, the TOP laser's first-return range image (zlib-compressed MatrixFloat,
 per-pixel vehicle poses when given) becomes world points ``lidar/<frame>.npy``.
+Each frame's ``laser_labels`` (upright boxes in that frame's vehicle frame, with a tracking id)
+become the scene's actors: ``box2world = inv(pose_0) · pose_t · box(centre, heading)``.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from paradrive import actors as act
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
@@ -201,6 +204,42 @@ def top_lidar_points(frame, context, frame_pose: np.ndarray, world_from_global: 
     return transform_points(to_world, pts)
 
 
+# --------------------------------------------------------------------------- labels
+
+def label_class(label) -> tuple[str, bool] | None:
+    """(class, rigid) of a laser label; None for signs and unknowns; KeyError for other types."""
+    if label.type in act.WAYMO_DROPPED_TYPES:
+        return None
+    cls = act.WAYMO_TYPES[label.type]
+    return cls, cls == "vehicle"
+
+
+def label_actors(labels: list[list], vehicle2world: list[np.ndarray], *, scene_id: str,
+                 where) -> list[act.Actor]:
+    """Tracks of the laser labels of each frame (labels[i]), placed with vehicle2world[i]."""
+    boxes: dict[str, dict] = {}
+    for index, (frame_labels, pose) in enumerate(zip(labels, vehicle2world)):
+        for label in frame_labels:
+            key = f"waymo:{label.id}"
+            try:
+                kind = label_class(label)
+            except KeyError:
+                act.log_dropped(key, f"type {label.type} is not a Waymo Label.Type (0-4)",
+                                scene_id=scene_id, where=where)
+                continue
+            b = label.box
+            if kind is None or b is None:
+                continue
+            entry = boxes.setdefault(key, {"kind": kind, "frames": [], "poses": [], "sizes": []})
+            entry["frames"].append(index)
+            entry["poses"].append(pose @ act.box_pose([b.center_x, b.center_y, b.center_z],
+                                                      b.heading))
+            entry["sizes"].append([b.length, b.width, b.height])
+    found = [act.actor_from_boxes(key, e["kind"][0], e["kind"][1], e["frames"], e["poses"],
+                                  e["sizes"]) for key, e in boxes.items()]
+    return act.keep_valid(found, range(len(labels)), scene_id=scene_id, where=where)
+
+
 # --------------------------------------------------------------------------- reader
 
 def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
@@ -215,6 +254,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     chosen: list[str] = []
     frames: list[Frame] = []
     stamps: list[int] = []
+    labels: list[list] = []
     world_from_global = None
     context = None
     segment_name = None
@@ -280,11 +320,14 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
                 save_points(out_dir, index, pts)
         frames.append(frame)
         stamps.append(stamp)
+        labels.append(list(msg.laser_labels))
     if not frames:
         raise SceneError("segment holds no frames", scene_id=scene_id, path=segment,
                          fix="check the file: it is empty")
     return Scene(scene_id=scene_id, dataset="waymo", source=uri.text,
                  fps=fps_from(stamps, FPS), cameras=cameras, frames=frames,
+                 actors=label_actors(labels, [f.ego2world for f in frames], scene_id=scene_id,
+                                     where=f"{segment} laser_labels"),
                  extra={"waymo": {"segment": segment_name or segment_stem(segment.name),
                                   "file": segment.name}})
 

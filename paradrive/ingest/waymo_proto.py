@@ -92,12 +92,36 @@ Laser = MessageType("Laser", {
     2: Field("ri_return1", RangeImage),
     3: Field("ri_return2", RangeImage),
 })
+# label.proto: an upright box in the vehicle frame of its frame
+LabelBox = MessageType("Label.Box", {
+    1: Field("center_x", "double"),
+    2: Field("center_y", "double"),
+    3: Field("center_z", "double"),
+    4: Field("width", "double"),
+    5: Field("length", "double"),
+    6: Field("height", "double"),
+    7: Field("heading", "double"),        # rad, +x rotated to the box front, in [-pi, pi)
+})
+LabelMetadata = MessageType("Label.Metadata", {
+    1: Field("speed_x", "double"),
+    2: Field("speed_y", "double"),
+    3: Field("accel_x", "double"),
+    4: Field("accel_y", "double"),
+})
+# Label.Type: 0 unknown, 1 vehicle, 2 pedestrian, 3 sign, 4 cyclist
+Label = MessageType("Label", {
+    1: Field("box", LabelBox),
+    2: Field("metadata", LabelMetadata),
+    3: Field("type", "enum"),
+    4: Field("id", "string"),
+})
 Frame = MessageType("Frame", {
     1: Field("context", Context),
     2: Field("timestamp_micros", "int64"),
     3: Field("pose", Transform),          # vehicle -> global
     4: Field("images", CameraImage, repeated=True),
     5: Field("lasers", Laser, repeated=True),
+    6: Field("laser_labels", Label, repeated=True),
 })
 
 

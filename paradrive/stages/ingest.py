@@ -15,8 +15,11 @@ import shutil
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
+from paradrive.actors import dynamic_mask, is_moving
 from paradrive.io import temporary_name
-from paradrive.scene import load_scene, write_scene
+from paradrive.scene import Scene, load_scene, write_image, write_scene
 from paradrive.stages.base import StageContext, StageParams
 from paradrive.stages.layout import SceneLayout
 from paradrive.uri import parse_uri
@@ -43,6 +46,7 @@ class Params(StageParams):
     synthetic_width: int
     synthetic_height: int
     synthetic_curvature: float
+    moving_threshold_m: float | None
 
 
 class IngestSummary(dict[str, Any]):
@@ -65,6 +69,8 @@ def ingest(scene_uri: str, layout: SceneLayout | Path, params: Params) -> Ingest
         scene = reader.read(uri, tmp, params.source, scene_dir.name)
         scene.scene_id = scene_dir.name
         write_scene(scene, tmp)
+        if params.moving_threshold_m is not None:
+            write_dynamic_masks(scene, tmp, params.moving_threshold_m)
         load_scene(tmp)  # validates files too, before anything is published
         scene_dir.mkdir(parents=True, exist_ok=True)
         for name in INGEST_ENTRIES:
@@ -82,6 +88,23 @@ def _replace(src: Path, target: Path) -> None:
         target.unlink()
     if src.exists():
         os.replace(src, target)
+
+
+def write_dynamic_masks(scene: Scene, root: Path, threshold_m: float) -> int:
+    """Write ``masks/dynamic/<cam>/<frame:06d>.png`` (255 = a moving actor's box) for every
+    image of a scene with actors; returns the number of moving actors."""
+    if not scene.actors:
+        return 0
+    moving = [a for a in scene.actors if is_moving(a, threshold_m)]
+    for name, cam in scene.cameras.items():
+        for frame in scene.frames:
+            if name not in frame.cameras:
+                continue
+            mask = dynamic_mask(moving, frame.index, frame.cameras[name].c2w, cam.K(),
+                                cam.width, cam.height)
+            write_image(SceneLayout(root).dynamic_mask(name, frame.index),
+                        mask.astype(np.uint8) * 255)
+    return len(moving)
 
 
 def run(ctx: StageContext[Params]) -> IngestSummary:

@@ -6,6 +6,7 @@ A scene lives at ``<data>/scenes/<scene_id>/``::
     images/<camera>/<frame:06d>.<ext>             undistorted images
     lidar/<frame:06d>.npy                         world points (optional)
     masks/sky/<camera>/<frame:06d>.png            sky masks (optional)
+    masks/dynamic/<camera>/<frame:06d>.png        moving actors' boxes (optional)
     gs/ckpt_<iteration:06d>.ply  gs/fit.json  gs/state.pt      the fit
     renders/renders.json  renders/<camera>/<stream>/<frame:06d>.png  (+ depth/, alpha/)
     clips/clips.json  clips/<camera>/<clip>/<stream>.<mp4|mkv>      the clips
@@ -74,6 +75,9 @@ class SceneLayout:
 
     def sky_mask(self, camera: str, frame: int) -> Path:
         return self.root / "masks" / "sky" / camera / f"{int(frame):06d}.png"
+
+    def dynamic_mask(self, camera: str, frame: int) -> Path:
+        return self.root / "masks" / "dynamic" / camera / f"{int(frame):06d}.png"
 
     # -- fit
     @property

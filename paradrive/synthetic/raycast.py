@@ -96,7 +96,7 @@ class Primitives:
         parts = []
         kinds, idx = [], []
         if len(self.boxes):
-            parts.append(_box_hull_points(self.arc, self.boxes))
+            parts.append(box_hull_points(self.arc, self.boxes))
             kinds.append(np.full(len(self.boxes), BOX))
             idx.append(np.arange(len(self.boxes)))
         if len(self.cylinders):
@@ -123,7 +123,7 @@ def _aabb_points(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.concatenate([pts, pts], axis=1)
 
 
-def _box_hull_points(arc: RoadArc, boxes: np.ndarray) -> np.ndarray:
+def box_hull_points(arc: RoadArc, boxes: np.ndarray) -> np.ndarray:
     """(nb,6) road boxes -> (nb,16,3): 4 stations along s x 2 laterals x 2 heights.
 
     Between stations the outer arc bulges past the chord by at most the sagitta; pushing the

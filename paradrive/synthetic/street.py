@@ -12,18 +12,21 @@ stay on asphalt. Lateral profile (both sides, from the centre out):
 
 from __future__ import annotations
 
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from paradrive.actors import Actor
 from paradrive.geometry import rotation_about
 from paradrive.scene import Camera
 from paradrive.synthetic import raycast as rc
+from paradrive.synthetic import traffic
 
 # box / cylinder / sphere materials
-FACADE, CAR, CABIN, WHEEL, METAL, LAMP, TRUNK, FOLIAGE = range(8)
+FACADE, CAR, CABIN, WHEEL, METAL, LAMP, TRUNK, FOLIAGE, PERSON = range(9)
 
 KERB_H = 0.15
 # shading groups (sorted order: sky first)
@@ -111,6 +114,7 @@ class Layout:
     sun: np.ndarray        # (3,) unit, towards the sun (world)
     zenith: np.ndarray
     horizon: np.ndarray
+    movers: list[traffic.Mover] = field(default_factory=list)  # parked cars, then traffic
 
     def __post_init__(self):
         # float32 copies for texturing (coordinates of a few hundred metres, cm-scale patterns)
@@ -127,11 +131,32 @@ class Layout:
         self.sph_id = key(self.spheres[:, 0], self.spheres[:, 2])
 
 
-def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float) -> Layout:
+def _car_parts(s: float, length: float, l0: float, l1: float, body_top: float, cab_h: float,
+               back_in: float, front_in: float) -> list[tuple[tuple, int]]:
+    """(box, material) of a car's body, cabin and two axle blocks, rear end at s."""
+    parts = [((s, s + length, l0, l1, 0.28, body_top), CAR),
+             ((s + back_in, s + length - front_in, l0 + 0.1, l1 - 0.1, body_top,
+               body_top + cab_h), CABIN)]
+    for ax in (0.8, length - 0.85):
+        parts.append(((s + ax - 0.33, s + ax + 0.33, l0 + 0.03, l1 - 0.03, 0.0, 0.62), WHEEL))
+    return parts
+
+
+def _person_parts(s: float, lc: float, height: float) -> list[tuple[tuple, int]]:
+    """(box, part) of a standing person at road (s, lc): legs, torso, head (facing across)."""
+    hip, neck = 0.5 * height, 0.84 * height
+    return [((s - 0.17, s + 0.17, lc - 0.11, lc + 0.11, 0.0, hip), 0),
+            ((s - 0.25, s + 0.25, lc - 0.15, lc + 0.15, hip, neck), 1),
+            ((s - 0.1, s + 0.1, lc - 0.11, lc + 0.11, neck, height), 2)]
+
+
+def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
+                 ego_speed: float = 0.0) -> Layout:
     """Procedural layout of the street over arc length [s_min, s_max].
 
     Each category draws from its own stream, placing objects in order along s, so a longer street
-    has the same objects at the same places as a shorter one with the same seed.
+    has the same objects at the same places as a shorter one with the same seed. With
+    ``ego_speed`` (m/s) > 0 the street has traffic (traffic.py) timed to that ego.
     """
     root = np.random.SeedSequence(int(seed))
     (g_look, g_bl, g_br, g_back, g_cars, g_lamps, g_trees) = [
@@ -158,6 +183,7 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float) -> Layo
         pp = np.zeros(8)
         pp[:len(p)] = p
         par.append(pp)
+        return len(boxes) - 1
 
     def facade_params(g, back=False):
         ci = g.integers(len(_FACADE_COLOURS))
@@ -198,6 +224,7 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float) -> Layo
             s += w + g.uniform(0, 4)
 
     # parked cars in the parking lanes: body, cabin and two axle blocks each
+    movers: list[traffic.Mover] = []
     park = 0.5 * (edge_l + kerb_l)
     for side in (1.0, -1.0):
         g_car = g_cars[side]
@@ -208,18 +235,9 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float) -> Layo
             lc = side * (park + g_car.uniform(-0.12, 0.12))
             colour = _CAR_COLOURS[g_car.integers(len(_CAR_COLOURS))] + g_car.uniform(-0.03, 0.03, 3)
             facing = 1.0 if g_car.random() < 0.8 else -1.0
-            body_top = 0.28 + g_car.uniform(0.62, 0.8)
-            cab_h = g_car.uniform(0.42, 0.58)
-            back_in, front_in = g_car.uniform(0.7, 1.1), g_car.uniform(1.1, 1.5)
-            if facing < 0:
-                back_in, front_in = front_in, back_in
-            l0, l1 = lc - width / 2, lc + width / 2
-            add_box((s, s + length, l0, l1, 0.28, body_top), CAR, colour, p=(facing,))
-            add_box((s + back_in, s + length - front_in, l0 + 0.1, l1 - 0.1, body_top,
-                     body_top + cab_h), CABIN, colour)
-            for ax in (0.8, length - 0.85):
-                add_box((s + ax - 0.33, s + ax + 0.33, l0 + 0.03, l1 - 0.03, 0.0, 0.62), WHEEL,
-                        (0.05, 0.05, 0.05))
+            rows, bbox = _add_car(add_box, g_car, s, lc, length, width, colour, facing)
+            movers.append(traffic.Mover(f"parked-{len(movers):03d}", "car", rows, bbox,
+                                        yaw=0.0 if facing > 0 else np.pi))
             gap = g_car.uniform(0.8, 6.0) if g_car.random() < 0.8 else g_car.uniform(8, 18)
             s += length + gap
 
@@ -268,6 +286,11 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float) -> Layo
                 srgb.append(tint * 1.08)
             s += step
 
+    if ego_speed > 0:
+        movers += traffic_movers(root.spawn(1)[0], lane_w, kerb_l, ego_speed, s_min, s_max,
+                                 functools.partial(_moving_car, add_box),
+                                 functools.partial(_crossing_person, add_box))
+
     return Layout(
         lane_w=lane_w, edge_l=edge_l, kerb_l=kerb_l, facade_l=facade_l,
         boxes=np.array(boxes, np.float64).reshape(-1, 6), box_mat=np.array(mats, np.int64),
@@ -278,7 +301,55 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float) -> Layo
         cyl_rgb=np.array(crgb, np.float64).reshape(-1, 3),
         spheres=np.array(sphs, np.float64).reshape(-1, 4), sph_mat=np.array(smat, np.int64),
         sph_rgb=np.array(srgb, np.float64).reshape(-1, 3),
-        asphalt=float(asphalt), sun=sun, zenith=np.clip(zenith, 0, 1), horizon=np.clip(horizon, 0, 1))
+        asphalt=float(asphalt), sun=sun, zenith=np.clip(zenith, 0, 1), horizon=np.clip(horizon, 0, 1),
+        movers=movers)
+
+
+def _moving_car(add_box, g, s: float, lc: float, facing: float):
+    """Add a car (rear at s, centred on lc, facing +-s) drawn from g; returns (rows, bbox)."""
+    length, width = g.uniform(3.9, 4.8), g.uniform(1.72, 1.9)
+    colour = _CAR_COLOURS[g.integers(len(_CAR_COLOURS))] + g.uniform(-0.03, 0.03, 3)
+    return _add_car(add_box, g, s, lc, length, width, colour, facing)
+
+
+def _add_car(add_box, g, s: float, lc: float, length: float, width: float, colour,
+             facing: float):
+    """Add a car's boxes, its heights and cabin drawn from g; returns (rows, bbox)."""
+    body_top = 0.28 + g.uniform(0.62, 0.8)
+    cab_h = g.uniform(0.42, 0.58)
+    back_in, front_in = g.uniform(0.7, 1.1), g.uniform(1.1, 1.5)
+    if facing < 0:
+        back_in, front_in = front_in, back_in
+    l0, l1 = lc - width / 2, lc + width / 2
+    rows = [add_box(box, mat, (0.05, 0.05, 0.05) if mat == WHEEL else colour,
+                    p=(facing,) if mat == CAR else ())
+            for box, mat in _car_parts(s, length, l0, l1, body_top, cab_h, back_in, front_in)]
+    return np.array(rows), np.array([s, s + length, l0, l1, 0.0, body_top + cab_h])
+
+
+def _crossing_person(add_box, g, s: float, lc: float):
+    """Add a person standing at road (s, lc) drawn from g; returns (rows, bbox)."""
+    height = g.uniform(1.55, 1.9)
+    shirt = traffic.PERSON_COLOURS[g.integers(len(traffic.PERSON_COLOURS))]
+    rows = [add_box(box, PERSON, ((0.12, 0.12, 0.16), shirt, (0.78, 0.6, 0.48))[part])
+            for box, part in _person_parts(s, lc, height)]
+    return np.array(rows), np.array([s - 0.25, s + 0.25, lc - 0.15, lc + 0.15, 0.0, height])
+
+
+def traffic_movers(seed: np.random.SeedSequence, lane_w: float, kerb_l: float, ego_speed: float,
+                   s_min: float, s_max: float, add_car, add_person) -> list[traffic.Mover]:
+    """Oncoming cars (left lane), overtaking cars (right lane, faster than the ego) and crossing
+    pedestrians, each lane at its own speed and from its own stream (a longer street keeps them)."""
+    g_speed, g_on, g_over, g_people = map(np.random.default_rng, seed.spawn(4))
+    oncoming = g_speed.uniform(0.8, 1.2) * ego_speed
+    overtaking = g_speed.uniform(1.3, 1.6) * ego_speed
+    specs = [("car", a) for a in traffic.lane_cars(g_on, lane_w, -1.0, oncoming, s_min, s_max,
+                                                   add_car)]
+    specs += [("car", a) for a in traffic.lane_cars(g_over, -lane_w, 1.0, overtaking,
+                                                    s_min - 20.0, s_max, add_car)]
+    specs += [("person", a) for a in traffic.crossing_people(g_people, kerb_l + 1.0, ego_speed,
+                                                             s_min, s_max, add_person)]
+    return [traffic.Mover(f"{kind}-{i:03d}", kind, *args) for i, (kind, args) in enumerate(specs)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -472,16 +543,28 @@ def _wheel_albedo(L: Layout, bi, face, s, z, fp):
     return np.stack([g, g, g], -1)
 
 
+@dataclass
+class World:
+    """Everything a ray can hit at one instant: the layout with its actors placed, the
+    primitives and their hulls (``Primitives.bound_points``)."""
+
+    layout: Layout
+    prims: rc.Primitives
+    bounds: tuple
+
+
 class SyntheticStreet:
     """A procedural street driven by a camera rig, rendered by an exact analytic ray caster.
 
-    The same scene renders any pose (e.g. the recorded trajectory shifted laterally), so it is
-    the ground truth of shifted views. Everything is deterministic from ``seed``.
+    The same scene renders any pose (e.g. the recorded trajectory shifted laterally) at any
+    frame's instant, so it is the ground truth of shifted views, moving traffic included.
+    Everything is deterministic from ``seed``; ``traffic=False`` leaves only parked cars.
     """
 
     def __init__(self, name: str = "demo", seed: int = 7, frames: int = 160, width: int = 832,
                  height: int = 480, curvature: float = 0.0, speed_mps: float = 8.0,
-                 fps: float = 10.0, cameras=("front",), lidar: bool = False):
+                 fps: float = 10.0, cameras=("front",), lidar: bool = False,
+                 traffic: bool = True):
         if isinstance(cameras, str):
             cameras = tuple(c.strip() for c in cameras.split(",") if c.strip())
         unknown = [c for c in cameras if c not in CAMERA_NAMES]
@@ -510,11 +593,41 @@ class SyntheticStreet:
             raise ValueError(f"synthetic street: {self.frames} frames at {self.speed_mps} m/s on "
                              f"curvature {self.curvature} turn more than 160 deg; use fewer frames "
                              "or a smaller curvature")
-        self.layout = build_layout(self.seed, self.arc, s_min, s_max)
+        self.traffic = bool(traffic)
+        self.layout = build_layout(self.seed, self.arc, s_min, s_max,
+                                   ego_speed=self.speed_mps if self.traffic else 0.0)
         L = self.layout
         self.prims = rc.Primitives(self.arc, L.kerb_l, KERB_H, L.boxes, L.cylinders, L.spheres)
         self._bounds = self.prims.bound_points()
+        self._worlds: dict[int, World] = {}
         self.cameras = {c: camera_spec(c, self.width, self.height) for c in cameras}
+
+    # -- actors -------------------------------------------------------------------------------
+
+    def world_at(self, frame: int) -> World:
+        """The street at frame ``frame``'s instant (frame / fps seconds), actors moved there."""
+        movers = [m for m in self.layout.movers if m.moving]
+        if not movers or frame == 0:
+            return World(self.layout, self.prims, self._bounds)
+        if frame not in self._worlds:
+            if len(self._worlds) >= 16:
+                self._worlds.pop(next(iter(self._worlds)))
+            L = self.layout
+            boxes = traffic.shifted_boxes(L.boxes, movers, frame / self.fps)
+            prims = rc.Primitives(self.arc, L.kerb_l, KERB_H, boxes, L.cylinders, L.spheres)
+            kinds, idx, pts = self._bounds
+            rows = np.concatenate([m.rows for m in movers])
+            pts = pts.copy()
+            pts[rows] = rc.box_hull_points(self.arc, boxes[rows])  # boxes come first
+            self._worlds[frame] = World(replace(L, boxes=boxes), prims, (kinds, idx, pts))
+        return self._worlds[frame]
+
+    def actors(self) -> list[Actor]:
+        """Every actor's labelled track over the street's frames (traffic.track), in the world."""
+        times = np.arange(self.frames) / self.fps
+        ego_xy = self.ego2world()[:, :2, 3]
+        found = (traffic.track(m, self.arc, times, ego_xy) for m in self.layout.movers)
+        return [a for a in found if a is not None]
 
     # -- trajectory ---------------------------------------------------------------------------
 
@@ -546,8 +659,9 @@ class SyntheticStreet:
     # -- rendering ----------------------------------------------------------------------------
 
     def render(self, c2w, K, width: int, height: int, threads: int | None = None,
-               cull: bool = True) -> dict:
-        """Render views. c2w: (N, 4, 4) or (4, 4) camera-to-world, OpenCV; K: (3, 3).
+               cull: bool = True, frames=None) -> dict:
+        """Render views. c2w: (N, 4, 4) or (4, 4) camera-to-world, OpenCV; K: (3, 3);
+        frames: the frame index (instant) of each view, (N,) or one int; None = frame 0.
 
         Pixel (v, u) samples the ray through image point (u + 0.5, v + 0.5). Frames are spread
         over ``threads`` threads (default: up to 2). cull=False tests every ray against every
@@ -562,12 +676,14 @@ class SyntheticStreet:
             raise ValueError(f"render: c2w must be (N, 4, 4) or (4, 4), got {c2w.shape}")
         K = np.asarray(K, np.float64)
         n = len(c2w)
+        when = np.broadcast_to(np.asarray(0 if frames is None else frames, dtype=np.int64), (n,))
         out = {"rgb": np.zeros((n, height, width, 3), np.uint8),
                "depth": np.zeros((n, height, width), np.float32),
                "sky": np.zeros((n, height, width), bool)}
 
         def one(i):
-            rgb, depth = self._render_one(c2w[i], K, int(width), int(height), cull)
+            rgb, depth = self._render_one(c2w[i], K, int(width), int(height), cull,
+                                          self.world_at(int(when[i])))
             out["rgb"][i] = rgb
             out["depth"][i] = depth
             out["sky"][i] = ~np.isfinite(depth)
@@ -585,13 +701,14 @@ class SyntheticStreet:
         """One frame of a rig camera (optionally from another pose): dict as render() without N."""
         spec = self.cameras[camera]
         pose = self.c2w(camera)[index] if c2w is None else c2w
-        views = self.render(pose, spec.K(), spec.width, spec.height, threads=1)
+        views = self.render(pose, spec.K(), spec.width, spec.height, threads=1, frames=index)
         return {k: v[0] for k, v in views.items()}
 
-    def _render_one(self, c2w, K, width, height, cull=True):
-        hits, o, (dx, dy, dz) = rc.cast_camera(self.prims, c2w, K, width, height, self._bounds, cull)
+    def _render_one(self, c2w, K, width, height, cull, world: World):
+        hits, o, (dx, dy, dz) = rc.cast_camera(world.prims, c2w, K, width, height, world.bounds,
+                                               cull)
         pixel_angle = 1.0 / (0.5 * (K[0, 0] + K[1, 1]))
-        rgb = self.shade(hits, o, dx, dy, dz, pixel_angle)
+        rgb = self.shade(hits, o, dx, dy, dz, pixel_angle, world)
         return rgb, hits.t.astype(np.float32)
 
     def _group_keys(self, kind, index):
@@ -607,12 +724,15 @@ class SyntheticStreet:
         key = np.where(kind == rc.SPHERE, _G_SPH, key)
         return key.astype(np.int16)
 
-    def shade(self, hits: rc.Hits, o, dx, dy, dz, pixel_angle: float) -> np.ndarray:
+    def shade(self, hits: rc.Hits, o, dx, dy, dz, pixel_angle: float,
+              world: World | None = None) -> np.ndarray:
         """Colour (uint8, shape + (3,)) of cast rays; footprint-filtered textures, Lambert + sky.
 
-        pixel_angle: angular size of a pixel (rad), for the texture filter footprint.
+        pixel_angle: angular size of a pixel (rad), for the texture filter footprint; world: the
+        instant the rays were cast in (default frame 0).
         """
-        L = self.layout
+        world = world or self.world_at(0)
+        L = world.layout
         f32 = np.float32
         shape = hits.t.shape
         kind = hits.kind.ravel()
@@ -645,7 +765,7 @@ class SyntheticStreet:
             for g, sl in groups:
                 kind_g = _group_kind(g)
                 part = g - _G_GROUND if kind_g == rc.GROUND else -1
-                normal[sl] = rc.group_normals(self.prims, kind_g, part, index[hit][sl], face[hit][sl],
+                normal[sl] = rc.group_normals(world.prims, kind_g, part, index[hit][sl], face[hit][sl],
                                               px[sl], py[sl], pz[sl], s[sl])
             ndd = normal[:, 0] * hx + normal[:, 1] * hy + normal[:, 2] * hz
             # pixel footprint on the surface: range * pixel angle / cos(incidence)
@@ -653,7 +773,7 @@ class SyntheticStreet:
             rng = th32 * dn
             fp = np.minimum(rng * dn * f32(pixel_angle) / np.maximum(np.abs(ndd), f32(0.1) * dn), f32(50.0))
             for g, sl in groups:
-                albedo[sl] = self._albedo(g, index[hit][sl], face[hit][sl], s32[sl], l32[sl],
+                albedo[sl] = self._albedo(L, g, index[hit][sl], face[hit][sl], s32[sl], l32[sl],
                                           px32[sl], py32[sl], pz32[sl], fp[sl])
             # Lambert with the normal turned towards the viewer, then aerial perspective: distant
             # surfaces fade towards the horizon colour
@@ -669,9 +789,8 @@ class SyntheticStreet:
         out[order] = rgba.view(np.uint32).ravel()
         return out.view(np.uint8).reshape(shape + (4,))[..., :3]
 
-    def _albedo(self, group: int, index, face, s, l, px, py, pz, fp):
-        """Albedo (m, 3) float32 of one shading group's hits."""
-        L = self.layout
+    def _albedo(self, L: Layout, group: int, index, face, s, l, px, py, pz, fp):
+        """Albedo (m, 3) float32 of one shading group's hits (L: the layout at that instant)."""
         seed = self.seed * 1000
         if group == _G_GROUND + rc.ROAD:
             return _road_albedo(L, s, l, fp, seed)
@@ -717,14 +836,15 @@ class SyntheticStreet:
         d_ego = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
         dirs = d_ego @ ego[:3, :3].T  # (beams, azimuths, 3), unit: t is range
         o = ego[:3, :3] @ np.array([0.0, 0.0, LIDAR_HEIGHT]) + ego[:3, 3]
-        cands = self._lidar_candidates(o, ego)
-        hits = rc.cast(self.prims, o, dirs[..., 0].copy(), dirs[..., 1].copy(), dirs[..., 2].copy(), cands)
+        world = self.world_at(index)
+        cands = self._lidar_candidates(o, ego, world.bounds)
+        hits = rc.cast(world.prims, o, dirs[..., 0].copy(), dirs[..., 1].copy(), dirs[..., 2].copy(), cands)
         ok = hits.t <= LIDAR_MAX_RANGE
         return (o + hits.t[ok][:, None] * dirs[ok]).astype(np.float32)
 
-    def _lidar_candidates(self, o, ego):
+    def _lidar_candidates(self, o, ego, bounds):
         """Per object within range, the azimuth columns its hull spans (as slices of the scan)."""
-        kinds, idx, pts = self._bounds
+        kinds, idx, pts = bounds
         lo, hi = pts.min(1), pts.max(1)
         gap = np.maximum(np.maximum(lo - o, o - hi), 0.0)
         dist = np.linalg.norm(gap, axis=1)
