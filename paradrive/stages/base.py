@@ -22,7 +22,9 @@ from paradrive.stages.layout import BuildLayout, SceneLayout
 
 class StageParams(BaseModel):
     """A stage's parameters, typed; ``source`` is the resolved mapping they came from (what
-    fingerprints hash, so a refactor of the types never changes a fingerprint)."""
+    fingerprints hash, so a refactor of the types never changes a fingerprint). A parameter
+    with ``choices`` in its YAML is a plain ``str`` here: the YAML is where the choices live,
+    and the registry checks them."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     _source: dict[str, Any] = PrivateAttr(default_factory=dict)

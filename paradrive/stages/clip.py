@@ -18,7 +18,6 @@ import logging
 import shutil
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -37,7 +36,7 @@ Progress = Callable[[int, int], None]
 
 
 class Params(StageParams):
-    codec: Literal["libx264", "ffv1"]
+    codec: str
     crf: int
     preset: str
     pix_fmt: str

@@ -6,7 +6,6 @@ The training itself is :func:`paradrive.gs.fit.fit_scene`; this module holds the
 
 from __future__ import annotations
 
-from typing import Literal
 
 from pydantic import field_validator
 
@@ -21,7 +20,7 @@ class Params(StageParams):
     seed: int
     threads: int
     device: str
-    backend: Literal["auto", "torch", "gsplat"]
+    backend: str
     sh_degree: int
     sh_degree_interval: int
     ssim_lambda: float
@@ -41,7 +40,7 @@ class Params(StageParams):
     refine_every: int
     reset_every: int
     max_gaussians: int
-    init: Literal["auto", "lidar", "frustum"]
+    init: str
     init_points: int
     init_opacity: float
     init_depth_min: float

@@ -13,7 +13,7 @@ import importlib
 import os
 import shutil
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -38,7 +38,7 @@ class Params(StageParams):
     cameras: str | list[str] | None
     camera_sets: dict[str, list[str]]
     max_frames: int | None
-    image_ext: Literal["jpg", "png"]
+    image_ext: str
     jpeg_quality: int
     lidar: bool
     sky_masks: bool

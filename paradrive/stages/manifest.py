@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Literal
 
 from paradrive.errors import ParaDriveError, SceneError
 from paradrive.manifest import MediaFile, publish, read_clips, scene_rows
@@ -19,11 +18,11 @@ class Params(StageParams):
     shard_rows: int
     shard_bytes: int | None
     row_group_rows: int
-    compression: Literal["zstd", "snappy", "gzip", "none"]
-    media: Literal["hardlink", "copy", "symlink"]
+    compression: str
+    media: str
     verify_inputs: bool
     quality: bool
-    kind: Literal["training", "inference"]
+    kind: str
     exclude_splits: list[str]
 
 

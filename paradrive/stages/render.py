@@ -40,7 +40,6 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -73,7 +72,7 @@ class Params(StageParams):
     alpha: bool
     batch_frames: int
     device: str
-    backend: Literal["auto", "torch", "gsplat"]
+    backend: str
     threads: int
 
     def streams(self) -> list[StreamPlan]:
