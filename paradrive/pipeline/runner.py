@@ -333,8 +333,9 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                 mirror.withdraw(marker_rel)
                 pulled = mirror.pull(spec.reads)
                 log.info("%s: %d file(s) brought from %s", stage, pulled, root.scene_location(scene_id))
-            # A stage may keep what it finds in place (a complete fit): never a damaged output,
-            # nor, on a URL root, a cached copy of one the remote lost.
+            # A stage may resume from what it finds (a fit's state.pt), never from a damaged
+            # output, nor, on a URL root, a cached copy of one the remote lost. Whether a stage
+            # is done is decided here only, never by the stage itself.
             for rel in damaged_outputs(marker or {}, size_of):
                 (scene_dir / rel).unlink(missing_ok=True)
             remove_stale_temporaries(scene_dir)
