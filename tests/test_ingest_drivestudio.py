@@ -92,7 +92,7 @@ def test_ten_column_lidar_files_are_read_too(waymo_folder, source, tmp_path):
     out = tmp_path / "s"
     ingest(f"drivestudio:{folder}", out, stage_params("ingest", {"cameras": ["front"], "sky_masks": False}))
     assert np.abs(np.load(out / "lidar" / "000001.npy") - source.lidar(1)).max() < 1e-3
-    assert not (out / "masks").exists()
+    assert not (out / "masks" / "sky").exists()
 
 
 def test_nuscenes_flavour_uses_the_front_camera_as_ego(source, tmp_path):

@@ -178,6 +178,11 @@ def instance_actors(folder: Path, numbers: list[int], known: set[int], world_fro
 
 def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     folder = Path(uri.path).expanduser()
+    _check_folder(folder, scene_id)
+    return _Reader(uri, folder, out_dir, params, scene_id).scene()
+
+
+def _check_folder(folder: Path, scene_id: str) -> None:
     if not folder.is_dir():
         raise SceneError("DriveStudio scene folder does not exist", scene_id=scene_id, path=folder,
                          fix="check the path in the scene URI")
@@ -188,19 +193,9 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
                          f"{outside[0].relative_to(folder)} -> {outside[0].resolve()}",
                          scene_id=scene_id, path=folder,
                          fix="copy the files into the folder instead of linking them")
-    flavour = flavour_of(folder, uri, scene_id)
-    fps = _fps(folder, uri, flavour, scene_id)
-    ids = WAYMO_CAMERAS if flavour == "waymo" else NUSCENES_CAMERAS
-    if flavour == "waymo":
-        available = [name for cid, name in ids.items()
-                     if (folder / "extrinsics" / f"{cid}.txt").is_file()]
-        numbers = _frame_numbers(folder, "ego_pose", r"(\d+)\.txt")
-    else:
-        available = [name for cid, name in ids.items()
-                     if (folder / "extrinsics" / f"000_{cid}.txt").is_file()]
-        numbers = _frame_numbers(folder, "extrinsics", r"(\d+)_0\.txt")
-    chosen = select_cameras(available, params, flavour, scene_id=scene_id,
-                            where=folder / "extrinsics")
+
+
+def _check_numbering(numbers: list[int], folder: Path, scene_id: str) -> None:
     if not numbers:
         raise SceneError("scene folder has no frames", scene_id=scene_id, path=folder,
                          fix="re-run DriveStudio's preprocessing for this scene")
@@ -209,107 +204,135 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
         raise SceneError(f"frame {gap:03d} is missing (frames must be numbered 000, 001, ...)",
                          scene_id=scene_id, path=folder,
                          fix="re-run DriveStudio's preprocessing for this scene")
-    known = set(numbers)
-    limit = max_frames(params)
-    if limit is not None:
-        numbers = numbers[:limit]
-    cam_id = {name: cid for cid, name in ids.items()}
-    intr = {cam: load_matrix(folder / "intrinsics" / f"{cam_id[cam]}.txt", (9,), scene_id=scene_id,
-                             what=f"camera {cam} intrinsics") for cam in chosen}
 
-    # poses in the global frame
-    if flavour == "waymo":
-        ego_global = [checked_pose(load_matrix(folder / "ego_pose" / f"{t:03d}.txt", (4, 4),
-                                               scene_id=scene_id, what=f"frame {t} ego pose"),
-                                   scene_id=scene_id, where=folder / "ego_pose" / f"{t:03d}.txt",
-                                   what=f"frame {t} ego pose") for t in numbers]
-        cam2ego = {}
-        for cam in chosen:
-            path = folder / "extrinsics" / f"{cam_id[cam]}.txt"
-            ext = checked_pose(load_matrix(path, (4, 4), scene_id=scene_id,
-                                           what=f"camera {cam} extrinsics"),
-                               scene_id=scene_id, where=path, what=f"camera {cam} extrinsic")
-            cam2ego[cam] = ext @ OPENCV_TO_FLU
-        c2w_global = {cam: [e @ cam2ego[cam] for e in ego_global] for cam in chosen}
-    else:
-        c2w_global = {}
-        for cam in chosen + (["front"] if "front" not in chosen else []):
-            poses = []
-            for t in numbers:
-                path = folder / "extrinsics" / f"{t:03d}_{cam_id[cam]}.txt"
-                poses.append(checked_pose(load_matrix(path, (4, 4), scene_id=scene_id,
-                                                      what=f"frame {t} camera {cam} pose"),
-                                          scene_id=scene_id, where=path,
-                                          what=f"frame {t} camera {cam} pose"))
-            c2w_global[cam] = poses
+
+class _Reader:
+    """One DriveStudio folder read into a canonical scene, step by step."""
+
+    def __init__(self, uri: SceneURI, folder: Path, out_dir: Path, params: dict, scene_id: str):
+        self.uri, self.folder, self.out_dir, self.params = uri, folder, out_dir, params
+        self.scene_id = scene_id
+        self.flavour = flavour_of(folder, uri, scene_id)
+        self.fps = _fps(folder, uri, self.flavour, scene_id)
+        ids = WAYMO_CAMERAS if self.flavour == "waymo" else NUSCENES_CAMERAS
+        if self.flavour == "waymo":
+            available = [name for cid, name in ids.items()
+                         if (folder / "extrinsics" / f"{cid}.txt").is_file()]
+            numbers = _frame_numbers(folder, "ego_pose", r"(\d+)\.txt")
+        else:
+            available = [name for cid, name in ids.items()
+                         if (folder / "extrinsics" / f"000_{cid}.txt").is_file()]
+            numbers = _frame_numbers(folder, "extrinsics", r"(\d+)_0\.txt")
+        self.chosen = select_cameras(available, params, self.flavour, scene_id=scene_id,
+                                     where=folder / "extrinsics")
+        _check_numbering(numbers, folder, scene_id)
+        self.known = set(numbers)
+        limit = max_frames(params)
+        self.numbers = numbers[:limit] if limit is not None else numbers
+        self.cam_id = {name: cid for cid, name in ids.items()}
+
+    def pose(self, path: Path, what: str) -> np.ndarray:
+        return checked_pose(load_matrix(path, (4, 4), scene_id=self.scene_id, what=what),
+                            scene_id=self.scene_id, where=path, what=what)
+
+    def global_poses(self) -> tuple[list[np.ndarray], dict[str, np.ndarray], dict[str, list]]:
+        """Ego poses, cam2ego and camera poses per frame, in the log's global frame."""
+        folder, chosen, cam_id = self.folder, self.chosen, self.cam_id
+        if self.flavour == "waymo":
+            ego_global = [self.pose(folder / "ego_pose" / f"{t:03d}.txt", f"frame {t} ego pose")
+                          for t in self.numbers]
+            cam2ego = {cam: self.pose(folder / "extrinsics" / f"{cam_id[cam]}.txt",
+                                      f"camera {cam} extrinsic") @ OPENCV_TO_FLU
+                       for cam in chosen}
+            return ego_global, cam2ego, {cam: [e @ cam2ego[cam] for e in ego_global]
+                                         for cam in chosen}
+        c2w_global = {cam: [self.pose(folder / "extrinsics" / f"{t:03d}_{cam_id[cam]}.txt",
+                                      f"frame {t} camera {cam} pose") for t in self.numbers]
+                      for cam in chosen + (["front"] if "front" not in chosen else [])}
         # no ego pose in this flavour: the front camera with vehicle axes stands in for it
         flu = geometry.invert(OPENCV_TO_FLU)
         ego_global = [c @ flu for c in c2w_global["front"]]
         cam2ego = {cam: geometry.invert(ego_global[0]) @ c2w_global[cam][0] for cam in chosen}
-    world_from_global = geometry.invert(ego_global[0])
+        return ego_global, cam2ego, c2w_global
 
-    ext_out = params.get("image_ext", "jpg")
-    quality = int(params.get("jpeg_quality", 95))
-    want_sky = bool(params.get("sky_masks", True))
-    cameras: dict[str, Camera] = {}
-    frames = [Frame(index=i, timestamp_us=int(round(i * 1e6 / fps)),
-                    ego2world=world_from_global @ ego_global[i], cameras={})
-              for i in range(len(numbers))]
-    for cam in chosen:
-        fx, fy, cx, cy = (float(v) for v in intr[cam][:4])
-        dist = intr[cam][4:9]
-        for i, t in enumerate(numbers):
-            path = folder / "images" / f"{t:03d}_{cam_id[cam]}.jpg"
+    def scene(self) -> Scene:
+        ego_global, cam2ego, c2w_global = self.global_poses()
+        world = geometry.invert(ego_global[0])
+        frames = [Frame(index=i, timestamp_us=int(round(i * 1e6 / self.fps)),
+                        ego2world=world @ ego_global[i], cameras={})
+                  for i in range(len(self.numbers))]
+        cameras: dict[str, Camera] = {}
+        for cam in self.chosen:
+            cameras[cam] = self.camera_images(cam, cam2ego[cam], frames,
+                                              [world @ c for c in c2w_global[cam]])
+        if self.params.get("lidar", True) and (self.folder / "lidar").is_dir():
+            self.lidar([world @ e for e in ego_global], world)
+        return Scene(scene_id=self.scene_id, dataset="drivestudio", source=self.uri.text,
+                     fps=self.fps, cameras=cameras, frames=frames,
+                     actors=instance_actors(self.folder, self.numbers, self.known, world,
+                                            scene_id=self.scene_id),
+                     extra={"drivestudio": {"flavour": self.flavour, "folder": self.folder.name,
+                                            "ego": "vehicle pose" if self.flavour == "waymo" else
+                                            "front camera with vehicle axes (no ego pose stored)"}})
+
+    def camera_images(self, cam: str, cam2ego: np.ndarray, frames: list[Frame],
+                      c2w: list[np.ndarray]) -> Camera:
+        """Store every image of ``cam`` (undistorted) and its sky masks; the camera."""
+        sid, folder, cid = self.scene_id, self.folder, self.cam_id[cam]
+        intr = load_matrix(folder / "intrinsics" / f"{cid}.txt", (9,), scene_id=sid,
+                           what=f"camera {cam} intrinsics")
+        fx, fy, cx, cy = (float(v) for v in intr[:4])
+        dist = intr[4:9]
+        camera = None
+        for i, t in enumerate(self.numbers):
+            path = folder / "images" / f"{t:03d}_{cid}.jpg"
             if not path.is_file():
-                raise SceneError(f"frame {t} camera {cam} image is missing", scene_id=scene_id,
+                raise SceneError(f"frame {t} camera {cam} image is missing", scene_id=sid,
                                  path=path, fix="re-run DriveStudio's preprocessing, or drop the "
                                                 "camera with ingest.cameras")
             data = path.read_bytes()
-            pixels = decode_jpeg(data, scene_id=scene_id, where=path)
-            if cam not in cameras:
-                cameras[cam] = Camera(name=cam, width=pixels.shape[1], height=pixels.shape[0],
-                                      fx=fx, fy=fy, cx=cx, cy=cy, cam2ego=cam2ego[cam])
-            check_size(pixels, cameras[cam].width, cameras[cam].height, scene_id=scene_id,
-                       where=path, what=f"camera {cam} image")
-            K = cameras[cam].K()
-            rel = f"images/{cam}/{i:06d}.{ext_out}"
-            store_image(out_dir, rel, pixels, K=K, dist=dist, quality=quality, original=data)
-            frames[i].cameras[cam] = FrameCamera(image=rel,
-                                                 c2w=world_from_global @ c2w_global[cam][i])
-            sky_path = folder / "sky_masks" / f"{t:03d}_{cam_id[cam]}.png"
-            if want_sky and sky_path.is_file():
-                mask = read_image(sky_path, scene_id=scene_id)[..., :1]
-                if not distortion_is_zero(dist):
-                    mask = undistort_image(mask, K, dist)
-                mask = np.where(mask[..., 0] > 127, 255, 0).astype(np.uint8)
-                write_image(out_dir / "masks" / "sky" / cam / f"{i:06d}.png", mask)
-    if params.get("lidar", True) and (folder / "lidar").is_dir():
-        for i, t in enumerate(numbers):
-            path = folder / "lidar" / f"{t:03d}.bin"
+            pixels = decode_jpeg(data, scene_id=sid, where=path)
+            if camera is None:
+                camera = Camera(name=cam, width=pixels.shape[1], height=pixels.shape[0],
+                                fx=fx, fy=fy, cx=cx, cy=cy, cam2ego=cam2ego)
+            check_size(pixels, camera.width, camera.height, scene_id=sid, where=path,
+                       what=f"camera {cam} image")
+            rel = f"images/{cam}/{i:06d}.{self.params.get('image_ext', 'jpg')}"
+            store_image(self.out_dir, rel, pixels, K=camera.K(), dist=dist,
+                        quality=int(self.params.get("jpeg_quality", 95)), original=data)
+            frames[i].cameras[cam] = FrameCamera(image=rel, c2w=c2w[i])
+            self.sky_mask(folder / "sky_masks" / f"{t:03d}_{cid}.png", cam, i, camera.K(), dist)
+        assert camera is not None  # numbers is never empty
+        return camera
+
+    def sky_mask(self, path: Path, cam: str, i: int, K: np.ndarray, dist: np.ndarray) -> None:
+        if not (self.params.get("sky_masks", True) and path.is_file()):
+            return
+        mask = read_image(path, scene_id=self.scene_id)[..., :1]
+        if not distortion_is_zero(dist):
+            mask = undistort_image(mask, K, dist)
+        mask = np.where(mask[..., 0] > 127, 255, 0).astype(np.uint8)
+        write_image(self.out_dir / "masks" / "sky" / cam / f"{i:06d}.png", mask)
+
+    def lidar(self, ego2world: list[np.ndarray], world: np.ndarray) -> None:
+        """World points of every frame's sweep (``lidar/<frame>.npy``)."""
+        sid = self.scene_id
+        for i, t in enumerate(self.numbers):
+            path = self.folder / "lidar" / f"{t:03d}.bin"
             if not path.is_file():
                 continue
             raw = np.fromfile(path, dtype=np.float32)
-            if flavour == "waymo":
-                pts = _waymo_lidar_points(raw, scene_id=scene_id, path=path)
-                pose = world_from_global @ ego_global[i]
+            if self.flavour == "waymo":
+                pts, pose = _waymo_lidar_points(raw, scene_id=sid, path=path), ego2world[i]
             else:
                 if raw.size % 4:
                     raise SceneError(f"LiDAR file holds {raw.size} floats, not rows of 4",
-                                     scene_id=scene_id, path=path,
+                                     scene_id=sid, path=path,
                                      fix="re-run preprocessing or ingest with lidar off")
                 pts = raw.reshape(-1, 4)[:, :3]
-                pose_path = folder / "lidar_pose" / f"{t:03d}.txt"
-                pose = world_from_global @ checked_pose(
-                    load_matrix(pose_path, (4, 4), scene_id=scene_id, what=f"frame {t} LiDAR pose"),
-                    scene_id=scene_id, where=pose_path, what=f"frame {t} LiDAR pose")
-            save_points(out_dir, i, transform_points(pose, pts.astype(np.float64)))
-    return Scene(scene_id=scene_id, dataset="drivestudio", source=uri.text, fps=fps,
-                 cameras=cameras, frames=frames,
-                 actors=instance_actors(folder, numbers, known, world_from_global,
-                                        scene_id=scene_id),
-                 extra={"drivestudio": {"flavour": flavour, "folder": folder.name,
-                                        "ego": "vehicle pose" if flavour == "waymo" else
-                                        "front camera with vehicle axes (no ego pose stored)"}})
+                pose = world @ self.pose(self.folder / "lidar_pose" / f"{t:03d}.txt",
+                                         f"frame {t} LiDAR pose")
+            save_points(self.out_dir, i, transform_points(pose, pts.astype(np.float64)))
 
 
 def _waymo_lidar_points(raw: np.ndarray, *, scene_id: str, path: Path) -> np.ndarray:
