@@ -220,127 +220,149 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     if not root.is_dir():
         raise SceneError("nuScenes dataroot does not exist", scene_id=scene_id, path=root,
                          fix="check the path in the scene URI")
-    version = find_version(root, uri, scene_id)
-    meta = root / version
-    tables = load_tables(meta, scene_id)
-    scene_row = find_scene(tables, uri, scene_id, meta / "scene.json")
-    # samples of the scene, by walking the sample chain
-    samples, token = [], scene_row["first_sample_token"]
-    while token:
-        sample = _get(tables, "sample", token, scene_id=scene_id, where=meta / "sample.json",
-                      referrer=f"scene {scene_row.get('name')}")
-        if sample["token"] in samples:
-            break
-        samples.append(sample["token"])
-        token = "" if token == scene_row.get("last_sample_token") else sample.get("next", "")
-    scene_samples = set(samples)
-    first_sample = samples[0]
-    # the first sample's sample_data per channel
-    where_sd = meta / "sample_data.json"
+    return _Reader(uri, root, out_dir, params, scene_id).scene()
+
+
+def _first_sample_data(tables: dict, first_sample: str, scene_id: str, where: Path) -> dict[str, dict]:
+    """The first sample's sample_data per channel: a keyframe if there is one, else the earliest."""
     firsts: dict[str, dict] = {}
     for sd in tables["sample_data"].values():
-        if sd["sample_token"] == first_sample:
-            ch = channel_of(tables, sd, scene_id=scene_id, where=where_sd)
-            # a keyframe if there is one, else the earliest
-            old = firsts.get(ch)
-            if old is None or (sd.get("is_key_frame") and not old.get("is_key_frame")) or (
-                    sd.get("is_key_frame") == old.get("is_key_frame") and sd["timestamp"] < old["timestamp"]):
-                firsts[ch] = sd
-    available = [CHANNEL_TO_CAMERA[ch] for ch in CHANNEL_TO_CAMERA if ch in firsts]
-    chosen = select_cameras(available, params, "nuscenes", scene_id=scene_id, where=meta)
-    chains = {cam: chain(tables, firsts[CAMERA_TO_CHANNEL[cam]], scene_samples,
-                         scene_id=scene_id, where=where_sd) for cam in chosen}
-    clock = chains[chosen[0]]
-    limit = max_frames(params)
-    if limit is not None:
-        clock = clock[:limit]
-    stamps = [int(sd["timestamp"]) for sd in clock]
-    check_increasing(stamps, scene_id=scene_id, where=where_sd,
-                     labels=[f"sample_data {sd['token']} (frame {i}, {chosen[0]})"
-                             for i, sd in enumerate(clock)])
+        if sd["sample_token"] != first_sample:
+            continue
+        ch = channel_of(tables, sd, scene_id=scene_id, where=where)
+        old = firsts.get(ch)
+        if old is None or (sd.get("is_key_frame") and not old.get("is_key_frame")) or (
+                sd.get("is_key_frame") == old.get("is_key_frame") and sd["timestamp"] < old["timestamp"]):
+            firsts[ch] = sd
+    return firsts
 
-    ext = params.get("image_ext", "jpg")
-    quality = int(params.get("jpeg_quality", 95))
-    where_ego = meta / "ego_pose.json"
-    where_cs = meta / "calibrated_sensor.json"
 
-    def ego_of(sd):
-        row = _get(tables, "ego_pose", sd["ego_pose_token"], scene_id=scene_id, where=where_sd,
-                   referrer=f"sample_data {sd['token']}")
-        return _pose(row, scene_id=scene_id, where=where_ego, what=f"ego_pose {row['token']}")
+class _Reader:
+    """One scene of a nuScenes dataroot read into a canonical scene, step by step."""
 
-    def calib_of(sd):
-        row = _get(tables, "calibrated_sensor", sd["calibrated_sensor_token"], scene_id=scene_id,
-                   where=where_sd, referrer=f"sample_data {sd['token']}")
-        return row, _pose(row, scene_id=scene_id, where=where_cs,
+    def __init__(self, uri: SceneURI, root: Path, out_dir: Path, params: dict, scene_id: str):
+        self.uri, self.root, self.out_dir, self.params, self.scene_id = uri, root, out_dir, params, scene_id
+        self.version = find_version(root, uri, scene_id)
+        self.meta = meta = root / self.version
+        self.tables = load_tables(meta, scene_id)
+        self.scene_row = find_scene(self.tables, uri, scene_id, meta / "scene.json")
+        self.samples = self.sample_chain()
+        self.where_sd = meta / "sample_data.json"
+        self.firsts = _first_sample_data(self.tables, self.samples[0], scene_id, self.where_sd)
+        available = [CHANNEL_TO_CAMERA[ch] for ch in CHANNEL_TO_CAMERA if ch in self.firsts]
+        self.chosen = select_cameras(available, params, "nuscenes", scene_id=scene_id, where=meta)
+        self.chains = {cam: chain(self.tables, self.firsts[CAMERA_TO_CHANNEL[cam]],
+                                  set(self.samples), scene_id=scene_id, where=self.where_sd)
+                       for cam in self.chosen}
+        clock = self.chains[self.chosen[0]]
+        limit = max_frames(params)
+        self.clock = clock[:limit] if limit is not None else clock
+        self.stamps = [int(sd["timestamp"]) for sd in self.clock]
+        check_increasing(self.stamps, scene_id=scene_id, where=self.where_sd,
+                         labels=[f"sample_data {sd['token']} (frame {i}, {self.chosen[0]})"
+                                 for i, sd in enumerate(self.clock)])
+        self.world = geometry.invert(self.ego_of(self.clock[0]))
+
+    def sample_chain(self) -> list[str]:
+        """The scene's sample tokens, by walking the sample chain."""
+        row = self.scene_row
+        samples, token = [], row["first_sample_token"]
+        while token:
+            sample = _get(self.tables, "sample", token, scene_id=self.scene_id,
+                          where=self.meta / "sample.json", referrer=f"scene {row.get('name')}")
+            if sample["token"] in samples:
+                break
+            samples.append(sample["token"])
+            token = "" if token == row.get("last_sample_token") else sample.get("next", "")
+        return samples
+
+    def ego_of(self, sd: dict) -> np.ndarray:
+        row = _get(self.tables, "ego_pose", sd["ego_pose_token"], scene_id=self.scene_id,
+                   where=self.where_sd, referrer=f"sample_data {sd['token']}")
+        return _pose(row, scene_id=self.scene_id, where=self.meta / "ego_pose.json",
+                     what=f"ego_pose {row['token']}")
+
+    def calib_of(self, sd: dict) -> tuple[dict, np.ndarray]:
+        row = _get(self.tables, "calibrated_sensor", sd["calibrated_sensor_token"],
+                   scene_id=self.scene_id, where=self.where_sd, referrer=f"sample_data {sd['token']}")
+        return row, _pose(row, scene_id=self.scene_id, where=self.meta / "calibrated_sensor.json",
                           what=f"calibrated_sensor {row['token']}")
 
-    world_from_global = geometry.invert(ego_of(clock[0]))
-    cameras: dict[str, Camera] = {}
-    for cam in chosen:
-        sd = chains[cam][0]
-        row, cam2ego = calib_of(sd)
+    def camera(self, cam: str) -> Camera:
+        sd = self.chains[cam][0]
+        row, cam2ego = self.calib_of(sd)
         K = np.asarray(row.get("camera_intrinsic") or [], dtype=np.float64)
         if K.shape != (3, 3):
             raise SceneError(f"calibrated_sensor {row['token']} ({cam}) has no 3x3 camera_intrinsic",
-                             scene_id=scene_id, path=where_cs, fix="check the calibration tables")
-        cameras[cam] = Camera(name=cam, width=int(sd.get("width") or 0),
-                              height=int(sd.get("height") or 0), fx=float(K[0, 0]),
-                              fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
-                              cam2ego=cam2ego)
-    chain_stamps = {cam: np.asarray([int(sd["timestamp"]) for sd in chains[cam]], dtype=np.int64)
-                    for cam in chosen}
-    frames = []
-    for i, sd_clock in enumerate(clock):
-        frame = Frame(index=i, timestamp_us=stamps[i],
-                      ego2world=world_from_global @ ego_of(sd_clock), cameras={})
-        for cam in chosen:
-            sd = sd_clock if cam == chosen[0] else chains[cam][
-                int(np.argmin(np.abs(chain_stamps[cam] - stamps[i])))]
-            image_path = root / sd["filename"]
-            if not image_path.is_file():
-                raise SceneError(f"image of sample_data {sd['token']} ({cam}, frame {i}) is missing",
-                                 scene_id=scene_id, path=image_path,
-                                 fix="download the sweeps/samples archives of this part of the "
-                                     "dataset, or drop the camera")
-            data = image_path.read_bytes()
-            pixels = decode_jpeg(data, scene_id=scene_id, where=image_path)
-            c = cameras[cam]
-            if c.width == 0:  # older tables leave width/height out
-                c.width, c.height = pixels.shape[1], pixels.shape[0]
-            check_size(pixels, c.width, c.height, scene_id=scene_id, where=image_path,
-                       what=f"camera {cam} image")
-            rel = f"images/{cam}/{i:06d}.{ext}"
-            store_image(out_dir, rel, pixels, quality=quality,
-                        original=data if image_path.suffix.lower() in (".jpg", ".jpeg") else None)
-            _, cam2ego = calib_of(sd)
-            frame.cameras[cam] = FrameCamera(image=rel,
-                                             c2w=world_from_global @ ego_of(sd) @ cam2ego)
-        frames.append(frame)
-    if params.get("lidar", True) and "LIDAR_TOP" in firsts:
-        lidar_chain = chain(tables, firsts["LIDAR_TOP"], scene_samples, scene_id=scene_id,
-                            where=where_sd)
+                             scene_id=self.scene_id, path=self.meta / "calibrated_sensor.json",
+                             fix="check the calibration tables")
+        return Camera(name=cam, width=int(sd.get("width") or 0), height=int(sd.get("height") or 0),
+                      fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                      cam2ego=cam2ego)
+
+    def scene(self) -> Scene:
+        cameras = {cam: self.camera(cam) for cam in self.chosen}
+        chain_stamps = {cam: np.asarray([int(sd["timestamp"]) for sd in self.chains[cam]],
+                                        dtype=np.int64) for cam in self.chosen}
+        frames = []
+        for i, sd_clock in enumerate(self.clock):
+            frame = Frame(index=i, timestamp_us=self.stamps[i],
+                          ego2world=self.world @ self.ego_of(sd_clock), cameras={})
+            for cam in self.chosen:
+                sd = sd_clock if cam == self.chosen[0] else self.chains[cam][
+                    int(np.argmin(np.abs(chain_stamps[cam] - self.stamps[i])))]
+                frame.cameras[cam] = self.image(cameras[cam], sd, i)
+            frames.append(frame)
+        if self.params.get("lidar", True) and "LIDAR_TOP" in self.firsts:
+            self.lidar()
+        row = self.scene_row
+        log = self.tables.get("log", {}).get(row.get("log_token"), {})
+        return Scene(scene_id=self.scene_id, dataset="nuscenes", source=self.uri.text,
+                     fps=fps_from(self.stamps, FPS), cameras=cameras, frames=frames,
+                     actors=annotation_actors(self.tables, self.samples, self.stamps, self.world,
+                                              scene_id=self.scene_id, meta=self.meta),
+                     extra={"nuscenes": {"version": self.version, "scene": row.get("name"),
+                                         "scene_token": row["token"],
+                                         "location": log.get("location")}})
+
+    def image(self, c: Camera, sd: dict, i: int) -> FrameCamera:
+        """Store frame ``i`` of camera ``c`` (sample_data ``sd``); its place in the scene."""
+        image_path = self.root / sd["filename"]
+        if not image_path.is_file():
+            raise SceneError(f"image of sample_data {sd['token']} ({c.name}, frame {i}) is missing",
+                             scene_id=self.scene_id, path=image_path,
+                             fix="download the sweeps/samples archives of this part of the "
+                                 "dataset, or drop the camera")
+        data = image_path.read_bytes()
+        pixels = decode_jpeg(data, scene_id=self.scene_id, where=image_path)
+        if c.width == 0:  # older tables leave width/height out
+            c.width, c.height = pixels.shape[1], pixels.shape[0]
+        check_size(pixels, c.width, c.height, scene_id=self.scene_id, where=image_path,
+                   what=f"camera {c.name} image")
+        rel = f"images/{c.name}/{i:06d}.{self.params.get('image_ext', 'jpg')}"
+        store_image(self.out_dir, rel, pixels, quality=int(self.params.get("jpeg_quality", 95)),
+                    original=data if image_path.suffix.lower() in (".jpg", ".jpeg") else None)
+        _, cam2ego = self.calib_of(sd)
+        return FrameCamera(image=rel, c2w=self.world @ self.ego_of(sd) @ cam2ego)
+
+    def lidar(self) -> None:
+        """World points of the LiDAR sweep nearest each frame (``lidar/<frame>.npy``)."""
+        lidar_chain = chain(self.tables, self.firsts["LIDAR_TOP"], set(self.samples),
+                            scene_id=self.scene_id, where=self.where_sd)
         lidar_stamps = np.asarray([int(sd["timestamp"]) for sd in lidar_chain], dtype=np.int64)
-        for i, stamp in enumerate(stamps):
+        for i, stamp in enumerate(self.stamps):
             sd = lidar_chain[int(np.argmin(np.abs(lidar_stamps - stamp)))]
-            path = root / sd["filename"]
+            path = self.root / sd["filename"]
             if not path.is_file():
                 raise SceneError(f"LiDAR file of sample_data {sd['token']} is missing",
-                                 scene_id=scene_id, path=path,
+                                 scene_id=self.scene_id, path=path,
                                  fix="download the LiDAR sweeps or ingest with lidar off")
             raw = np.fromfile(path, dtype=np.float32)
             if raw.size % 5:
                 raise SceneError(f"LiDAR file holds {raw.size} floats, not rows of 5 "
-                                 f"(x, y, z, intensity, ring)", scene_id=scene_id, path=path,
+                                 f"(x, y, z, intensity, ring)", scene_id=self.scene_id, path=path,
                                  fix="re-download the file or ingest with lidar off")
             pts = raw.reshape(-1, 5)[:, :3].astype(np.float64)
-            _, lidar2ego = calib_of(sd)
-            save_points(out_dir, i, transform_points(world_from_global @ ego_of(sd) @ lidar2ego, pts))
-    log = tables.get("log", {}).get(scene_row.get("log_token"), {})
-    return Scene(scene_id=scene_id, dataset="nuscenes", source=uri.text,
-                 fps=fps_from(stamps, FPS), cameras=cameras, frames=frames,
-                 actors=annotation_actors(tables, samples, stamps, world_from_global,
-                                          scene_id=scene_id, meta=meta),
-                 extra={"nuscenes": {"version": version, "scene": scene_row.get("name"),
-                                     "scene_token": scene_row["token"],
-                                     "location": log.get("location")}})
+            _, lidar2ego = self.calib_of(sd)
+            save_points(self.out_dir, i,
+                        transform_points(self.world @ self.ego_of(sd) @ lidar2ego, pts))
