@@ -25,13 +25,12 @@ import shutil
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, List
+from typing import Callable
 
 import numpy as np
 
 from paradrive import geometry
 from paradrive.actors import Actor, first_frames
-from paradrive.errors import SceneError
 from paradrive.ingest import waymo_proto as wp
 from paradrive.ingest.common import OPENCV_TO_FLU, encode_jpeg, transform_points
 from paradrive.ingest.protowire import encode
@@ -458,6 +457,46 @@ def drivestudio_instances(actors: list[Actor], frames: int, global_from_world: n
             per_frame[str(int(f))].append(number)
     return info, per_frame
 
+def _drivestudio_image(tmp: Path, src, i: int, cam: str, c, cid, flavour: str,
+                       global_from_world: np.ndarray, dist, sky_masks: bool,
+                       jpeg_quality: int) -> None:
+    """Frame ``i`` of camera ``cam``: the (distorted) JPEG, its pose (nuScenes flavour), its sky mask."""
+    t = f"{i:03d}"
+    pixels = distort_image(src.image(i, cam), c.K(), dist)
+    (tmp / "images" / f"{t}_{cid}.jpg").write_bytes(encode_jpeg(pixels, jpeg_quality))
+    if flavour == "nuscenes":
+        np.savetxt(tmp / "extrinsics" / f"{t}_{cid}.txt", global_from_world @ src.c2w[cam][i])
+    sky = src.sky(i, cam) if sky_masks else None
+    if sky is not None:
+        mask = (np.asarray(sky, dtype=bool).astype(np.uint8) * 255)
+        if not distortion_is_zero(dist):
+            mask = distort_image(mask[..., None], c.K(), dist)[..., 0]
+            mask = np.where(mask > 127, 255, 0).astype(np.uint8)
+        write_image(tmp / "sky_masks" / f"{t}_{cid}.png", mask)
+
+
+def _drivestudio_lidar(tmp: Path, src, i: int, flavour: str, lidar2ego: np.ndarray,
+                       global_from_world: np.ndarray) -> None:
+    """Frame ``i``'s sweep: N x 14 in the vehicle frame (Waymo flavour) or N x 4 in the LiDAR
+    frame with its pose (nuScenes flavour)."""
+    t = f"{i:03d}"
+    pts_world = src.lidar(i)
+    if flavour == "waymo":
+        pts = transform_points(geometry.invert(src.ego2world[i]), pts_world)
+        rows = np.zeros((len(pts), 14), dtype=np.float32)
+        rows[:, 0:3] = src.lidar_origin
+        rows[:, 3:6] = pts
+        rows[:, 9] = -1.0
+        rows[:, 13] = 0.0  # TOP
+    else:
+        lidar2world = src.ego2world[i] @ lidar2ego
+        pts = transform_points(geometry.invert(lidar2world), pts_world)
+        rows = np.zeros((len(pts), 4), dtype=np.float32)
+        rows[:, :3] = pts
+        np.savetxt(tmp / "lidar_pose" / f"{t}.txt", global_from_world @ lidar2world)
+    rows.tofile(tmp / "lidar" / f"{t}.bin")
+
+
 def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "waymo",
                        cameras=None, frames: int | None = None, distortion=None,
                        sky_masks: bool = True, lidar: bool = True, jpeg_quality: int = 95,
@@ -499,40 +538,14 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
             (tmp / "ego_pose").mkdir()
         lidar2ego = geometry.translation(*src.lidar_origin)
         for i in range(src.frames):
-            t = f"{i:03d}"
             if flavour == "waymo":
-                np.savetxt(tmp / "ego_pose" / f"{t}.txt", global_from_world @ src.ego2world[i])
+                np.savetxt(tmp / "ego_pose" / f"{i:03d}.txt", global_from_world @ src.ego2world[i])
             for cam, c in src.cameras.items():
-                cid = ids[cam]
-                dist = _dist_for(distortion if flavour == "waymo" else None, cam)
-                pixels = distort_image(src.image(i, cam), c.K(), dist)
-                (tmp / "images" / f"{t}_{cid}.jpg").write_bytes(encode_jpeg(pixels, jpeg_quality))
-                if flavour == "nuscenes":
-                    np.savetxt(tmp / "extrinsics" / f"{t}_{cid}.txt",
-                               global_from_world @ src.c2w[cam][i])
-                sky = src.sky(i, cam) if sky_masks else None
-                if sky is not None:
-                    mask = (np.asarray(sky, dtype=bool).astype(np.uint8) * 255)
-                    if not distortion_is_zero(dist):
-                        mask = distort_image(mask[..., None], c.K(), dist)[..., 0]
-                        mask = np.where(mask > 127, 255, 0).astype(np.uint8)
-                    write_image(tmp / "sky_masks" / f"{t}_{cid}.png", mask)
+                _drivestudio_image(tmp, src, i, cam, c, ids[cam], flavour, global_from_world,
+                                   _dist_for(distortion if flavour == "waymo" else None, cam),
+                                   sky_masks, jpeg_quality)
             if has_lidar:
-                pts_world = src.lidar(i)
-                if flavour == "waymo":
-                    pts = transform_points(geometry.invert(src.ego2world[i]), pts_world)
-                    rows = np.zeros((len(pts), 14), dtype=np.float32)
-                    rows[:, 0:3] = src.lidar_origin
-                    rows[:, 3:6] = pts
-                    rows[:, 9] = -1.0
-                    rows[:, 13] = 0.0  # TOP
-                else:
-                    lidar2world = src.ego2world[i] @ lidar2ego
-                    pts = transform_points(geometry.invert(lidar2world), pts_world)
-                    rows = np.zeros((len(pts), 4), dtype=np.float32)
-                    rows[:, :3] = pts
-                    np.savetxt(tmp / "lidar_pose" / f"{t}.txt", global_from_world @ lidar2world)
-                rows.tofile(tmp / "lidar" / f"{t}.bin")
+                _drivestudio_lidar(tmp, src, i, flavour, lidar2ego, global_from_world)
         if not sky_masks:
             shutil.rmtree(tmp / "sky_masks")
         info, per_frame = drivestudio_instances(src.actors, src.frames, global_from_world, flavour)

@@ -194,6 +194,29 @@ def _unpack_packed(kind: str, data: memoryview) -> list:
     return out
 
 
+def _expect(wire: int, wanted: int, what: str) -> None:
+    if wire != wanted:
+        raise WireError(f"wire type {wire}, expected {what}")
+
+
+def _decode_value(f: Field, wire: int, raw):
+    """One non-packed value of field ``f`` from its raw wire payload."""
+    if f.is_message:
+        _expect(wire, LEN, "a message")
+        return decode(f.kind, raw)
+    if f.kind in ("string", "bytes"):
+        _expect(wire, LEN, "length-delimited")
+        return bytes(raw).decode("utf-8") if f.kind == "string" else raw
+    if f.kind in _VARINT_KINDS:
+        _expect(wire, VARINT, "varint")
+        return _convert_varint(f.kind, raw)
+    if f.kind in _I64_KINDS:
+        _expect(wire, I64, "fixed64")
+        return struct.unpack(_I64_KINDS[f.kind], raw)[0]
+    _expect(wire, I32, "fixed32")
+    return struct.unpack(_I32_KINDS[f.kind], raw)[0]
+
+
 def decode(mtype: MessageType, buf) -> Message:
     """Decode ``buf`` as ``mtype``; WireError when the bytes do not fit the declaration."""
     values: dict = {}
@@ -203,29 +226,10 @@ def decode(mtype: MessageType, buf) -> Message:
         if f is None:
             continue
         try:
-            if f.is_message:
-                if wire != LEN:
-                    raise WireError(f"wire type {wire}, expected a message")
-                value = decode(f.kind, raw)
-            elif f.kind in ("string", "bytes"):
-                if wire != LEN:
-                    raise WireError(f"wire type {wire}, expected length-delimited")
-                value = bytes(raw).decode("utf-8") if f.kind == "string" else raw
-            elif wire == LEN and f.repeated:
+            if wire == LEN and f.repeated and not f.is_message and f.kind not in ("string", "bytes"):
                 values.setdefault(f.name, []).extend(_unpack_packed(f.kind, raw))
                 continue
-            elif f.kind in _VARINT_KINDS:
-                if wire != VARINT:
-                    raise WireError(f"wire type {wire}, expected varint")
-                value = _convert_varint(f.kind, raw)
-            elif f.kind in _I64_KINDS:
-                if wire != I64:
-                    raise WireError(f"wire type {wire}, expected fixed64")
-                value = struct.unpack(_I64_KINDS[f.kind], raw)[0]
-            else:
-                if wire != I32:
-                    raise WireError(f"wire type {wire}, expected fixed32")
-                value = struct.unpack(_I32_KINDS[f.kind], raw)[0]
+            value = _decode_value(f, wire, raw)
         except WireError as exc:
             raise WireError(f"{mtype.name}.{f.name} (field {number}): {exc}") from None
         except UnicodeDecodeError as exc:
