@@ -162,147 +162,187 @@ def build_layout(seed: int, arc: rc.RoadArc, s_min: float, s_max: float, *,
     (g_look, g_bl, g_br, g_back, g_cars, g_lamps, g_trees) = [
         {1.0: np.random.default_rng(a), -1.0: np.random.default_rng(b)}
         for a, b in (s.spawn(2) for s in root.spawn(7))]
-    g_look, g_bl, g_br = g_look[1.0], g_bl[1.0], g_br[1.0]
-    lane_w = g_look.uniform(3.3, 3.7)
-    edge_l = 1.5 * lane_w
-    kerb_l = edge_l + g_look.uniform(2.2, 2.6)
-    facade_l = (kerb_l + g_look.uniform(3.0, 5.0), kerb_l + g_look.uniform(3.0, 5.0))
-    asphalt = g_look.uniform(0.26, 0.34)
-    az, el = g_look.uniform(0, 2 * np.pi), np.deg2rad(g_look.uniform(30, 55))
-    sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    zenith = np.array([0.30, 0.50, 0.85]) + g_look.uniform(-0.04, 0.04, 3)
-    horizon = np.array([0.80, 0.86, 0.93]) + g_look.uniform(-0.03, 0.03, 3)
+    builder = _LayoutBuilder(g_look[1.0], arc, s_min, s_max)
+    builder.facades({1.0: g_bl[1.0], -1.0: g_br[1.0]})
+    builder.back_facades(g_back)
+    builder.parked_cars(g_cars)
+    lamp_s = builder.lamps(g_lamps)
+    builder.trees(g_trees, lamp_s)
+    if ego_speed > 0:
+        builder.movers += traffic_movers(root.spawn(1)[0], builder.lane_w, builder.kerb_l,
+                                         ego_speed, s_min, s_max,
+                                         functools.partial(_moving_car, builder.add_box),
+                                         functools.partial(_crossing_person, builder.add_box))
+    return builder.layout()
 
-    boxes, mats, rgb, rgb2, par = [], [], [], [], []
 
-    def add_box(b, mat, colour, colour2=(0, 0, 0), p=()):
-        boxes.append(b)
-        mats.append(mat)
-        rgb.append(np.clip(colour, 0, 1))
-        rgb2.append(np.clip(colour2, 0, 1))
+def _facade_params(g, back: bool = False):
+    ci = g.integers(len(_FACADE_COLOURS))
+    colour = _FACADE_COLOURS[ci] + g.uniform(-0.05, 0.05, 3)
+    style = float(ci < 3 or g.random() < 0.15)  # 1 = brick, 0 = plaster
+    floor_h = g.uniform(3.0, 3.6)
+    spacing = g.uniform(2.2, 3.4)
+    win_w = spacing * g.uniform(0.38, 0.6)
+    win_h = g.uniform(1.2, floor_h - 1.2)
+    sill = g.uniform(0.8, floor_h - 0.3 - win_h)
+    shop = float((not back) and g.random() < 0.5)
+    frame = (0.92, 0.91, 0.88) if g.random() < 0.6 else (0.18, 0.18, 0.2)
+    return colour, frame, (style, floor_h, spacing, win_w, win_h, sill, shop)
+
+
+class _LayoutBuilder:
+    """The street's look and the objects added so far (boxes in the order they are added: a
+    box's row is its index)."""
+
+    def __init__(self, g_look, arc: rc.RoadArc, s_min: float, s_max: float):
+        self.arc, self.s_min, self.s_max = arc, s_min, s_max
+        self.lane_w = g_look.uniform(3.3, 3.7)
+        self.edge_l = 1.5 * self.lane_w
+        self.kerb_l = self.edge_l + g_look.uniform(2.2, 2.6)
+        self.facade_l = (self.kerb_l + g_look.uniform(3.0, 5.0), self.kerb_l + g_look.uniform(3.0, 5.0))
+        self.asphalt = g_look.uniform(0.26, 0.34)
+        az, el = g_look.uniform(0, 2 * np.pi), np.deg2rad(g_look.uniform(30, 55))
+        self.sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        self.zenith = np.array([0.30, 0.50, 0.85]) + g_look.uniform(-0.04, 0.04, 3)
+        self.horizon = np.array([0.80, 0.86, 0.93]) + g_look.uniform(-0.03, 0.03, 3)
+        self.boxes: list = []
+        self.mats: list = []
+        self.rgb: list = []
+        self.rgb2: list = []
+        self.par: list = []
+        self.cyls: list = []
+        self.cmat: list = []
+        self.crgb: list = []
+        self.sphs: list = []
+        self.smat: list = []
+        self.srgb: list = []
+        self.movers: list[traffic.Mover] = []
+
+    def add_box(self, b, mat, colour, colour2=(0, 0, 0), p=()) -> int:
+        self.boxes.append(b)
+        self.mats.append(mat)
+        self.rgb.append(np.clip(colour, 0, 1))
+        self.rgb2.append(np.clip(colour2, 0, 1))
         pp = np.zeros(8)
         pp[:len(p)] = p
-        par.append(pp)
-        return len(boxes) - 1
+        self.par.append(pp)
+        return len(self.boxes) - 1
 
-    def facade_params(g, back=False):
-        ci = g.integers(len(_FACADE_COLOURS))
-        colour = _FACADE_COLOURS[ci] + g.uniform(-0.05, 0.05, 3)
-        style = float(ci < 3 or g.random() < 0.15)  # 1 = brick, 0 = plaster
-        floor_h = g.uniform(3.0, 3.6)
-        spacing = g.uniform(2.2, 3.4)
-        win_w = spacing * g.uniform(0.38, 0.6)
-        win_h = g.uniform(1.2, floor_h - 1.2)
-        sill = g.uniform(0.8, floor_h - 0.3 - win_h)
-        shop = float((not back) and g.random() < 0.5)
-        frame = (0.92, 0.91, 0.88) if g.random() < 0.6 else (0.18, 0.18, 0.2)
-        return colour, frame, (style, floor_h, spacing, win_w, win_h, sill, shop)
+    def facades(self, gens: dict) -> None:
+        for side, g in gens.items():
+            front = self.facade_l[0] if side > 0 else self.facade_l[1]
+            s = self.s_min - g.uniform(0, 10)
+            while s < self.s_max:
+                w = g.uniform(8, 26)
+                h = [g.uniform(7, 12), g.uniform(12, 20), g.uniform(20, 32)][g.choice(3, p=[.35, .4, .25])]
+                depth = g.uniform(9, 16)
+                l_in = front + g.uniform(0, 1.2)
+                lo, hi = (l_in, l_in + depth) if side > 0 else (-l_in - depth, -l_in)
+                colour, frame, p = _facade_params(g)
+                self.add_box((s, s + w, lo, hi, KERB_H, h), FACADE, colour, frame, p)
+                s += w + (g.uniform(2.5, 8) if g.random() < 0.35 else 0.0)
 
-    for side, g in ((1.0, g_bl), (-1.0, g_br)):
-        front = facade_l[0] if side > 0 else facade_l[1]
-        s = s_min - g.uniform(0, 10)
-        while s < s_max:
-            w = g.uniform(8, 26)
-            h = [g.uniform(7, 12), g.uniform(12, 20), g.uniform(20, 32)][g.choice(3, p=[.35, .4, .25])]
-            depth = g.uniform(9, 16)
-            l_in = front + g.uniform(0, 1.2)
-            lo, hi = (l_in, l_in + depth) if side > 0 else (-l_in - depth, -l_in)
-            colour, frame, p = facade_params(g)
-            add_box((s, s + w, lo, hi, KERB_H, h), FACADE, colour, frame, p)
-            s += w + (g.uniform(2.5, 8) if g.random() < 0.35 else 0.0)
-    for side in (1.0, -1.0):
-        g = g_back[side]
-        front = (facade_l[0] if side > 0 else facade_l[1]) + 18.0
-        s = s_min - g.uniform(0, 20)
-        while s < s_max:
-            w = g.uniform(14, 40)
-            h = g.uniform(16, 45)
-            l_in = front + g.uniform(0, 6)
-            lo, hi = (l_in, l_in + 12) if side > 0 else (-l_in - 12, -l_in)
-            colour, frame, p = facade_params(g, back=True)
-            add_box((s, s + w, lo, hi, KERB_H, h), FACADE, colour, frame, p)
-            s += w + g.uniform(0, 4)
+    def back_facades(self, gens: dict) -> None:
+        for side in (1.0, -1.0):
+            g = gens[side]
+            front = (self.facade_l[0] if side > 0 else self.facade_l[1]) + 18.0
+            s = self.s_min - g.uniform(0, 20)
+            while s < self.s_max:
+                w = g.uniform(14, 40)
+                h = g.uniform(16, 45)
+                l_in = front + g.uniform(0, 6)
+                lo, hi = (l_in, l_in + 12) if side > 0 else (-l_in - 12, -l_in)
+                colour, frame, p = _facade_params(g, back=True)
+                self.add_box((s, s + w, lo, hi, KERB_H, h), FACADE, colour, frame, p)
+                s += w + g.uniform(0, 4)
 
-    # parked cars in the parking lanes: body, cabin and two axle blocks each
-    movers: list[traffic.Mover] = []
-    park = 0.5 * (edge_l + kerb_l)
-    for side in (1.0, -1.0):
-        g_car = g_cars[side]
-        s = s_min + g_car.uniform(0, 6)
-        while s < s_max:
-            length = g_car.uniform(3.9, 4.8)
-            width = g_car.uniform(1.72, 1.9)
-            lc = side * (park + g_car.uniform(-0.12, 0.12))
-            colour = _CAR_COLOURS[g_car.integers(len(_CAR_COLOURS))] + g_car.uniform(-0.03, 0.03, 3)
-            facing = 1.0 if g_car.random() < 0.8 else -1.0
-            rows, bbox = _add_car(add_box, g_car, s, lc, length, width, colour, facing)
-            movers.append(traffic.Mover(f"parked-{len(movers):03d}", "car", rows, bbox,
-                                        yaw=0.0 if facing > 0 else np.pi))
-            gap = g_car.uniform(0.8, 6.0) if g_car.random() < 0.8 else g_car.uniform(8, 18)
-            s += length + gap
+    def parked_cars(self, gens: dict) -> None:
+        """Cars in the parking lanes: body, cabin and two axle blocks each."""
+        park = 0.5 * (self.edge_l + self.kerb_l)
+        for side in (1.0, -1.0):
+            g_car = gens[side]
+            s = self.s_min + g_car.uniform(0, 6)
+            while s < self.s_max:
+                length = g_car.uniform(3.9, 4.8)
+                width = g_car.uniform(1.72, 1.9)
+                lc = side * (park + g_car.uniform(-0.12, 0.12))
+                colour = _CAR_COLOURS[g_car.integers(len(_CAR_COLOURS))] + g_car.uniform(-0.03, 0.03, 3)
+                facing = 1.0 if g_car.random() < 0.8 else -1.0
+                rows, bbox = _add_car(self.add_box, g_car, s, lc, length, width, colour, facing)
+                self.movers.append(traffic.Mover(f"parked-{len(self.movers):03d}", "car", rows, bbox,
+                                                 yaw=0.0 if facing > 0 else np.pi))
+                gap = g_car.uniform(0.8, 6.0) if g_car.random() < 0.8 else g_car.uniform(8, 18)
+                s += length + gap
 
-    cyls, cmat, crgb, sphs, smat, srgb = [], [], [], [], [], []
-    lamp_s = {1.0: [], -1.0: []}
-    for side in (1.0, -1.0):
-        g_lamp = g_lamps[side]
-        s = s_min + g_lamp.uniform(0, 20)
-        while s < s_max:
-            h = g_lamp.uniform(6.0, 8.0)
-            lp = side * (kerb_l + 0.6)
-            x, y = arc.to_world(s, lp)
-            cyls.append((float(x), float(y), 0.09, 0.0, h))
-            cmat.append(METAL)
-            crgb.append((0.33, 0.35, 0.38))
-            arm_end = side * (kerb_l - 1.2)
-            lo, hi = sorted((lp, arm_end))
-            add_box((s - 0.05, s + 0.05, lo, hi, h - 0.12, h - 0.04), METAL, (0.33, 0.35, 0.38))
-            lo, hi = sorted((arm_end, arm_end + side * 0.6))
-            add_box((s - 0.16, s + 0.16, lo, hi, h - 0.28, h - 0.08), LAMP, (0.95, 0.93, 0.82))
-            lamp_s[side].append(s)
-            s += g_lamp.uniform(20, 34)
-    for side in (1.0, -1.0):
-        g_tree = g_trees[side]
-        s = s_min + g_tree.uniform(0, 12)
-        near = np.array(lamp_s[side])
-        while s < s_max:
-            lt = side * (kerb_l + g_tree.uniform(1.3, 1.9))
-            r_crown = g_tree.uniform(1.3, 2.2)
-            trunk_h = g_tree.uniform(2.6, 3.6)
-            tint = np.array([0.20, 0.40, 0.14]) + g_tree.uniform(-0.05, 0.07, 3)
-            jitter = g_tree.uniform(-0.6, 0.6, 3)
-            step = g_tree.uniform(11, 24)
-            if len(near) == 0 or np.min(np.abs(near - s)) > 3.0:
-                x, y = arc.to_world(s, lt)
-                x, y = float(x), float(y)
-                cyls.append((x, y, g_tree.uniform(0.12, 0.2), 0.0, trunk_h + r_crown * 0.5))
-                cmat.append(TRUNK)
-                crgb.append((0.33, 0.24, 0.16))
-                zc = trunk_h + 0.7 * r_crown
-                sphs.append((x, y, zc, r_crown))
-                smat.append(FOLIAGE)
-                srgb.append(tint)
-                sphs.append((x + jitter[0], y + jitter[1], zc + 0.5 + 0.3 * jitter[2], 0.75 * r_crown))
-                smat.append(FOLIAGE)
-                srgb.append(tint * 1.08)
-            s += step
+    def lamps(self, gens: dict) -> dict[float, list[float]]:
+        """Street lamps by the kerb; their positions along s per side."""
+        lamp_s: dict[float, list[float]] = {1.0: [], -1.0: []}
+        for side in (1.0, -1.0):
+            g_lamp = gens[side]
+            s = self.s_min + g_lamp.uniform(0, 20)
+            while s < self.s_max:
+                h = g_lamp.uniform(6.0, 8.0)
+                lp = side * (self.kerb_l + 0.6)
+                x, y = self.arc.to_world(s, lp)
+                self.cyls.append((float(x), float(y), 0.09, 0.0, h))
+                self.cmat.append(METAL)
+                self.crgb.append((0.33, 0.35, 0.38))
+                arm_end = side * (self.kerb_l - 1.2)
+                lo, hi = sorted((lp, arm_end))
+                self.add_box((s - 0.05, s + 0.05, lo, hi, h - 0.12, h - 0.04), METAL, (0.33, 0.35, 0.38))
+                lo, hi = sorted((arm_end, arm_end + side * 0.6))
+                self.add_box((s - 0.16, s + 0.16, lo, hi, h - 0.28, h - 0.08), LAMP, (0.95, 0.93, 0.82))
+                lamp_s[side].append(s)
+                s += g_lamp.uniform(20, 34)
+        return lamp_s
 
-    if ego_speed > 0:
-        movers += traffic_movers(root.spawn(1)[0], lane_w, kerb_l, ego_speed, s_min, s_max,
-                                 functools.partial(_moving_car, add_box),
-                                 functools.partial(_crossing_person, add_box))
+    def trees(self, gens: dict, lamp_s: dict[float, list[float]]) -> None:
+        for side in (1.0, -1.0):
+            g_tree = gens[side]
+            s = self.s_min + g_tree.uniform(0, 12)
+            near = np.array(lamp_s[side])
+            while s < self.s_max:
+                lt = side * (self.kerb_l + g_tree.uniform(1.3, 1.9))
+                r_crown = g_tree.uniform(1.3, 2.2)
+                trunk_h = g_tree.uniform(2.6, 3.6)
+                tint = np.array([0.20, 0.40, 0.14]) + g_tree.uniform(-0.05, 0.07, 3)
+                jitter = g_tree.uniform(-0.6, 0.6, 3)
+                step = g_tree.uniform(11, 24)
+                if len(near) == 0 or np.min(np.abs(near - s)) > 3.0:
+                    self.tree(s, lt, g_tree.uniform(0.12, 0.2), r_crown, trunk_h, tint, jitter)
+                s += step
 
-    return Layout(
-        lane_w=lane_w, edge_l=edge_l, kerb_l=kerb_l, facade_l=facade_l,
-        boxes=np.array(boxes, np.float64).reshape(-1, 6), box_mat=np.array(mats, np.int64),
-        box_rgb=np.array(rgb, np.float64).reshape(-1, 3),
-        box_rgb2=np.array(rgb2, np.float64).reshape(-1, 3),
-        box_par=np.array(par, np.float64).reshape(-1, 8),
-        cylinders=np.array(cyls, np.float64).reshape(-1, 5), cyl_mat=np.array(cmat, np.int64),
-        cyl_rgb=np.array(crgb, np.float64).reshape(-1, 3),
-        spheres=np.array(sphs, np.float64).reshape(-1, 4), sph_mat=np.array(smat, np.int64),
-        sph_rgb=np.array(srgb, np.float64).reshape(-1, 3),
-        asphalt=float(asphalt), sun=sun, zenith=np.clip(zenith, 0, 1), horizon=np.clip(horizon, 0, 1),
-        movers=movers)
+    def tree(self, s: float, lt: float, trunk_r: float, r_crown: float, trunk_h: float, tint,
+             jitter) -> None:
+        x, y = self.arc.to_world(s, lt)
+        x, y = float(x), float(y)
+        self.cyls.append((x, y, trunk_r, 0.0, trunk_h + r_crown * 0.5))
+        self.cmat.append(TRUNK)
+        self.crgb.append((0.33, 0.24, 0.16))
+        zc = trunk_h + 0.7 * r_crown
+        self.sphs.append((x, y, zc, r_crown))
+        self.smat.append(FOLIAGE)
+        self.srgb.append(tint)
+        self.sphs.append((x + jitter[0], y + jitter[1], zc + 0.5 + 0.3 * jitter[2], 0.75 * r_crown))
+        self.smat.append(FOLIAGE)
+        self.srgb.append(tint * 1.08)
+
+    def layout(self) -> Layout:
+        return Layout(
+            lane_w=self.lane_w, edge_l=self.edge_l, kerb_l=self.kerb_l, facade_l=self.facade_l,
+            boxes=np.array(self.boxes, np.float64).reshape(-1, 6),
+            box_mat=np.array(self.mats, np.int64),
+            box_rgb=np.array(self.rgb, np.float64).reshape(-1, 3),
+            box_rgb2=np.array(self.rgb2, np.float64).reshape(-1, 3),
+            box_par=np.array(self.par, np.float64).reshape(-1, 8),
+            cylinders=np.array(self.cyls, np.float64).reshape(-1, 5),
+            cyl_mat=np.array(self.cmat, np.int64),
+            cyl_rgb=np.array(self.crgb, np.float64).reshape(-1, 3),
+            spheres=np.array(self.sphs, np.float64).reshape(-1, 4),
+            sph_mat=np.array(self.smat, np.int64),
+            sph_rgb=np.array(self.srgb, np.float64).reshape(-1, 3),
+            asphalt=float(self.asphalt), sun=self.sun, zenith=np.clip(self.zenith, 0, 1),
+            horizon=np.clip(self.horizon, 0, 1), movers=self.movers)
 
 
 def _moving_car(add_box, g, s: float, lc: float, facing: float):
