@@ -147,6 +147,32 @@ def _sample(img_chw: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[0, :, :, 0].T.reshape(shape + (3,))
 
 
+def _sweep(o: torch.Tensor, dirs_w: torch.Tensor, d: torch.Tensor, ref: torch.Tensor,
+           near: list[View], blurred: list[torch.Tensor], depth: torch.Tensor,
+           on_road: Optional[torch.Tensor], ground_margin: Optional[float]) -> torch.Tensor:
+    """The plane sweep: of the candidate depths ``d`` (P, D) along each ray, the one whose colour
+    in the ``near`` views best matches ``ref``; ``depth`` where no view sees a ray. With
+    ``on_road`` (the last candidate is the road) the road wins within ``ground_margin``."""
+    per_view, nd = d.shape
+    pts = o + dirs_w[:, None, :] * d[:, :, None]       # (P, D, 3)
+    cost = torch.zeros(per_view, nd)
+    seen = torch.zeros(per_view, nd)
+    for view, image in zip(near, blurred):
+        uv, _, ok = project(pts.reshape(-1, 3), view)
+        col = _sample(image, uv)
+        diff = (col - ref.repeat_interleave(nd, 0)).abs().mean(1)
+        cost += torch.where(ok, diff, torch.zeros_like(diff)).reshape(per_view, -1)
+        seen += ok.float().reshape(per_view, -1)
+    score = torch.where(seen > 0, cost / seen.clamp_min(1), torch.full_like(cost, 1e3))
+    best = score.argmin(1)
+    if on_road is not None and ground_margin is not None:
+        best_score = score.gather(1, best[:, None])[:, 0]
+        road_ok = on_road & (score[:, -1] <= best_score + ground_margin)
+        best = torch.where(road_ok, torch.full_like(best, nd - 1), best)
+    checked = seen.gather(1, best[:, None])[:, 0] > 0
+    return torch.where(checked, d.gather(1, best[:, None])[:, 0], depth)
+
+
 def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: float, depth_max: float,
                         generator: torch.Generator, depth_candidates: int = 32,
                         neighbours: int = 4,
@@ -213,24 +239,9 @@ def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: floa
             d = (1.0 / inv.double())[None].expand(per_view, -1)  # (P, D)
             if view.ground_z is not None:
                 d = torch.cat([d, tg[:, None]], 1)
-            nd = d.shape[1]
-            pts = o + dirs_w[:, None, :] * d[:, :, None]       # (P, D, 3)
-            cost = torch.zeros(per_view, nd)
-            seen = torch.zeros(per_view, nd)
-            for j in near:
-                uv, _, ok = project(pts.reshape(-1, 3), views[j])
-                col = _sample(blurred[j], uv)
-                diff = (col - ref.repeat_interleave(nd, 0)).abs().mean(1)
-                cost += torch.where(ok, diff, torch.zeros_like(diff)).reshape(per_view, -1)
-                seen += ok.float().reshape(per_view, -1)
-            score = torch.where(seen > 0, cost / seen.clamp_min(1), torch.full_like(cost, 1e3))
-            best = score.argmin(1)
-            if ground_margin is not None and view.ground_z is not None:
-                best_score = score.gather(1, best[:, None])[:, 0]
-                road_ok = on_road & (score[:, -1] <= best_score + ground_margin)
-                best = torch.where(road_ok, torch.full_like(best, nd - 1), best)
-            checked = seen.gather(1, best[:, None])[:, 0] > 0
-            depth = torch.where(checked, d.gather(1, best[:, None])[:, 0], depth)
+            road = on_road if ground_margin is not None and view.ground_z is not None else None
+            depth = _sweep(o, dirs_w, d, ref, [views[j] for j in near], [blurred[j] for j in near],
+                           depth, road, ground_margin)
         means.append((o + dirs_w * depth[:, None]).float())
         colours.append(view.image[py.long().clamp(0, h - 1), px.long().clamp(0, w - 1)].float() / 255.0)
     if not means:
