@@ -103,7 +103,8 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
                       "quality": {"cond@000100": {"psnr": 20.0, "ssim": 0.6}}}]}
     (scene / "clips" / "clips.json").write_text(json.dumps(doc))
     build = root / "manifests" / "bench"
-    build_manifest(build, [{"scene_id": "bench", "scene_dir": str(scene)}], StageRegistry().resolve(None, {"manifest": {"quality": False}}).typed("manifest"))
+    params = StageRegistry().resolve(None, {"manifest": {"quality": False}}).typed("manifest")
+    build_manifest(build, [{"scene_id": "bench", "scene_dir": str(scene)}], params)
     return build
 
 

@@ -6,7 +6,6 @@ import importlib
 import logging
 import sys
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 from rich.console import Console
@@ -45,7 +44,7 @@ def main_callback(version: bool = typer.Option(False, "--version", callback=vers
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
 
-def _split_csv(value: Optional[str]) -> Optional[list[str]]:
+def _split_csv(value: str | None) -> list[str] | None:
     if not value:
         return None
     return [v.strip() for v in value.split(",") if v.strip()]
@@ -63,28 +62,28 @@ def collect_scene_uris(scene: list[str], scenes: list[str]) -> list[str]:
 
 @app.command()
 def build(
-    scene: List[str] = typer.Option([], "--scene", help="Scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
-    scenes: List[str] = typer.Option([], "--scenes", help="A scene list file (one URI or path a line, '#' comments), a folder of logs (*.tfrecord, a nuScenes dataroot, DriveStudio folders), or URIs. Repeatable."),
-    profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Parameter profile (stages/profiles/NAME.yaml); default: the paper's."),
-    stages: Optional[str] = typer.Option(None, "--stages", help="Comma-separated stages to run (default: all)."),
+    scene: list[str] = typer.Option([], "--scene", help="Scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
+    scenes: list[str] = typer.Option([], "--scenes", help="A scene list file (one URI or path a line, '#' comments), a folder of logs (*.tfrecord, a nuScenes dataroot, DriveStudio folders), or URIs. Repeatable."),
+    profile: str | None = typer.Option(None, "--profile", "-p", help="Parameter profile (stages/profiles/NAME.yaml); default: the paper's."),
+    stages: str | None = typer.Option(None, "--stages", help="Comma-separated stages to run (default: all)."),
     data: str = typer.Option(str(DEFAULT_DATA), "--data", help="Where scenes are written (<data>/scenes/<scene_id>): a folder (with --executor ray, one every node sees at this path) or an fsspec URL such as s3://bucket/prefix, which each worker copies scenes from and back."),
-    storage_option: List[str] = typer.Option([], "--storage-option", help="fsspec option for a URL --data, KEY=VALUE (VALUE as JSON when it parses), e.g. endpoint_url=http://minio:9000. Repeatable."),
-    cache: Optional[Path] = typer.Option(None, "--cache", help="With a URL --data: where each node keeps its copy of the scenes (default: $PARADRIVE_CACHE, else ~/.cache/paradrive)."),
+    storage_option: list[str] = typer.Option([], "--storage-option", help="fsspec option for a URL --data, KEY=VALUE (VALUE as JSON when it parses), e.g. endpoint_url=http://minio:9000. Repeatable."),
+    cache: Path | None = typer.Option(None, "--cache", help="With a URL --data: where each node keeps its copy of the scenes (default: $PARADRIVE_CACHE, else ~/.cache/paradrive)."),
     drop_cache: bool = typer.Option(False, "--drop-cache", help="With a URL --data: delete a scene's local copy once each stage is uploaded (less disk, more downloads)."),
     manifests: Path = typer.Option(DEFAULT_MANIFESTS, "--manifests", help="Where builds (pair manifests) are written."),
     build_name: str = typer.Option("default", "--build", help="Build name: manifests and the status ledger go to <manifests>/<build>."),
     executor: str = typer.Option("local", "--executor", help="local (this process) or ray (each scene stage a Ray task)."),
-    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address, e.g. 'auto' or 'head:6379' (default: start a local Ray)."),
+    address: str | None = typer.Option(None, "--address", help="Ray cluster address, e.g. 'auto' or 'head:6379' (default: start a local Ray)."),
     gpu_policy: str = typer.Option("auto", "--gpu-policy", help="ray: auto (GPU stages run on CPU when the cluster has no GPU, with a warning), require (refuse), cpu (never ask for GPUs)."),
-    max_in_flight: Optional[int] = typer.Option(None, "--max-in-flight", min=1, help="ray: at most this many tasks submitted at once (default: twice the cluster's CPUs + GPUs)."),
+    max_in_flight: int | None = typer.Option(None, "--max-in-flight", min=1, help="ray: at most this many tasks submitted at once (default: twice the cluster's CPUs + GPUs)."),
     max_retries: int = typer.Option(2, "--max-retries", min=0, help="ray: times a task whose worker died is submitted again (each try counts in the ledger)."),
-    set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
+    set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
     retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
     lock_timeout: float = typer.Option(DEFAULT_LOCK_TIMEOUT_S, "--lock-timeout", min=0, help="Seconds to wait for a scene another build holds locked; after that the scene is left for this run (reported failed, naming that build)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Build exactly the scenes of this split (splits/NAME.txt, or a split file's path) found among --scenes; every line must match one log."),
-    exclude_split: List[str] = typer.Option([], "--exclude-split", help="Leave out the scenes of this split (repeatable; default: manifest.exclude_splits, i.e. paper-eval; 'none' keeps every scene). Training builds only."),
-    kind: Optional[str] = typer.Option(None, "--kind", help="training (pairs) or inference (source = the recording, condition = the final checkpoint's shifted render); default: manifest.kind."),
+    split: str | None = typer.Option(None, "--split", help="Build exactly the scenes of this split (splits/NAME.txt, or a split file's path) found among --scenes; every line must match one log."),
+    exclude_split: list[str] = typer.Option([], "--exclude-split", help="Leave out the scenes of this split (repeatable; default: manifest.exclude_splits, i.e. paper-eval; 'none' keeps every scene). Training builds only."),
+    kind: str | None = typer.Option(None, "--kind", help="training (pairs) or inference (source = the recording, condition = the final checkpoint's shifted render); default: manifest.kind."),
 ) -> None:
     """Run the pipeline on one or many scenes; stages that are up to date are skipped.
 
@@ -138,7 +137,7 @@ def build(
     raise typer.Exit(report.exit_code)
 
 
-def select_scenes(config, uris: list[str], split: Optional[str], exclude_split: list[str]):
+def select_scenes(config, uris: list[str], split: str | None, exclude_split: list[str]):
     """The build's scenes after --split and the exclusion; prints what was left out."""
     from paradrive import splits
     from paradrive.pipeline.build import default_selection
@@ -241,9 +240,9 @@ def _print_report(report, ledger=None, max_rows: int = 20) -> None:
 
 @app.command("stages")
 def stages_cmd(
-    profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Show values under this profile."),
-    set_: List[str] = typer.Option([], "--set", help="Override: stage.param=value."),
-    stage: Optional[str] = typer.Argument(None, help="Only this stage."),
+    profile: str | None = typer.Option(None, "--profile", "-p", help="Show values under this profile."),
+    set_: list[str] = typer.Option([], "--set", help="Override: stage.param=value."),
+    stage: str | None = typer.Argument(None, help="Only this stage."),
 ) -> None:
     """List the stages, their parameters, values and where each value comes from."""
     from paradrive.pipeline import StageRegistry, parse_overrides
@@ -280,7 +279,7 @@ def export_cmd(
     out: Path = typer.Argument(..., help="Folder to write the log into."),
     scene: str = typer.Option("synthetic:demo?seed=7", "--scene", help="A synthetic scene URI."),
     profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes and cameras apply."),
-    set_: List[str] = typer.Option([], "--set", help="Override an ingest parameter: ingest.param=value (e.g. ingest.cameras=[front]). Repeatable."),
+    set_: list[str] = typer.Option([], "--set", help="Override an ingest parameter: ingest.param=value (e.g. ingest.cameras=[front]). Repeatable."),
 ) -> None:
     """Write a synthetic scene as a real log (known answers) and print the URI that ingests it.
 

@@ -25,7 +25,8 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -36,7 +37,7 @@ from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.io import sha256_file
 from paradrive.pairs import build_file, check_row_uris, read_index, shard_paths
-from paradrive.video import decode_frames, each_frame
+from paradrive.video import each_frame
 
 __all__ = ["PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera"]
 

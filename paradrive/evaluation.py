@@ -21,11 +21,10 @@ Writes ``eval/eval.json`` and ``eval/eval.png`` (or into ``out_dir``).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, List, Optional
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -133,7 +132,7 @@ def _render(params, c2w, out, *, depth: bool, batch: int, device: str, sky=None)
 
 
 def evaluate_scene(scene_dir: str | os.PathLike, render_params: RenderParams, *,
-                   ingest_params: dict | None = None, cameras: Optional[list[str]] = None,
+                   ingest_params: dict | None = None, cameras: list[str] | None = None,
                    max_frames: int | None = 16, out_dir: str | os.PathLike | None = None,
                    log: logging.Logger | None = None) -> dict:
     """Evaluate a fitted synthetic scene against its ground truth; returns eval.json's dict.
@@ -358,21 +357,20 @@ def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | Non
 
 def register(app) -> None:
     """Add the ``eval`` command to the typer ``app``."""
-    from typing import List
 
     import typer
 
     @app.command("eval")
     def eval_cmd(
-        scene: List[str] = typer.Option([], "--scene", help="Synthetic scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
+        scene: list[str] = typer.Option([], "--scene", help="Synthetic scene URI, e.g. 'synthetic:demo?seed=7'. Repeatable."),
         data: str = typer.Option("data", "--data", help="Where scenes live (<data>/scenes/<scene_id>): a folder, or the URL a build wrote to (the scene is copied to the cache first)."),
-        profile: Optional[str] = typer.Option(None, "--profile", "-p", help="Parameter profile the scene was built with."),
-        set_: List[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
-        out_dir: Optional[Path] = typer.Option(None, "--out", help="Write eval.json / eval.png here (default <scene>/eval; one scene)."),
-        camera: Optional[str] = typer.Option(None, "--camera", help="Comma-separated cameras (default: render.cameras)."),
+        profile: str | None = typer.Option(None, "--profile", "-p", help="Parameter profile the scene was built with."),
+        set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
+        out_dir: Path | None = typer.Option(None, "--out", help="Write eval.json / eval.png here (default <scene>/eval; one scene)."),
+        camera: str | None = typer.Option(None, "--camera", help="Comma-separated cameras (default: render.cameras)."),
         frames: int = typer.Option(16, "--frames", help="Evaluate at most this many evenly spaced clip frames (0 = all)."),
-        build: Optional[Path] = typer.Option(None, "--build", help="Score generated videos against an inference set's true views instead (with --videos)."),
-        videos: Optional[Path] = typer.Option(None, "--videos", help="With --build: a folder of generated videos, one per row, <pair_id>.mp4 (a pair id's '/' are folders)."),
+        build: Path | None = typer.Option(None, "--build", help="Score generated videos against an inference set's true views instead (with --videos)."),
+        videos: Path | None = typer.Option(None, "--videos", help="With --build: a folder of generated videos, one per row, <pair_id>.mp4 (a pair id's '/' are folders)."),
     ) -> None:
         """Measure shifted renders against the synthetic street's true views, and the condition renders against the recorded frames.
 

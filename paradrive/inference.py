@@ -10,7 +10,7 @@ lossless FFV1), so scores against them measure the model, not a codec.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -13,7 +13,7 @@ import os
 from collections import Counter, defaultdict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
@@ -412,9 +412,9 @@ def register(app) -> None:
         build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
         verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing, corrupt or unsafe (leading out of the build) one."),
         as_json: bool = typer.Option(False, "--json", help="Print a machine-readable summary instead of tables."),
-        sheet: Optional[Path] = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and <name>_trajectories.png next to it)."),
+        sheet: Path | None = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and <name>_trajectories.png next to it)."),
         pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),
-        data: Optional[Path] = typer.Option(None, "--data", help="Data folder to find the scene's LiDAR in (default: the scene folders index.json records)."),
+        data: Path | None = typer.Option(None, "--data", help="Data folder to find the scene's LiDAR in (default: the scene folders index.json records)."),
     ) -> None:
         """Counts, quality, checksum verification and pictures of a published build."""
         from rich.console import Console

@@ -11,7 +11,8 @@ import shutil
 import uuid
 from pathlib import Path
 import posixpath
-from typing import Any, Callable, Iterator
+from typing import Any
+from collections.abc import Callable, Iterator
 
 from paradrive.errors import ParaDriveError
 

@@ -35,7 +35,7 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import PathEscapeError, path_inside, sha256_file, temporary_name, write_json
+from paradrive.io import PathEscapeError, path_inside, sha256_file, temporary_name
 from paradrive.pairs import COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri
 from paradrive.stages.layout import INDEX_JSON, MEDIA_DIR, SHARD_GLOB, SHARD_PATTERN, SceneLayout
 from paradrive.stages.records import ClipRecord, ClipsRecord, IndexRecord

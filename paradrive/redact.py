@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import os
 import re
-from typing import Any, Iterable, Mapping
+from typing import Any
+from collections.abc import Iterable, Mapping
 
 MASK = "***"
 SECRET_NAME = re.compile(r"key|secret|token|passw|credential|session", re.IGNORECASE)

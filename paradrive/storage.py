@@ -31,7 +31,8 @@ import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
+from collections.abc import Iterable
 
 from paradrive.errors import ConfigError
 from paradrive.io import is_temporary, temporary_name, write_json
@@ -49,7 +50,7 @@ class StorageError(OSError):
 def _remote_call(method):
     """Any failure of a remote operation becomes a StorageError naming the scene's URL."""
     @functools.wraps(method)
-    def wrapper(self: "SceneMirror", *args, **kwargs):
+    def wrapper(self: SceneMirror, *args, **kwargs):
         try:
             return method(self, *args, **kwargs)
         except StorageError:
@@ -88,7 +89,7 @@ class DataRoot:
     drop_cache: bool = False
 
     @classmethod
-    def of(cls, value: "DataRoot | str | os.PathLike", **options) -> "DataRoot":
+    def of(cls, value: DataRoot | str | os.PathLike, **options) -> DataRoot:
         if isinstance(value, DataRoot):
             return value
         text = str(value)
@@ -127,7 +128,7 @@ class DataRoot:
         """Where the scene lives, to show or record (a URL without its credentials)."""
         return f"{self}/{SCENES_DIR}/{scene_id}" if self.remote else str(SceneLayout.of(self.local, scene_id).root)
 
-    def mirror(self, scene_id: str) -> "SceneMirror | None":
+    def mirror(self, scene_id: str) -> SceneMirror | None:
         """The scene's remote/local pair for a URL root; None for a local folder."""
         return SceneMirror(self, scene_id) if self.remote else None
 

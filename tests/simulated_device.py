@@ -20,7 +20,8 @@ Everything stays on the host: no real meta tensor (which holds no data) is ever 
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Any, Iterator
+from typing import Any
+from collections.abc import Iterator
 
 import torch
 from torch.utils import _pytree as pytree
@@ -48,7 +49,7 @@ class OnDevice(torch.Tensor):
     elem: torch.Tensor
 
     @staticmethod
-    def __new__(cls, elem: torch.Tensor) -> "OnDevice":
+    def __new__(cls, elem: torch.Tensor) -> OnDevice:
         r = torch.Tensor._make_wrapper_subclass(
             cls, elem.size(), strides=elem.stride(), storage_offset=elem.storage_offset(),
             dtype=elem.dtype, layout=elem.layout, device=DEVICE, requires_grad=elem.requires_grad)

@@ -181,7 +181,7 @@ def test_ffv1_clips_are_lossless_mkv(clipped, copy_tree):
     write_clips(scene_dir, stage_params("clip", {**clipped["clip"], "codec": "ffv1", "depth": False}))
     doc = json.loads((scene_dir / "clips" / "clips.json").read_text())
     clip = doc["clips"][0]
-    s = clip["streams"]["cond@%06d" % clipped["render"]["condition_checkpoints"][-1]]
+    s = clip["streams"][f"cond@{clipped['render']['condition_checkpoints'][-1]:06d}"]
     assert s["file"].endswith(".mkv") and doc["codec"] == "ffv1"
     decoded = decode_frames(scene_dir / s["file"])
     name = s["file"].rsplit("/", 1)[1][:-4]
@@ -219,7 +219,8 @@ def test_short_scene_writes_no_clips_but_records_why(clipped, copy_tree):
     from paradrive.stages.render import render_scene
 
     scene_dir = copy_tree(clipped["dir"])
-    render_scene(scene_dir, stage_params("render", {**clipped["render"], "clip_frames": 121, "clips": ["front", "middle", "rear"]}))
+    render_scene(scene_dir, stage_params("render", {**clipped["render"], "clip_frames": 121,
+                                                    "clips": ["front", "middle", "rear"]}))
     summary = write_clips(scene_dir, config_clip(clipped)).summary()
     doc = json.loads((scene_dir / "clips" / "clips.json").read_text())
     assert summary["clips"] == 0 and doc["clips"] == []

@@ -29,7 +29,7 @@ VOLATILE = ("seconds", "cpu_seconds", "peak_rss_mb", "created_at")
 MEASURED = ("psnr", "ssim", "train_psnr", "train_ssim", "num_gaussians", "duplicated", "split",
             "pruned", "sha256", "bytes", "shard_bytes", "media_bytes", "condition_psnr",
             "condition_ssim", "fit_train_psnr", "fit_train_ssim", "paradrive", "pyarrow")
-_VOLATILE_RE = re.compile(r'("(?:%s)": )("[^"]*"|[-0-9.eE+]+)' % "|".join(VOLATILE))
+_VOLATILE_RE = re.compile(r'("(?:' + "|".join(VOLATILE) + r')": )("[^"]*"|[-0-9.eE+]+)')
 
 
 def _environment() -> dict:

@@ -152,7 +152,8 @@ def test_non_monotonic_timestamps_are_reported(dataroot, tmp_path):
             if r["token"] == third:
                 r["timestamp"] = stamp
     _edit(root, "sample_data", rewind)
-    with pytest.raises(SceneError, match=r"\(frame 2, front\) timestamp \d+ us is not after .*\(non-monotonic timestamps\)"):
+    with pytest.raises(SceneError, match=r"\(frame 2, front\) timestamp \d+ us is not after "
+                                         r".*\(non-monotonic timestamps\)"):
         ingest(URI.format(root=root), tmp_path / "s", stage_params("ingest", {"cameras": ["front"]}))
 
 

@@ -109,7 +109,8 @@ def test_top_lidar_range_image_becomes_world_points(source, ingested):
 
 def test_jpeg_images_are_copied_without_reencoding(segment, tmp_path):
     out = tmp_path / "waymo-1234"
-    ingest(f"waymo:{segment}", out, stage_params("ingest", {"cameras": ["front_left"], "max_frames": 2, "lidar": False}))
+    ingest(f"waymo:{segment}", out,
+           stage_params("ingest", {"cameras": ["front_left"], "max_frames": 2, "lidar": False}))
     scene = load_scene(out)
     frame = next(f for _, f in waymo.iter_frames(segment, "x"))
     original = next(bytes(im.image) for im in frame.images if im.name == 2)

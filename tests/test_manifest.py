@@ -226,25 +226,25 @@ def test_missing_quality_is_computed_from_the_videos(tmp_path):
 
 def test_index_lists_shards_with_rows_bytes_and_sha256(built):
     index = read_index(built)
-    assert index["config_fingerprint"] == "fp-1"
-    assert index["software"]["paradrive"]
-    assert [s["rows"] for s in index["shards"]] == [50, 50, 44]
-    assert index["totals"]["rows"] == 144
-    for s in index["shards"]:
-        assert re.fullmatch(r"pairs-\d{5}\.parquet", s["file"])
-        data = (built / s["file"]).read_bytes()
-        assert len(data) == s["bytes"] and hashlib.sha256(data).hexdigest() == s["sha256"]
-        assert pq.ParquetFile(built / s["file"]).metadata.num_rows == s["rows"]
-    assert [c["name"] for c in index["columns"]] == SCHEMA.names
-    assert {s["scene_id"] for s in index["scenes"]} == {"synthetic-a", "synthetic-b"}
-    assert index["scenes"][0]["skipped_clips"][0]["clip"] == "extra"
+    assert index.config_fingerprint == "fp-1"
+    assert index.software["paradrive"]
+    assert [s.rows for s in index.shards] == [50, 50, 44]
+    assert index.totals.rows == 144
+    for s in index.shards:
+        assert re.fullmatch(r"pairs-\d{5}\.parquet", s.file)
+        data = (built / s.file).read_bytes()
+        assert len(data) == s.bytes and hashlib.sha256(data).hexdigest() == s.sha256
+        assert pq.ParquetFile(built / s.file).metadata.num_rows == s.rows
+    assert [c.name for c in index.columns] == SCHEMA.names
+    assert {s.scene_id for s in index.scenes} == {"synthetic-a", "synthetic-b"}
+    assert index.scenes[0].skipped_clips[0].clip == "extra"
 
 
 def test_shards_can_be_capped_by_bytes(tmp_path, two_scene_data):
     build = tmp_path / "bybytes"
     index = build_manifest(build, [scenes_entry(two_scene_data[0])],
                            stage_params("manifest", {"shard_rows": 1000, "shard_bytes": 20_000}))
-    rows = [s["rows"] for s in index["shards"]]
+    rows = [s.rows for s in index.shards]
     assert sum(rows) == 72 and len(rows) > 1
 
 
@@ -299,17 +299,19 @@ def test_a_bad_scene_is_skipped_with_its_reason(tmp_path, two_scene_data):
     (bad / "clips/clips.json").write_text(json.dumps(doc))
     victim = bad / "clips/front/rear/cond@000500.mp4"
     victim.write_bytes(victim.read_bytes()[:-10] + b"0123456789")
-    index = build_manifest(tmp_path / "b", [scenes_entry(two_scene_data[0]), scenes_entry(bad)], stage_params("manifest", {}))
-    assert index["totals"]["rows"] == 72
-    (skip,) = index["skipped_scenes"]
-    assert skip["scene_id"] == "synthetic-bad"
-    assert "cond@000500" in skip["reason"] and "sha256" in skip["reason"]
+    index = build_manifest(tmp_path / "b", [scenes_entry(two_scene_data[0]), scenes_entry(bad)],
+                           stage_params("manifest", {}))
+    assert index.totals.rows == 72
+    (skip,) = index.skipped_scenes
+    assert skip.scene_id == "synthetic-bad"
+    assert "cond@000500" in skip.reason and "sha256" in skip.reason
 
 
 def test_no_usable_scene_is_an_error_naming_clips_json(tmp_path):
     (tmp_path / "scenes" / "x").mkdir(parents=True)
     with pytest.raises(ParaDriveError, match="clips.json is missing"):
-        build_manifest(tmp_path / "b", [{"scene_id": "x", "scene_dir": str(tmp_path / "scenes/x")}], stage_params("manifest", {}))
+        build_manifest(tmp_path / "b", [{"scene_id": "x", "scene_dir": str(tmp_path / "scenes/x")}],
+                       stage_params("manifest", {}))
     assert not (tmp_path / "b" / "index.json").exists()
 
 
@@ -350,7 +352,7 @@ def test_schema_md_pandas_example_runs_on_a_build(built, monkeypatch):
 def test_smoke_build_publishes_72_pairs_per_scene(smoke_build):
     build = smoke_build["build_dir"]
     index = read_index(build)
-    assert index["totals"]["rows"] == 72 * len(smoke_build["scene_uris"])
+    assert index.totals.rows == 72 * len(smoke_build["scene_uris"])
     df = read_pairs(build, ["scene_id", "offset_m", "rel_pose"]).to_pandas()
     assert set(df.groupby("scene_id").size()) == {72}
     for d, poses in zip(df.offset_m, df.rel_pose):

@@ -8,6 +8,7 @@ import logging
 import pathlib
 import re
 import shutil
+import subprocess
 
 import pytest
 
@@ -305,10 +306,9 @@ def test_an_image_link_leading_out_of_the_scene_is_refused(tiny_scene, tmp_path)
 SECRET = "SECRETb7f3e1"  # every credential below contains it
 
 
-def _paradrive(*args, env: dict) -> "subprocess.CompletedProcess":
+def _paradrive(*args, env: dict) -> subprocess.CompletedProcess:
     """The real command line (the ledger records sys.argv, so CliRunner would not do)."""
     import os
-    import subprocess
     import sys
 
     repo = pathlib.Path(__file__).resolve().parents[1]

@@ -129,9 +129,9 @@ def test_a_training_build_of_a_folder_holds_only_the_training_scene(logs, tmp_pa
     rows = read_pairs(tmp_path / "m" / "train", ["scene_id"]).to_pylist()
     assert {r["scene_id"] for r in rows} == {"waymo-train11"}
     index = read_index(tmp_path / "m" / "train")
-    assert [(s["name"], s["sha256"]) for s in index["exclude_splits"]] == \
+    assert [(s.name, s.sha256) for s in index.exclude_splits] == \
         [("paper-eval", splits.load_split("paper-eval").sha256)]
-    assert [e["scene_id"] for e in index["excluded_scenes"]] == \
+    assert [e.scene_id for e in index.excluded_scenes] == \
         ["waymo-10444454289801298640_4360_000_4380_000"]
     assert not (tmp_path / "d" / "scenes" / "waymo-10444454289801298640_4360_000_4380_000").exists()
     shown = cli("inspect", tmp_path / "m" / "train")

@@ -4,7 +4,6 @@ sampling, configs and the ``paradrive train`` command."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import torch

@@ -30,7 +30,8 @@ import os
 import random
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
+from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -77,7 +78,7 @@ def _resize(x: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return y[0].permute(1, 2, 0)
 
 
-def load_views(scene, cameras: Optional[Sequence[str]], downscale: float) -> list[View]:
+def load_views(scene, cameras: Sequence[str] | None, downscale: float) -> list[View]:
     """All (frame, camera) images of ``scene`` at 1/``downscale`` resolution, frame-major order."""
     names = list(scene.cameras) if not cameras else list(cameras)
     unknown = [c for c in names if c not in scene.cameras]
@@ -162,10 +163,10 @@ def initial_model(scene, views: list[View], p: FitParams, scene_scale: float,
 
 
 def lidar_depth_targets(scene, views: Sequence[View],
-                        device: torch.device) -> list[Optional[DepthTarget]]:
+                        device: torch.device) -> list[DepthTarget | None]:
     """Per view, the LiDAR sweep of its frame projected into it (None where the frame has none)."""
-    sweeps: dict[int, Optional[np.ndarray]] = {}
-    targets: list[Optional[DepthTarget]] = []
+    sweeps: dict[int, np.ndarray | None] = {}
+    targets: list[DepthTarget | None] = []
     for v in views:
         if v.frame not in sweeps:
             sweeps[v.frame] = scene.lidar_frame(v.frame)
@@ -260,9 +261,9 @@ def _eval_indices(n_views: int, n_eval: int) -> list[int]:
 # --------------------------------------------------------------------------- the fit
 
 def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
-              log: Optional[logging.Logger] = None,
-              progress: Optional[Callable[[int, int], None]] = None,
-              stop_after: Optional[int] = None) -> FitRecord:
+              log: logging.Logger | None = None,
+              progress: Callable[[int, int], None] | None = None,
+              stop_after: int | None = None) -> FitRecord:
     """Fit the scene folder ``scene`` with the fit stage's parameters ``p``; returns fit.json.
 
     Resumes from ``gs/state.pt`` when present and made with the same parameters.
@@ -471,7 +472,7 @@ class _Fit:
 
 @torch.no_grad()
 def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, height: int, *,
-                      render_depth: bool = False, params: Optional[Params] = None,
+                      render_depth: bool = False, params: Params | None = None,
                       device: str = "auto") -> dict:
     """Render a checkpoint from N cameras sharing one intrinsic matrix.
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -26,12 +26,12 @@ class View:
     this (possibly downscaled) image; c2w: (4, 4) float64 camera-to-world OpenCV."""
 
     image: torch.Tensor
-    sky: Optional[torch.Tensor]
+    sky: torch.Tensor | None
     K: torch.Tensor
     c2w: torch.Tensor
     camera: str
     frame: int
-    ground_z: Optional[float] = None  # world z of the road under the vehicle (ego origin height)
+    ground_z: float | None = None  # world z of the road under the vehicle (ego origin height)
 
     @property
     def height(self) -> int:
@@ -149,7 +149,7 @@ def _sample(img_chw: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 def _sweep(o: torch.Tensor, dirs_w: torch.Tensor, d: torch.Tensor, ref: torch.Tensor,
            near: list[View], blurred: list[torch.Tensor], depth: torch.Tensor,
-           on_road: Optional[torch.Tensor], ground_margin: Optional[float]) -> torch.Tensor:
+           on_road: torch.Tensor | None, ground_margin: float | None) -> torch.Tensor:
     """The plane sweep: of the candidate depths ``d`` (P, D) along each ray, the one whose colour
     in the ``near`` views best matches ``ref``; ``depth`` where no view sees a ray. With
     ``on_road`` (the last candidate is the road) the road wins within ``ground_margin``."""
@@ -176,7 +176,7 @@ def _sweep(o: torch.Tensor, dirs_w: torch.Tensor, d: torch.Tensor, ref: torch.Te
 def frustum_points_init(views: Sequence[View], *, n_points: int, depth_min: float, depth_max: float,
                         generator: torch.Generator, depth_candidates: int = 32,
                         neighbours: int = 4,
-                        ground_margin: Optional[float] = None) -> tuple[torch.Tensor, torch.Tensor]:
+                        ground_margin: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """LiDAR-free initialisation: points along pixel rays of the training views.
 
     For each view, ``n_points / len(views)`` non-sky pixels are drawn; along each ray

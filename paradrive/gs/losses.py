@@ -17,7 +17,6 @@ Every function takes tensors on the fit's device and creates nothing on another.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 import torch
@@ -35,7 +34,7 @@ class DepthTarget:
     pixels: torch.Tensor
     depth: torch.Tensor
 
-    def to(self, device: torch.device) -> "DepthTarget":
+    def to(self, device: torch.device) -> DepthTarget:
         return DepthTarget(self.pixels.to(device), self.depth.to(device))
 
 
@@ -68,7 +67,7 @@ def depth_loss(depth: torch.Tensor, target: DepthTarget, inverse: bool) -> torch
     return (pred - target.depth).abs().mean()
 
 
-def flatten_loss(log_scales: torch.Tensor, keep: Optional[torch.Tensor] = None) -> torch.Tensor:
+def flatten_loss(log_scales: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
     """Mean of the smallest standard deviation (m) of the Gaussians; log_scales (N, 3) raw
     parameters, keep (N,) bool selects the ones it applies to (e.g. not the sky dome)."""
     s = log_scales if keep is None else log_scales[keep]
@@ -78,7 +77,7 @@ def flatten_loss(log_scales: torch.Tensor, keep: Optional[torch.Tensor] = None) 
 
 
 def shape_ratio_loss(log_scales: torch.Tensor, max_ratio: float,
-                     keep: Optional[torch.Tensor] = None) -> torch.Tensor:
+                     keep: torch.Tensor | None = None) -> torch.Tensor:
     """Mean of max(largest / smallest axis, ``max_ratio``) - ``max_ratio`` (PhysGaussian's
     anisotropy term); log_scales (N, 3) raw, keep (N,) bool as in :func:`flatten_loss`."""
     s = log_scales if keep is None else log_scales[keep]

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from contextlib import contextmanager
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -105,8 +105,8 @@ def activated(params: Gaussians) -> dict:
 
 
 def render_gaussians(params: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
-           sh_degree: Optional[int] = None, render_mode: str = "RGB",
-           backgrounds: Optional[torch.Tensor] = None, **kwargs):
+           sh_degree: int | None = None, render_mode: str = "RGB",
+           backgrounds: torch.Tensor | None = None, **kwargs):
     """Render the Gaussians from C cameras.
 
     viewmats: (C, 4, 4) world-to-camera, OpenCV; Ks: (C, 3, 3) pixels; ``sh_degree``: bands

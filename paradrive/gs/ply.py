@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Dict
 
 import numpy as np
 import torch
@@ -70,7 +69,7 @@ def save_ply(path: str | os.PathLike, params: Gaussians) -> Path:
     return path
 
 
-def load_ply(path: str | os.PathLike) -> Dict[str, torch.Tensor]:
+def load_ply(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     """Read a 3DGS PLY into raw parameters: means (N,3), scales (N,3) log, quats (N,4) wxyz,
     opacities (N,) logit, sh0 (N,1,3), shN (N,K-1,3). Any standard 3DGS PLY (any SH degree,
     ascii or binary, extra properties ignored) is accepted."""

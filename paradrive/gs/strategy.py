@@ -17,7 +17,7 @@ applied alike to parameters, optimizer moments (zeroed for new Gaussians) and pe
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict
+from typing import Any
 
 import torch
 
@@ -37,9 +37,9 @@ def split_noise(generator: torch.Generator, n: int, device: torch.device) -> tor
 
 
 @torch.no_grad()
-def remap(params: Dict[str, torch.nn.Parameter], optimizers: Dict[str, torch.optim.Optimizer],
-          state: Dict[str, Any], index: torch.Tensor, is_new: torch.Tensor,
-          values: Dict[str, torch.Tensor] | None = None) -> None:
+def remap(params: dict[str, torch.nn.Parameter], optimizers: dict[str, torch.optim.Optimizer],
+          state: dict[str, Any], index: torch.Tensor, is_new: torch.Tensor,
+          values: dict[str, torch.Tensor] | None = None) -> None:
     """Re-index every per-Gaussian tensor in place of the dicts.
 
     index: (M,) source Gaussian of each new one; is_new: (M,) bool, True where Adam moments start
@@ -82,7 +82,7 @@ class DensifyStrategy:
     max_gaussians: int = 0  # 0: no cap
 
     def initialize_state(self, n: int, scene_scale: float, is_sky: torch.Tensor | None = None,
-                         device: torch.device | str = "cpu") -> Dict[str, Any]:
+                         device: torch.device | str = "cpu") -> dict[str, Any]:
         """Accumulators for ``n`` Gaussians on ``device`` (``is_sky``: (n,) bool, moved there)."""
         return {
             "grad2d": torch.zeros(n, device=device),
@@ -93,7 +93,7 @@ class DensifyStrategy:
         }
 
     @torch.no_grad()
-    def update_state(self, state: Dict[str, Any], info: Dict[str, Any]) -> None:
+    def update_state(self, state: dict[str, Any], info: dict[str, Any]) -> None:
         """Accumulate the view-space gradient norms of ``info['means2d']`` (C, N, 2)."""
         m2d = info["means2d"]
         if m2d.grad is None:
@@ -109,8 +109,8 @@ class DensifyStrategy:
         state["count"] += visible.float().sum(0)
 
     @torch.no_grad()
-    def step_post_backward(self, params, optimizers, state: Dict[str, Any], step: int,
-                           info: Dict[str, Any], generator: torch.Generator) -> Dict[str, int]:
+    def step_post_backward(self, params, optimizers, state: dict[str, Any], step: int,
+                           info: dict[str, Any], generator: torch.Generator) -> dict[str, int]:
         """Call after ``loss.backward()`` and the optimizer step of 0-based iteration ``step``.
 
         Returns counts of what changed this step (duplicated, split, pruned, reset).

@@ -33,7 +33,7 @@ class WireError(ValueError):
 @dataclass(frozen=True)
 class Field:
     name: str
-    kind: str | "MessageType"  # a scalar kind name or a nested MessageType
+    kind: str | MessageType  # a scalar kind name or a nested MessageType
     repeated: bool = False
     packed: bool = False       # how the encoder writes a repeated numeric field
 

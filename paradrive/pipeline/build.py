@@ -12,7 +12,7 @@ import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 from paradrive import splits
 from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
@@ -161,7 +161,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
     except (ParaDriveError, OSError, ValueError) as exc:
-        error = str(exc) if isinstance(exc, ParaDriveError) else f"build {build}: {stage} failed: {type(exc).__name__}: {exc}"
+        error = (str(exc) if isinstance(exc, ParaDriveError)
+                 else f"build {build}: {stage} failed: {type(exc).__name__}: {exc}")
         log.error("%s: failed: %s", stage, error)
         return StageResult(label, stage, "failed", seconds=time.time() - t0, error=error)
     except Exception as exc:  # a bug or an unexpected library error: the run is still closed

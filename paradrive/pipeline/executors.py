@@ -18,7 +18,8 @@ how long to wait for a scene another build holds) goes to every
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
+from collections.abc import Callable
 
 from paradrive.pipeline.locks import LockOptions
 from paradrive.pipeline.runner import StageResult, run_scene_stage

@@ -34,7 +34,7 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator
+from collections.abc import Iterable, Iterator
 
 from paradrive.errors import ConfigError
 from paradrive.stages.layout import LEDGER
@@ -110,11 +110,11 @@ class Ledger:
         self._init_schema()
 
     @classmethod
-    def for_build(cls, manifests_dir: str | Path, build: str) -> "Ledger":
+    def for_build(cls, manifests_dir: str | Path, build: str) -> Ledger:
         return cls(Path(manifests_dir) / build / LEDGER_FILE, build)
 
     @classmethod
-    def open_existing(cls, manifests_dir: str | Path, build: str) -> "Ledger":
+    def open_existing(cls, manifests_dir: str | Path, build: str) -> Ledger:
         """The ledger of a build that ran before; ConfigError when there is none."""
         path = Path(manifests_dir) / build / LEDGER_FILE
         if not path.is_file():

@@ -34,7 +34,7 @@ import time
 import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterator
 
 from paradrive.errors import ParaDriveError
 from paradrive.stages.layout import LOCKS_DIR, DataLayout
@@ -49,7 +49,7 @@ POLL_SECONDS = 0.25              # how often a waiting build looks at the lock a
 class SceneLocked(ParaDriveError):
     """The scene stayed locked by another build for the whole ``--lock-timeout``."""
 
-    def __init__(self, scene_id: str, holder: "Holder | None", waited: float):
+    def __init__(self, scene_id: str, holder: Holder | None, waited: float):
         self.holder = holder
         who = holder.describe() if holder else "another build"
         super().__init__(f"scene {scene_id}: locked by {who}; waited {waited:.0f} s "
@@ -93,13 +93,13 @@ class Holder:
     token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     @classmethod
-    def me(cls, build: str) -> "Holder":
+    def me(cls, build: str) -> Holder:
         pid = os.getpid()
         return cls(build=build, host=socket.gethostname(), pid=pid, started_at=time.time(),
                    process_start=_process_start(pid))
 
     @classmethod
-    def parse(cls, text: str | bytes) -> "Holder | None":
+    def parse(cls, text: str | bytes) -> Holder | None:
         try:
             doc = json.loads(text)
             return cls(**{k: doc[k] for k in cls.__dataclass_fields__ if k in doc})

@@ -67,7 +67,7 @@ class Capacity:
     memory_bytes: float
 
     @classmethod
-    def of_nodes(cls, nodes: list[dict]) -> "Capacity":
+    def of_nodes(cls, nodes: list[dict]) -> Capacity:
         alive = [n.get("Resources", {}) for n in nodes if n.get("Alive", True)]
         return cls(cpu=max((r.get("CPU", 0.0) for r in alive), default=0.0),
                    gpu=max((r.get("GPU", 0.0) for r in alive), default=0.0),

@@ -27,7 +27,8 @@ import traceback
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
+from collections.abc import Callable, Iterator
 
 import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
@@ -35,11 +36,11 @@ from paradrive.io import remove_stale_temporaries, write_json
 from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.metrics import peak_rss_mb
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
-from paradrive.stages.base import BuildContext, StageContext
+from paradrive.stages.base import StageContext
 from paradrive.stages.layout import MARKER_DIR, DataLayout, SceneLayout
 from paradrive.redact import redact
 from paradrive.storage import DataRoot, SceneMirror, file_stats, matches
-from paradrive.uri import parse_uri, safe_name
+from paradrive.uri import parse_uri
 
 
 

@@ -242,7 +242,7 @@ class StageRegistry:
             raise ConfigError(_pydantic_message(path, exc)) from exc
 
     def resolve(self, profile: str | None = None,
-                overrides: dict[str, dict[str, Any]] | None = None) -> "ResolvedConfig":
+                overrides: dict[str, dict[str, Any]] | None = None) -> ResolvedConfig:
         """Parameters of every stage: defaults, then the profile, then explicit overrides."""
         prof = self.profile(profile)
         params = {name: spec.defaults() for name, spec in self.specs.items()}

@@ -12,7 +12,6 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 from collections.abc import Sequence
-from typing import List
 
 import typer
 from rich import box
@@ -155,7 +154,7 @@ def status(
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
     all_scenes: bool = typer.Option(False, "--scenes", help="Also list every scene's stage states."),
     data: str = typer.Option(None, "--data", help="Data root whose scene locks to show (default: the one the build last ran with)."),
-    storage_option: List[str] = typer.Option([], "--storage-option", help="fsspec option for a URL data root, KEY=VALUE, as for 'paradrive build'. Repeatable."),
+    storage_option: list[str] = typer.Option([], "--storage-option", help="fsspec option for a URL data root, KEY=VALUE, as for 'paradrive build'. Repeatable."),
 ) -> None:
     """Show a build's ledger: scenes done / failed / pending, time per stage, failures with
     reasons, and which of its scenes are locked now and by whom."""
@@ -178,4 +177,4 @@ def register(app: typer.Typer) -> None:
     app.command("status")(status)
 
 
-__all__ = ["register", "status", "render", "open_ledger", "scene_locks"]
+__all__ = ["register", "status", "print_status", "open_ledger", "scene_locks"]

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import importlib
 import math
-from typing import Any, Mapping, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
+from collections.abc import Mapping
 
 import torch
 import torch.nn as nn

@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 from rich.console import Console
@@ -24,15 +23,15 @@ def _fail(message: str) -> None:
 def train(
     build: Path = typer.Option(..., "--build", help="A build folder (<manifests>/<build>) to read pairs from."),
     stage: int = typer.Option(1, "--stage", min=1, max=2, help="1: relative-pose control; 2: add 3DGS renderings (stage-1 weights frozen)."),
-    config: Optional[str] = typer.Option(None, "--config", help="Training config: a name in stages/train/ (default, smoke) or a YAML file."),
-    out_dir: Optional[Path] = typer.Option(None, "--out", help="Run folder; stage k writes <out>/stage<k>. Default: runs/<build name>."),
-    steps: Optional[int] = typer.Option(None, "--steps", min=0, help="Train until this many steps in total (default: train.steps). A finished run resumes and stops at once."),
-    init: Optional[Path] = typer.Option(None, "--init", help="Weights to start from; stage 2 defaults to <out>/stage1/last.pt."),
-    set_: List[str] = typer.Option([], "--set", help="Override a config value: section.key=value (e.g. train.lr=3e-4). Repeatable."),
-    sample: Optional[Path] = typer.Option(None, "--sample", help="After training, generate the target video of one pair and write it here (mp4)."),
+    config: str | None = typer.Option(None, "--config", help="Training config: a name in stages/train/ (default, smoke) or a YAML file."),
+    out_dir: Path | None = typer.Option(None, "--out", help="Run folder; stage k writes <out>/stage<k>. Default: runs/<build name>."),
+    steps: int | None = typer.Option(None, "--steps", min=0, help="Train until this many steps in total (default: train.steps). A finished run resumes and stops at once."),
+    init: Path | None = typer.Option(None, "--init", help="Weights to start from; stage 2 defaults to <out>/stage1/last.pt."),
+    set_: list[str] = typer.Option([], "--set", help="Override a config value: section.key=value (e.g. train.lr=3e-4). Repeatable."),
+    sample: Path | None = typer.Option(None, "--sample", help="After training, generate the target video of one pair and write it here (mp4)."),
     pair: str = typer.Option("0", "--pair", help="Pair to sample: its index in the build or its pair_id."),
-    sample_steps: Optional[int] = typer.Option(None, "--sample-steps", min=1, help="Euler steps of the sampler (default: sample.steps)."),
-    sample_set: Optional[Path] = typer.Option(None, "--sample-set", help="With --sample FOLDER: generate every row of this inference set (paradrive build --kind inference) into FOLDER/<pair_id>.mp4, as 'paradrive eval --build' scores them."),
+    sample_steps: int | None = typer.Option(None, "--sample-steps", min=1, help="Euler steps of the sampler (default: sample.steps)."),
+    sample_set: Path | None = typer.Option(None, "--sample-set", help="With --sample FOLDER: generate every row of this inference set (paradrive build --kind inference) into FOLDER/<pair_id>.mp4, as 'paradrive eval --build' scores them."),
 ) -> None:
     """Train the ReCamDriving-style model on a build's pairs (resumes a run left in --out)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn

@@ -6,7 +6,7 @@ x_t = t·x1 + (1 − t)·x0, and the network predicts the velocity v = x1 − x0
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F

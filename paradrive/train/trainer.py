@@ -19,10 +19,10 @@ import contextlib
 import copy
 import json
 import logging
-import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import torch
 import yaml
@@ -313,8 +313,7 @@ class Trainer:
             remaining = self._epoch_order(self.epoch)[self.batch_in_epoch:]
             loader = torch.utils.data.DataLoader(self.dataset, batch_sampler=remaining, num_workers=workers,
                                                  collate_fn=collate, persistent_workers=False)
-            for batch in loader:
-                yield batch
+            yield from loader
             self.epoch += 1
             self.batch_in_epoch = 0
 
