@@ -118,7 +118,7 @@ def listed_twice(path: Path, *, scene_id: str) -> dict[str, str]:
     """Instances that frame_instances.json lists twice in one frame: {instance: frame}."""
     if not path.is_file():
         return {}
-    twice = {}
+    twice: dict[str, str] = {}
     for frame, listed in dict(_json_file(path, scene_id=scene_id)).items():
         seen: set[str] = set()
         for inst in map(str, listed):

@@ -398,7 +398,9 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
             filename = f"{folder}/{channel}/n000-{scene_name}__{channel}__{stamps[i]}.{ext}"
             target = root / filename
             if key == "lidar":
-                pts = transform_points(geometry.invert(ego @ lidar_cam2ego), src.lidar(i))
+                sweep = src.lidar(i)
+                assert sweep is not None  # key "lidar" is only listed when the source has sweeps
+                pts = transform_points(geometry.invert(ego @ lidar_cam2ego), sweep)
                 cloud = np.zeros((len(pts), 5), dtype=np.float32)
                 cloud[:, :3] = pts
                 cloud[:, 4] = 0.0

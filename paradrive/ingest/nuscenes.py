@@ -130,7 +130,7 @@ def channel_of(tables, sd: dict, *, scene_id: str, where) -> str:
 def chain(tables, start: dict, scene_samples: set[str], *, scene_id: str, where) -> list[dict]:
     """sample_data rows from ``start`` following ``next`` while they belong to the scene."""
     rows, seen = [], set()
-    sd = start
+    sd: dict | None = start
     while sd is not None and sd["sample_token"] in scene_samples and sd["token"] not in seen:
         rows.append(sd)
         seen.add(sd["token"])
@@ -316,7 +316,7 @@ class _Reader:
         if self.params.get("lidar", True) and "LIDAR_TOP" in self.firsts:
             self.lidar()
         row = self.scene_row
-        log = self.tables.get("log", {}).get(row.get("log_token"), {})
+        log = self.tables.get("log", {}).get(str(row.get("log_token")), {})
         return Scene(scene_id=self.scene_id, dataset="nuscenes", source=self.uri.text,
                      fps=fps_from(self.stamps, FPS), cameras=cameras, frames=frames,
                      actors=annotation_actors(self.tables, self.samples, self.stamps, self.world,

@@ -41,6 +41,18 @@ class Field:
     def is_message(self) -> bool:
         return isinstance(self.kind, MessageType)
 
+    @property
+    def message(self) -> MessageType:
+        """The nested message type (a message field)."""
+        assert isinstance(self.kind, MessageType), self.name
+        return self.kind
+
+    @property
+    def scalar(self) -> str:
+        """The scalar kind name (any other field)."""
+        assert isinstance(self.kind, str), self.name
+        return self.kind
+
 
 @dataclass
 class MessageType:
@@ -203,18 +215,18 @@ def _decode_value(f: Field, wire: int, raw):
     """One non-packed value of field ``f`` from its raw wire payload."""
     if f.is_message:
         _expect(wire, LEN, "a message")
-        return decode(f.kind, raw)
+        return decode(f.message, raw)
     if f.kind in ("string", "bytes"):
         _expect(wire, LEN, "length-delimited")
         return bytes(raw).decode("utf-8") if f.kind == "string" else raw
     if f.kind in _VARINT_KINDS:
         _expect(wire, VARINT, "varint")
-        return _convert_varint(f.kind, raw)
+        return _convert_varint(f.scalar, raw)
     if f.kind in _I64_KINDS:
         _expect(wire, I64, "fixed64")
-        return struct.unpack(_I64_KINDS[f.kind], raw)[0]
+        return struct.unpack(_I64_KINDS[f.scalar], raw)[0]
     _expect(wire, I32, "fixed32")
-    return struct.unpack(_I32_KINDS[f.kind], raw)[0]
+    return struct.unpack(_I32_KINDS[f.scalar], raw)[0]
 
 
 def decode(mtype: MessageType, buf) -> Message:
@@ -227,7 +239,7 @@ def decode(mtype: MessageType, buf) -> Message:
             continue
         try:
             if wire == LEN and f.repeated and not f.is_message and f.kind not in ("string", "bytes"):
-                values.setdefault(f.name, []).extend(_unpack_packed(f.kind, raw))
+                values.setdefault(f.name, []).extend(_unpack_packed(f.scalar, raw))
                 continue
             value = _decode_value(f, wire, raw)
         except WireError as exc:
@@ -304,7 +316,7 @@ def encode(mtype: MessageType, values: dict | Message) -> bytes:
         items = list(value) if f.repeated else [value]
         if f.is_message:
             for item in items:
-                payload = item if isinstance(item, (bytes, bytearray, memoryview)) else encode(f.kind, item)
+                payload = item if isinstance(item, (bytes, bytearray, memoryview)) else encode(f.message, item)
                 out += _key(number, LEN) + encode_varint(len(payload)) + bytes(payload)
         elif f.kind in ("string", "bytes"):
             for item in items:
@@ -314,13 +326,13 @@ def encode(mtype: MessageType, values: dict | Message) -> bytes:
             if not items:
                 continue
             if f.kind in _I64_KINDS or f.kind in _I32_KINDS:
-                fmt = _I64_KINDS.get(f.kind) or _I32_KINDS[f.kind]
+                fmt = _I64_KINDS.get(f.scalar) or _I32_KINDS[f.scalar]
                 payload = np.asarray(items, dtype=np.dtype(fmt)).tobytes()
             else:
-                payload = b"".join(encode_varint(_varint_value(f.kind, v)) for v in items)
+                payload = b"".join(encode_varint(_varint_value(f.scalar, v)) for v in items)
             out += _key(number, LEN) + encode_varint(len(payload)) + payload
         else:
-            key = _key(number, _wire_of(f.kind))
+            key = _key(number, _wire_of(f.scalar))
             for item in items:
-                out += key + _scalar_payload(f.kind, item)
+                out += key + _scalar_payload(f.scalar, item)
     return bytes(out)

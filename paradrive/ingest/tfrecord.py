@@ -159,13 +159,13 @@ def _crc32c_numpy(data, crc: int = 0) -> int:
 
 def _pick_backend():
     try:
-        import google_crc32c  # type: ignore
+        import google_crc32c
 
         return lambda data: google_crc32c.value(bytes(data) if isinstance(data, memoryview) else data)
     except ImportError:
         pass
     try:
-        import crc32c as _crc32c  # type: ignore
+        import crc32c as _crc32c
 
         return lambda data: _crc32c.crc32c(data)
     except ImportError:

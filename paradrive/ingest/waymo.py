@@ -22,6 +22,7 @@ import math
 import re
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -113,7 +114,7 @@ def transform_of(msg, *, scene_id: str, where, what: str) -> np.ndarray:
                         what=what)
 
 
-def camera_calibrations(context, *, scene_id: str, where) -> dict[str, object]:
+def camera_calibrations(context, *, scene_id: str, where) -> dict[str, Any]:
     return {camera_name(c.name): c for c in (context.camera_calibrations if context else [])}
 
 
@@ -250,7 +251,7 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
     want_lidar = bool(params.get("lidar", True))
 
     cameras: dict[str, Camera] = {}
-    calibs: dict[str, object] = {}
+    calibs: dict[str, Any] = {}
     chosen: list[str] = []
     frames: list[Frame] = []
     stamps: list[int] = []

@@ -484,7 +484,8 @@ def cast_camera(prims: Primitives, c2w: np.ndarray, K: np.ndarray, width: int, h
     kinds, idx, pts = bounds if bounds is not None else prims.bound_points()
     if not cull:
         everything = (slice(None), slice(None))
-        cands = [(int(k), int(i), everything, None) for k, i in zip(kinds, idx)]
+        cands: list[tuple[int, int, tuple[slice, slice], float | None]] = [
+            (int(k), int(i), everything, None) for k, i in zip(kinds, idx)]
         return cast(prims, o, d[0], d[1], d[2], cands), o, d
     w2c = np.linalg.inv(c2w)
     rects, zmin, vis = screen_rects(pts, w2c, K, width, height)

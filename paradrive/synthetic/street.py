@@ -405,10 +405,10 @@ _H3 = np.uint64(0x94D049BB133111EB)
 def hash01(*keys) -> np.ndarray:
     """Uniform [0, 1) float32 per integer key tuple (broadcast arrays, at most 5 keys)."""
     with np.errstate(over="ignore"):  # wrapping is the point
-        h = np.int64(0)
+        acc = np.asarray(0, np.int64)
         for k, mult in zip(keys, _MIX):
-            h = h + np.asarray(k, np.int64) * mult
-        h = np.asarray(h).astype(np.uint64)
+            acc = acc + np.asarray(k, np.int64) * mult
+        h = acc.astype(np.uint64)
         h = (h ^ (h >> np.uint64(30))) * _H2
         h = (h ^ (h >> np.uint64(27))) * _H3
         h = h ^ (h >> np.uint64(31))
