@@ -329,6 +329,26 @@ def nuscenes_annotations(actors: list[Actor], key_idx: list[int], sample_tokens:
             "sample_annotation": annotations}
 
 
+def _nuscenes_file(target: Path, src, key: str, i: int, lidar2world: np.ndarray,
+                   image_format: str, jpeg_quality: int) -> tuple[int, int]:
+    """Write frame ``i`` of channel ``key`` (a camera image, or the LiDAR sweep as N x 5 in the
+    sensor frame); its (width, height), 0 for the LiDAR."""
+    if key == "lidar":
+        sweep = src.lidar(i)
+        assert sweep is not None  # key "lidar" is only listed when the source has sweeps
+        pts = transform_points(geometry.invert(lidar2world), sweep)
+        cloud = np.zeros((len(pts), 5), dtype=np.float32)
+        cloud[:, :3] = pts
+        write_bytes(target, cloud.tobytes())
+        return 0, 0
+    pixels = src.image(i, key)
+    if image_format == "jpg":
+        write_bytes(target, encode_jpeg(pixels, jpeg_quality))
+    else:
+        write_image(target, pixels)
+    return src.cameras[key].width, src.cameras[key].height
+
+
 def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
                     frames: int | None = None, version: str = "v1.0-mini",
                     scene_name: str = "scene-0001", keyframe_every: int = 6,
@@ -397,22 +417,8 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
                               "translation": _flat(ego_global[:3, 3])})
             filename = f"{folder}/{channel}/n000-{scene_name}__{channel}__{stamps[i]}.{ext}"
             target = root / filename
-            if key == "lidar":
-                sweep = src.lidar(i)
-                assert sweep is not None  # key "lidar" is only listed when the source has sweeps
-                pts = transform_points(geometry.invert(ego @ lidar_cam2ego), sweep)
-                cloud = np.zeros((len(pts), 5), dtype=np.float32)
-                cloud[:, :3] = pts
-                cloud[:, 4] = 0.0
-                write_bytes(target, cloud.tobytes())
-                width = height = 0
-            else:
-                pixels = src.image(i, key)
-                if image_format == "jpg":
-                    write_bytes(target, encode_jpeg(pixels, jpeg_quality))
-                else:
-                    write_image(target, pixels)
-                width, height = src.cameras[key].width, src.cameras[key].height
+            width, height = _nuscenes_file(target, src, key, i, ego @ lidar_cam2ego,
+                                           image_format, jpeg_quality)
             sample_data.append({
                 "token": tokens[i], "sample_token": sample_tokens[i // keyframe_every] if keyframe
                 else sample_of(i), "ego_pose_token": ego_token, "calibrated_sensor_token": cs_token,
