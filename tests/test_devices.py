@@ -71,11 +71,11 @@ def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, tiny_s
     fit_scene(cpu, fit_params("smoke", **FIT, device="cpu"))
     dev = _copy_scene(tiny_scene, tmp_path / "dev")
     partial = _fit_on(device, dev, stop_after=14)
-    assert not partial["complete"] and (dev / "gs" / "state.pt").is_file()
+    assert not partial.complete and (dev / "gs" / "state.pt").is_file()
     done = _fit_on(device, dev)
 
-    assert done["complete"] and done["device"].startswith(str(DEVICE if device == "simulated" else device))
-    totals = done["densify"]
+    assert done.complete and done.device.startswith(str(DEVICE if device == "simulated" else device))
+    totals = done.densify
     assert totals["duplicated"] + totals["split"] > 0 and totals["reset"] == 1, totals
     assert not (dev / "gs" / "state.pt").exists()   # removed once the fit completed
     for it in FIT["checkpoints"]:

@@ -192,7 +192,7 @@ def test_road_prior_puts_init_points_at_their_true_depth(street_scene):
         return torch.cat(errs)
 
     plain = relative_errors(None)
-    prior = relative_errors(fit_params()["init_ground_margin"])
+    prior = relative_errors(fit_params().init_ground_margin)
     assert float(prior.abs().median()) < 0.5 * float(plain.abs().median())
     def close(errs):  # share within 10 % of the true depth
         return float((errs.abs() < 0.1).float().mean())
