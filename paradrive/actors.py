@@ -301,6 +301,13 @@ def dynamic_mask(actors: list[Actor], frame: int, c2w: np.ndarray, K: np.ndarray
     return mask
 
 
+def views_mask(actors: list[Actor], frames, c2w: np.ndarray, K: np.ndarray, width: int,
+               height: int) -> np.ndarray:
+    """bool (N, H, W): per view (c2w (N, 4, 4) at scene frames (N,)), the actors' footprints."""
+    return np.stack([dynamic_mask(actors, int(f), pose, K, width, height)
+                     for f, pose in zip(frames, c2w)]).reshape(len(c2w), height, width)
+
+
 def write_dynamic_masks(scene, root: Path, threshold_m: float) -> int:
     """Write ``masks/dynamic/<cam>/<frame:06d>.png`` (255 = a moving actor's box) for every
     image of a scene with actors; returns the number of moving actors."""

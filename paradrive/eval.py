@@ -5,7 +5,8 @@ renders any pose exactly. For one scene this measures
 
 * **shifted**: the source (final) checkpoint rendered on the recorded trajectory shifted by each
   offset, against the street's true view from the same shifted poses (PSNR, SSIM, and the median
-  relative error of the rendered z-depth on non-sky pixels);
+  relative error of the rendered z-depth on non-sky pixels), and ``psnr_static`` on the pixels
+  outside the moving actors' boxes (``dynamic_fraction`` of them inside: a static fit's ghosts);
 * **recorded**: the source checkpoint on the recorded trajectory against the recorded frames
   (offset 0, the fit's own quality on the clip frames);
 * **conditions**: each under-fitted checkpoint on the recorded trajectory against the recorded
@@ -30,6 +31,7 @@ from typing import List, Optional
 import numpy as np
 
 from paradrive import geometry
+from paradrive.actors import views_mask
 from paradrive.clips import clip_windows, condition_stream, frames_needed, source_stream
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
@@ -52,6 +54,18 @@ def image_quality(pred: np.ndarray, truth: np.ndarray) -> dict:
     a = torch.from_numpy(np.ascontiguousarray(pred)).float() / 255.0
     b = torch.from_numpy(np.ascontiguousarray(truth)).float() / 255.0
     return {"psnr": float(psnr(a, b).mean()), "ssim": float(ssim(a, b).mean())}
+
+
+def static_quality(pred: np.ndarray, truth: np.ndarray, dynamic: np.ndarray) -> dict:
+    """``psnr_static``: mean PSNR (dB) over frames of uint8 (N, H, W, 3) images on the pixels
+    outside ``dynamic`` (N, H, W) (moving actors' boxes; None when no pixel is left), and
+    ``dynamic_fraction``, the share of pixels inside."""
+    err = ((pred.astype(np.float64) - truth.astype(np.float64)) / 255.0) ** 2
+    keep = ~dynamic
+    values = [10.0 * np.log10(1.0 / max(float(err[i][keep[i]].mean()), 1e-10))
+              for i in range(len(err)) if keep[i].any()]
+    return {"psnr_static": float(np.mean(values)) if values else None,
+            "dynamic_fraction": float(dynamic.mean())}
 
 
 def _relative_depth_error(pred: np.ndarray, truth: np.ndarray) -> np.ndarray | None:
@@ -91,6 +105,14 @@ def depth_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
 
 
 # --------------------------------------------------------------------------- evaluation
+
+def moving_actors(scene, ingested: dict) -> list:
+    """The scene's actors that count as moving with the ingest's ``moving_threshold_m``."""
+    from paradrive.actors import is_moving
+
+    threshold = ingested.get("moving_threshold_m")
+    return [] if threshold is None else [a for a in scene.actors if is_moving(a, threshold)]
+
 
 def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
     """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
@@ -174,7 +196,9 @@ def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, m
         raise SceneError(f"eval needs a synthetic scene (this one is {scene.dataset}): only a "
                          f"synthetic street can render the true shifted views", scene_id=sid,
                          path=scene_dir / "scene.json", fix="evaluate a 'synthetic:' scene")
-    street = street_from_uri(parse_uri(scene.source), scene_ingest_params(scene_dir, ingest_params))
+    ingested = scene_ingest_params(scene_dir, ingest_params)
+    street = street_from_uri(parse_uri(scene.source), ingested)
+    moving = moving_actors(scene, ingested)
     renders_path = scene_dir / "renders" / "renders.json"
     renders = json.loads(renders_path.read_text()) if renders_path.is_file() else None
     conds = [int(i) for i in render_params["condition_checkpoints"]]
@@ -214,8 +238,10 @@ def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, m
                            sky=sky)
         instants = [scene.frames[p].index for p in frames]  # actors move: truth at those frames
         truth = street.render(recorded, out.K, out.width, out.height, frames=instants)
+        dynamic = views_mask(moving, instants, recorded, out.K, out.width, out.height)
         cam_doc["recorded"] = {"iteration": final, **image_quality(rgb, target),
                                "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
+                               **static_quality(rgb, truth["rgb"], dynamic),
                                **depth_errors(dep, truth["depth"])}
         for d in render_params["offsets_m"]:
             shifted = geometry.lateral_shift(recorded, ego, float(d))
@@ -223,8 +249,10 @@ def _evaluate_scene(scene_dir, render_params: dict, *, ingest_params, cameras, m
                            sky=sky)
             truth = street.render(shifted, out.K, out.width, out.height, frames=instants)
             q = image_quality(rgb, truth["rgb"])
+            dynamic = views_mask(moving, instants, shifted, out.K, out.width, out.height)
             cam_doc["shifted"].append({"offset_m": float(d), "stream": source_stream(d),
                                        "iteration": final, **q,
+                                       **static_quality(rgb, truth["rgb"], dynamic),
                                        **depth_errors(dep, truth["depth"])})
             log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", sid, cam_name, source_stream(d),
                      q["psnr"], q["ssim"])
