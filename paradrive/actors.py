@@ -92,7 +92,7 @@ def actor_from_json(doc: dict) -> Actor:
 def actor_from_boxes(actor_id: str, cls: str, rigid: bool, frames, poses, sizes) -> Actor:
     """An Actor from per-frame boxes: frames (T,), poses (T, 4, 4), sizes (T, 3) as logged.
 
-    Logs size a box per frame; the track's size is their median, or the first bad one (NaN or
+    Logs give each frame's box its own size; the track's size is their median, or the first bad one (NaN or
     not positive), so that ``keep_valid`` names it.
     """
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
