@@ -92,8 +92,8 @@ def actor_from_json(doc: dict) -> Actor:
 def actor_from_boxes(actor_id: str, cls: str, rigid: bool, frames, poses, sizes) -> Actor:
     """An Actor from per-frame boxes: frames (T,), poses (T, 4, 4), sizes (T, 3) as logged.
 
-    Logs give each frame's box its own size; the track's size is their median, or the first bad one (NaN or
-    not positive), so that ``keep_valid`` names it.
+    Logs give each frame's box its own size; the track's size is their median, or the first
+    bad one (NaN or not positive), so that ``keep_valid`` names it.
     """
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
     bad = ~(np.isfinite(sizes) & (sizes > 0)).all(axis=1)
