@@ -93,8 +93,8 @@ def actor_from_json(doc: dict) -> Actor:
 def actor_from_boxes(actor_id: str, cls: str, rigid: bool, frames, poses, sizes) -> Actor:
     """An Actor from per-frame boxes: frames (T,), poses (T, 4, 4), sizes (T, 3) as logged.
 
-    Logs size a box per frame; the track's size is their median, or the first bad one (NaN or
-    not positive), so that ``keep_valid`` names it.
+    Logs give each frame's box its own size; the track's size is their median, or the first
+    bad one (NaN or not positive), so that ``keep_valid`` names it.
     """
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
     bad = ~(np.isfinite(sizes) & (sizes > 0)).all(axis=1)
@@ -245,6 +245,24 @@ def read_tracks(scene_dir: Path) -> list[tuple[str, np.ndarray]]:
 
 # --------------------------------------------------------------------------- masks
 
+def _pixel_window(half: np.ndarray, box2cam: np.ndarray, K: np.ndarray, width: int,
+                  height: int) -> tuple[slice, slice] | None:
+    """Rows and columns that can see the box (its corners' image rectangle, a pixel wider), the
+    whole image when the box reaches behind the camera, None when it is wholly behind."""
+    signs = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)]) * 2.0 - 1.0
+    corners = (signs * half) @ box2cam[:3, :3].T + box2cam[:3, 3]
+    z = corners[:, 2]
+    if (z <= 1e-6).all():
+        return None
+    if (z <= 1e-6).any():
+        return slice(0, height), slice(0, width)
+    u = K[0, 0] * corners[:, 0] / z + K[0, 2]
+    v = K[1, 1] * corners[:, 1] / z + K[1, 2]
+    u0, u1 = (int(np.clip(np.floor(x), 0, width)) for x in (u.min() - 1, u.max() + 2))
+    v0, v1 = (int(np.clip(np.floor(x), 0, height)) for x in (v.min() - 1, v.max() + 2))
+    return (slice(v0, v1), slice(u0, u1)) if u1 > u0 and v1 > v0 else None
+
+
 def box_footprint(box2world: np.ndarray, size, c2w: np.ndarray, K: np.ndarray, width: int,
                   height: int) -> np.ndarray:
     """bool (H, W): pixels whose ray (through the pixel centre) meets the box.
@@ -252,10 +270,15 @@ def box_footprint(box2world: np.ndarray, size, c2w: np.ndarray, K: np.ndarray, w
     box2world, c2w: (4, 4) (c2w OpenCV); size: (3,) length, width, height; K: (3, 3).
     """
     half = 0.5 * np.asarray(size, dtype=np.float64)
+    mask = np.zeros((height, width), dtype=bool)
+    window = _pixel_window(half, geometry.invert(c2w) @ box2world, K, width, height)
+    if window is None:
+        return mask
+    rows, cols = window
     cam2box = geometry.invert(box2world) @ c2w
     o = cam2box[:3, 3]
-    u = (np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]
-    v = (np.arange(height) + 0.5 - K[1, 2]) / K[1, 1]
+    u = (np.arange(cols.start, cols.stop) + 0.5 - K[0, 2]) / K[0, 0]
+    v = (np.arange(rows.start, rows.stop) + 0.5 - K[1, 2]) / K[1, 1]
     rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), -1)
     d = rays @ cam2box[:3, :3].T
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -264,7 +287,8 @@ def box_footprint(box2world: np.ndarray, size, c2w: np.ndarray, K: np.ndarray, w
         tb = (half - o) * inv
     t_near = np.minimum(ta, tb).max(-1)
     t_far = np.maximum(ta, tb).min(-1)
-    return (t_far >= np.maximum(t_near, 0.0)) & (t_far > 0.0)
+    mask[rows, cols] = (t_far >= np.maximum(t_near, 0.0)) & (t_far > 0.0)
+    return mask
 
 
 def dynamic_mask(actors: list[Actor], frame: int, c2w: np.ndarray, K: np.ndarray, width: int,
@@ -276,3 +300,10 @@ def dynamic_mask(actors: list[Actor], frame: int, c2w: np.ndarray, K: np.ndarray
         if pose is not None:
             mask |= box_footprint(pose, actor.size, c2w, K, width, height)
     return mask
+
+
+def views_mask(actors: list[Actor], frames, c2w: np.ndarray, K: np.ndarray, width: int,
+               height: int) -> np.ndarray:
+    """bool (N, H, W): per view (c2w (N, 4, 4) at scene frames (N,)), the actors' footprints."""
+    return np.stack([dynamic_mask(actors, int(f), pose, K, width, height)
+                     for f, pose in zip(frames, c2w)]).reshape(len(c2w), height, width)

@@ -5,7 +5,8 @@ renders any pose exactly. For one scene this measures
 
 * **shifted**: the source (final) checkpoint rendered on the recorded trajectory shifted by each
   offset, against the street's true view from the same shifted poses (PSNR, SSIM, and the median
-  relative error of the rendered z-depth on non-sky pixels);
+  relative error of the rendered z-depth on non-sky pixels), and ``psnr_static`` on the pixels
+  outside the moving actors' boxes (``dynamic_fraction`` of them inside: a static fit's ghosts);
 * **recorded**: the source checkpoint on the recorded trajectory against the recorded frames
   (offset 0, the fit's own quality on the clip frames);
 * **conditions**: each under-fitted checkpoint on the recorded trajectory against the recorded
@@ -29,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from paradrive import geometry
+from paradrive.actors import views_mask
 from paradrive.streams import clip_windows, condition_stream, frames_needed, source_stream
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
@@ -54,6 +56,18 @@ def image_quality(pred: np.ndarray, truth: np.ndarray) -> dict:
 
     value, structure = frames_quality(pred, truth)
     return {"psnr": value, "ssim": structure}
+
+
+def static_quality(pred: np.ndarray, truth: np.ndarray, dynamic: np.ndarray) -> dict:
+    """``psnr_static``: mean PSNR (dB) over frames of uint8 (N, H, W, 3) images on the pixels
+    outside ``dynamic`` (N, H, W) (moving actors' boxes; None when no pixel is left), and
+    ``dynamic_fraction``, the share of pixels inside."""
+    err = ((pred.astype(np.float64) - truth.astype(np.float64)) / 255.0) ** 2
+    keep = ~dynamic
+    values = [10.0 * np.log10(1.0 / max(float(err[i][keep[i]].mean()), 1e-10))
+              for i in range(len(err)) if keep[i].any()]
+    return {"psnr_static": float(np.mean(values)) if values else None,
+            "dynamic_fraction": float(dynamic.mean())}
 
 
 def _relative_depth_error(pred: np.ndarray, truth: np.ndarray) -> np.ndarray | None:
@@ -93,6 +107,14 @@ def depth_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
 
 
 # --------------------------------------------------------------------------- evaluation
+
+def moving_actors(scene, ingested: dict) -> list:
+    """The scene's actors that count as moving with the ingest's ``moving_threshold_m``."""
+    from paradrive.actors import is_moving
+
+    threshold = ingested.get("moving_threshold_m")
+    return [] if threshold is None else [a for a in scene.actors if is_moving(a, threshold)]
+
 
 def _subsample(frames: list[int], max_frames: int | None) -> list[int]:
     if not max_frames or len(frames) <= max_frames:
@@ -149,11 +171,77 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: RenderParams, *,
                                cameras=cameras, max_frames=max_frames, out_dir=out_dir, log=log)
 
 
+class _EvalContext:
+    """What evaluating one camera of a scene needs: the scene, its street, the fit, the params."""
+
+    def __init__(self, scene, layout: SceneLayout, street, moving: list, render_params: RenderParams,
+                 renders: RendersRecord | None, sky, log: logging.Logger):
+        self.scene, self.layout, self.street, self.moving = scene, layout, street, moving
+        self.p, self.renders, self.sky, self.log = render_params, renders, sky, log
+
+    def render(self, params, c2w, out, depth: bool):
+        return _render(params, c2w, out, depth=depth, batch=self.p.batch_frames,
+                       device=self.p.device, sky=self.sky if depth else None)
+
+    def camera(self, cam_name: str, max_frames: int | None) -> dict[str, Any]:
+        from paradrive.gs.views import load_checkpoint
+        from paradrive.streams import crop_resize
+
+        scene, sid, p = self.scene, self.scene.scene_id, self.p
+        frames, out = _plan_camera(scene, cam_name, p, self.renders)
+        frames = _subsample(frames, max_frames)
+        recorded = scene.c2w(cam_name)[frames]
+        target = np.stack([crop_resize(scene.load_image(f, cam_name), out) for f in frames])
+        conditions = []
+        for it in p.condition_checkpoints:
+            rgb, _ = self.render(load_checkpoint(self.layout.checkpoint(it), scene_id=sid),
+                                 recorded, out, depth=False)
+            q = image_quality(rgb, target)
+            conditions.append({"iteration": it, "stream": condition_stream(it), **q})
+            self.log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it,
+                          q["psnr"], q["ssim"])
+        final = load_checkpoint(self.layout.checkpoint(p.source_checkpoint), scene_id=sid)
+        instants = [scene.frames[f].index for f in frames]  # actors move: truth at those frames
+        rgb, dep = self.render(final, recorded, out, depth=True)
+        truth = self.street.render(recorded, out.K, out.width, out.height, frames=instants)
+        recorded_doc = {"iteration": p.source_checkpoint, **image_quality(rgb, target),
+                        "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
+                        **self.truth_quality(rgb, dep, truth, instants, recorded, out)}
+        ego = scene.ego2world()[frames]
+        shifted_rows = [self.shifted(final, recorded, ego, float(d), instants, out, cam_name)
+                        for d in p.offsets_m]
+        return {"intrinsics": out.intrinsics, "frames": frames, "conditions": conditions,
+                "shifted": shifted_rows, "recorded": recorded_doc,
+                "shifted_by_abs_offset": _by_abs_offset(shifted_rows)}
+
+    def truth_quality(self, rgb, dep, truth: dict, instants: list[int], c2w, out) -> dict:
+        dynamic = views_mask(self.moving, instants, c2w, out.K, out.width, out.height)
+        return {**static_quality(rgb, truth["rgb"], dynamic), **depth_errors(dep, truth["depth"])}
+
+    def shifted(self, final, recorded, ego, d: float, instants: list[int], out, cam_name: str) -> dict:
+        shifted = geometry.lateral_shift(recorded, ego, d)
+        rgb, dep = self.render(final, shifted, out, depth=True)
+        truth = self.street.render(shifted, out.K, out.width, out.height, frames=instants)
+        q = image_quality(rgb, truth["rgb"])
+        self.log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", self.scene.scene_id, cam_name,
+                      source_stream(d), q["psnr"], q["ssim"])
+        return {"offset_m": d, "stream": source_stream(d), "iteration": self.p.source_checkpoint,
+                **q, **self.truth_quality(rgb, dep, truth, instants, shifted, out)}
+
+
+def _by_abs_offset(rows: list[dict]) -> dict[str, dict]:
+    by_abs: dict[str, list[dict]] = {}
+    for row in rows:
+        by_abs.setdefault(f"{abs(row['offset_m']):g}", []).append(row)
+    return {k: {"psnr": float(np.mean([r["psnr"] for r in v])),
+                "ssim": float(np.mean([r["ssim"] for r in v]))}
+            for k, v in sorted(by_abs.items(), key=lambda kv: float(kv[0]))}
+
+
 def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, cameras, max_frames,
                     out_dir, log) -> dict:
+    from paradrive.gs.views import sky_dome_of
     from paradrive.ingest.synthetic import street_from_uri
-    from paradrive.gs.views import load_checkpoint, sky_dome_of
-    from paradrive.streams import crop_resize
     from paradrive.scene import load_scene
     from paradrive.uri import parse_uri
 
@@ -168,7 +256,9 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                          path=layout.scene_json, fix="evaluate a 'synthetic:' scene")
     from paradrive.inference import scene_ingest_params
 
-    street = street_from_uri(parse_uri(scene.source), scene_ingest_params(scene_dir, ingest_params))
+    ingested = scene_ingest_params(scene_dir, ingest_params)
+    street = street_from_uri(parse_uri(scene.source), ingested)
+    moving = moving_actors(scene, ingested)
     renders = RendersRecord.load(layout.renders_json, sid) if layout.renders_json.is_file() else None
     conds = render_params.condition_checkpoints
     final = render_params.source_checkpoint
@@ -179,59 +269,14 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                              fix="run the fit stage with the same profile first")
     fit = FitRecord.load(layout.fit_json, sid) if layout.fit_json.is_file() else None
     sky = sky_dome_of(scene, fit.init if fit else None)
-    batch = render_params.batch_frames
-    device = render_params.device
     cams = list(cameras or render_params.cameras)
     for c in cams:
         if c not in scene.cameras or c not in street.cameras:
             raise SceneError(f"camera {c} is not in the scene", scene_id=sid,
                              path=layout.scene_json, fix="choose a camera the scene has")
 
-    doc_cams = {}
-    for cam_name in cams:
-        frames, out = _plan_camera(scene, cam_name, render_params, renders)
-        frames = _subsample(frames, max_frames)
-        recorded = scene.c2w(cam_name)[frames]
-        ego = scene.ego2world()[frames]
-        target = np.stack([crop_resize(scene.load_image(p, cam_name), out) for p in frames])
-        conditions: list[dict] = []
-        shifted_rows: list[dict] = []
-        cam_doc: dict[str, Any] = {"intrinsics": out.intrinsics, "frames": frames,
-                                   "conditions": conditions, "shifted": shifted_rows}
-        for it in conds:
-            params = load_checkpoint(layout.checkpoint(it), scene_id=sid)
-            rgb, _ = _render(params, recorded, out, depth=False, batch=batch, device=device)
-            q = image_quality(rgb, target)
-            conditions.append({"iteration": it, "stream": condition_stream(it), **q})
-            log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it, q["psnr"],
-                     q["ssim"])
-        params = load_checkpoint(layout.checkpoint(final), scene_id=sid)
-        rgb, dep = _render(params, recorded, out, depth=True, batch=batch, device=device,
-                           sky=sky)
-        instants = [scene.frames[p].index for p in frames]  # actors move: truth at those frames
-        truth = street.render(recorded, out.K, out.width, out.height, frames=instants)
-        cam_doc["recorded"] = {"iteration": final, **image_quality(rgb, target),
-                               "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
-                               **depth_errors(dep, truth["depth"])}
-        for d in render_params.offsets_m:
-            shifted = geometry.lateral_shift(recorded, ego, float(d))
-            rgb, dep = _render(params, shifted, out, depth=True, batch=batch, device=device,
-                           sky=sky)
-            truth = street.render(shifted, out.K, out.width, out.height, frames=instants)
-            q = image_quality(rgb, truth["rgb"])
-            shifted_rows.append({"offset_m": float(d), "stream": source_stream(d),
-                                       "iteration": final, **q,
-                                       **depth_errors(dep, truth["depth"])})
-            log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", sid, cam_name, source_stream(d),
-                     q["psnr"], q["ssim"])
-        by_abs: dict[str, list[dict]] = {}
-        for row in shifted_rows:
-            by_abs.setdefault(f"{abs(row['offset_m']):g}", []).append(row)
-        cam_doc["shifted_by_abs_offset"] = {
-            k: {"psnr": float(np.mean([r["psnr"] for r in rows])),
-                "ssim": float(np.mean([r["ssim"] for r in rows]))}
-            for k, rows in sorted(by_abs.items(), key=lambda kv: float(kv[0]))}
-        doc_cams[cam_name] = cam_doc
+    ctx = _EvalContext(scene, layout, street, moving, render_params, renders, sky, log)
+    doc_cams = {cam_name: ctx.camera(cam_name, max_frames) for cam_name in cams}
 
     doc = {"schema_version": EVAL_SCHEMA_VERSION, "scene_id": sid, "source": scene.source,
            "width": render_params.width, "height": render_params.height,

@@ -152,3 +152,24 @@ def test_every_stream_reports_the_signed_depth_error(evaluated):
         signed, absolute = row["depth_signed_rel"], row["depth_abs_rel"]
         assert signed is not None and abs(signed) <= absolute + 1e-9, row
     assert "depth_signed_rel" in evaluated["doc"]["metrics"]
+
+
+def test_static_psnr_leaves_out_the_pixels_of_moving_actors(evaluated):
+    from paradrive.evaluation import static_quality
+
+    # the smoke street's moving traffic shows in every eval row, scored apart
+    cam = evaluated["doc"]["cameras"]["front"]
+    rows = [cam["recorded"]] + cam["shifted"]
+    assert all(r["psnr_static"] is not None and 0.0 <= r["dynamic_fraction"] < 0.5 for r in rows)
+    assert max(r["dynamic_fraction"] for r in rows) > 0.0
+    truth = np.zeros((2, 8, 8, 3), np.uint8)
+    pred = truth.copy()
+    pred[:, :2, :2] = 255  # a ghost where a moving car was
+    dynamic = np.zeros((2, 8, 8), bool)
+    dynamic[:, :2, :2] = True
+    q = static_quality(pred, truth, dynamic)
+    assert q["dynamic_fraction"] == pytest.approx(4 / 64)
+    assert q["psnr_static"] == pytest.approx(100.0)  # the rest is exact (error floored at 1e-10)
+    everything = static_quality(pred, truth, np.zeros_like(dynamic))["psnr_static"]
+    assert everything == pytest.approx(10 * np.log10(64 / 4))
+    assert static_quality(pred, truth, np.ones_like(dynamic))["psnr_static"] is None
