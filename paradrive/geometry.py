@@ -146,6 +146,7 @@ def project(points_world, c2w, K) -> tuple[np.ndarray, np.ndarray]:
     return uv, z
 
 
-def flat16(m: np.ndarray) -> list[float]:
-    """A 4x4 matrix as 16 Python floats, row-major (the JSON form of a pose)."""
-    return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(16)]
+def as_floats(m) -> list[float]:
+    """An array as a flat list of Python floats, row-major (the JSON form of a pose, a
+    quaternion, a translation)."""
+    return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(-1)]

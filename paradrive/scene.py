@@ -110,7 +110,7 @@ class Camera:
     def to_json(self) -> dict:
         return {"width": int(self.width), "height": int(self.height),
                 "fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy),
-                "cam2ego": geometry.flat16(self.cam2ego)}
+                "cam2ego": geometry.as_floats(self.cam2ego)}
 
 
 @dataclass
@@ -119,7 +119,7 @@ class FrameCamera:
     c2w: np.ndarray      # (4, 4) camera-to-world, OpenCV, scene world
 
     def to_json(self) -> dict:
-        return {"image": self.image, "c2w": geometry.flat16(self.c2w)}
+        return {"image": self.image, "c2w": geometry.as_floats(self.c2w)}
 
 
 @dataclass
@@ -131,7 +131,7 @@ class Frame:
 
     def to_json(self) -> dict:
         return {"index": int(self.index), "timestamp_us": int(self.timestamp_us),
-                "ego2world": geometry.flat16(self.ego2world),
+                "ego2world": geometry.as_floats(self.ego2world),
                 "cameras": {k: v.to_json() for k, v in self.cameras.items()}}
 
 

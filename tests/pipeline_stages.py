@@ -226,3 +226,8 @@ def tiny_real_sets() -> list[str]:
     """TINY_REAL as command-line arguments: ['--set', 'ingest.synthetic_frames=10', ...]."""
     return [arg for stage, params in TINY_REAL.items() for key, value in params.items()
             for arg in ("--set", f"{stage}.{key}={json.dumps(value)}")]
+
+
+def run_manifest_with_a_bug(ctx) -> dict:
+    """A build-scoped stage with a bug in it (a key its own code expects is not there)."""
+    return {"rows": {}["totals"]}

@@ -147,6 +147,20 @@ def test_one_bad_scene_among_good_ones_is_a_partial_build(stand_in):
     assert ledger.failed_scene_uris() == [bad]
 
 
+def test_a_bug_in_a_build_stage_fails_that_stage_and_the_run_still_closes(stand_in):
+    spec = stand_in["stages"] / "manifest.yaml"
+    spec.write_text(spec.read_text().replace("pipeline_stages:run_manifest",
+                                             "pipeline_stages:run_manifest_with_a_bug"))
+    res = cli_build(stand_in, "--scenes", str(stand_in["list"]))
+    assert res.exception is None or isinstance(res.exception, SystemExit), res.output
+    assert res.exit_code == EXIT_PARTIAL, res.output
+    ledger = Ledger.for_build(stand_in["manifests"], "b")
+    row = ledger.task("build:b", "manifest")
+    assert row["state"] == "failed" and "KeyError" in row["error"] and "crashed" in row["error"]
+    assert ledger.scene_states() == {sid: "done" for sid in IDS}   # the scenes' work stands
+    assert ledger.runs()[-1]["exit_code"] == EXIT_PARTIAL            # the run was closed
+
+
 def test_every_scene_failing_is_a_failed_build(stand_in):
     res = cli_build(stand_in, "--scene", "synthetic:street?seed=4&fail=ingest")
     assert res.exit_code == EXIT_FAILED, res.output

@@ -150,10 +150,6 @@ def _token(*parts) -> str:
     return hashlib.md5("/".join(map(str, parts)).encode()).hexdigest()
 
 
-def _flat(m) -> list[float]:
-    return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(-1)]
-
-
 def _label_name(actor: Actor) -> str:
     """The log's id of an actor: its id without the ``synthetic:`` prefix."""
     return actor.id.split(":", 1)[-1]
@@ -246,7 +242,7 @@ def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int
         dist = _dist_for(distortion, cam)
         calibs.append({"name": wp.CAMERA_IDS[cam.upper()],
                        "intrinsic": [c.fx, c.fy, c.cx, c.cy, *dist],
-                       "extrinsic": {"transform": _flat(c.cam2ego @ geometry.invert(OPENCV_TO_FLU))},
+                       "extrinsic": {"transform": geometry.as_floats(c.cam2ego @ geometry.invert(OPENCV_TO_FLU))},
                        "width": c.width, "height": c.height, "rolling_shutter_direction": 2})
     h, w = lidar_size
     lidar_extrinsic = geometry.make_pose(geometry.rotation_about("z", 0.0123), src.lidar_origin)
@@ -257,7 +253,7 @@ def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int
     if has_lidar:
         context["laser_calibrations"] = [{
             "name": wp.LASER_IDS["TOP"], "beam_inclination_min": float(incl_min),
-            "beam_inclination_max": float(incl_max), "extrinsic": {"transform": _flat(lidar_extrinsic)}}]
+            "beam_inclination_max": float(incl_max), "extrinsic": {"transform": geometry.as_floats(lidar_extrinsic)}}]
 
     def records():
         for i in range(src.frames):
@@ -269,12 +265,12 @@ def export_waymo(street_or_scene, path: str | Path, *, cameras=None, frames: int
                 image_pose = global_from_world @ src.c2w[cam][i] @ geometry.invert(c.cam2ego)
                 images.append({"name": wp.CAMERA_IDS[cam.upper()],
                                 "image": encode_jpeg(pixels, jpeg_quality),
-                                "pose": {"transform": _flat(image_pose)},
+                                "pose": {"transform": geometry.as_floats(image_pose)},
                                 "velocity": {"v_x": 0.0, "v_y": 0.0, "v_z": 0.0},
                                 "pose_timestamp": src.timestamps_us[i] / 1e6,
                                 "shutter": 0.004})
             frame = {"context": context, "timestamp_micros": int(src.timestamps_us[i]),
-                     "pose": {"transform": _flat(ego_global)}, "images": images,
+                     "pose": {"transform": geometry.as_floats(ego_global)}, "images": images,
                      "laser_labels": waymo_labels(src.actors, i, src.ego2world[i])}
             if has_lidar:
                 pts_vehicle = transform_points(geometry.invert(src.ego2world[i]), src.lidar(i))
@@ -318,8 +314,8 @@ def nuscenes_annotations(actors: list[Actor], key_idx: list[int], sample_tokens:
             annotations.append({
                 "token": tokens[j], "sample_token": sample_tokens[k],
                 "instance_token": _label_name(a), "visibility_token": "4", "attribute_tokens": [],
-                "translation": _flat(box[:3, 3]), "size": [a.size[1], a.size[0], a.size[2]],
-                "rotation": _flat(geometry.rotation_to_quaternion(box[:3, :3])),
+                "translation": geometry.as_floats(box[:3, 3]), "size": [a.size[1], a.size[0], a.size[2]],
+                "rotation": geometry.as_floats(geometry.rotation_to_quaternion(box[:3, :3])),
                 "prev": tokens[j - 1] if j else "", "next": tokens[j + 1] if j + 1 < len(tokens) else "",
                 "num_lidar_pts": 10, "num_radar_pts": 0})
         instances.append({"token": _label_name(a), "category_token": categories[a.cls]["token"],
@@ -397,8 +393,8 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
             c = src.cameras[key]
             pose, intrinsic = c.cam2ego, c.K().tolist()
         calibrated.append({"token": cs_token, "sensor_token": sensor_token,
-                           "translation": _flat(pose[:3, 3]),
-                           "rotation": _flat(geometry.rotation_to_quaternion(pose[:3, :3])),
+                           "translation": geometry.as_floats(pose[:3, 3]),
+                           "rotation": geometry.as_floats(geometry.rotation_to_quaternion(pose[:3, :3])),
                            "camera_intrinsic": intrinsic})
         tokens = [_token("sample_data", scene_name, channel, i) for i in range(src.frames)]
         for i in range(src.frames):
@@ -413,8 +409,8 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
             ego_global = global_from_world @ ego
             ego_token = _token("ego_pose", scene_name, channel, i)
             ego_poses.append({"token": ego_token, "timestamp": stamps[i],
-                              "rotation": _flat(geometry.rotation_to_quaternion(ego_global[:3, :3])),
-                              "translation": _flat(ego_global[:3, 3])})
+                              "rotation": geometry.as_floats(geometry.rotation_to_quaternion(ego_global[:3, :3])),
+                              "translation": geometry.as_floats(ego_global[:3, 3])})
             filename = f"{folder}/{channel}/n000-{scene_name}__{channel}__{stamps[i]}.{ext}"
             target = root / filename
             width, height = _nuscenes_file(target, src, key, i, ego @ lidar_cam2ego,

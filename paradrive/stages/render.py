@@ -163,7 +163,7 @@ class _Renderer:
             else:
                 self.rendered(plan, stream, c2w, folder)
             streams[stream.name] = RenderedStream(kind=stream.kind, dir=stream_dir(plan.name, stream.name),
-                                                  c2w=[geometry.flat16(m) for m in c2w],
+                                                  c2w=[geometry.as_floats(m) for m in c2w],
                                                   iteration=stream.iteration, offset_m=stream.offset_m)
         cam = self.scene.cameras[plan.name]
         return RenderedCamera(
@@ -172,7 +172,7 @@ class _Renderer:
             windows=[WindowRecord(clip=w.name, frame_start=w.start, num_frames=w.num_frames)
                      for w in plan.windows],
             skipped=[SkippedClip(**s) for s in plan.skipped], frames=frames,
-            c2w=[geometry.flat16(m) for m in recorded], streams=streams)
+            c2w=[geometry.as_floats(m) for m in recorded], streams=streams)
 
     def target(self, plan: CameraPlan, folder: Path) -> None:
         for pos in plan.frames:
