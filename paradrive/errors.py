@@ -35,3 +35,9 @@ class ConfigError(ParaDriveError):
 
 class StageNotImplemented(ParaDriveError):
     """A declared stage whose implementation is missing: fails loudly, never counts as done."""
+
+
+def validation_message(exc) -> str:
+    """The first problem of a pydantic ValidationError: ``field 'a.b': message``."""
+    err = exc.errors()[0]
+    return f"field '{'.'.join(str(x) for x in err['loc'])}': {err['msg']}"

@@ -16,7 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import ValidationError
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import ParaDriveError, validation_message
 from paradrive.io import check_relative, path_inside
 from paradrive.stages.layout import INDEX_JSON, MEDIA_DIR, BuildLayout
 from paradrive.stages.records import IndexRecord
@@ -131,9 +131,7 @@ def read_index(build_dir: str | Path) -> IndexRecord:
     try:
         return IndexRecord.model_validate(index)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
-        raise ParaDriveError(f"{path}: field '{where}': {err['msg']}; re-run the manifest stage "
+        raise ParaDriveError(f"{path}: {validation_message(exc)}; re-run the manifest stage "
                              f"(paradrive build --stages manifest --force)") from exc
 
 

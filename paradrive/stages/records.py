@@ -16,7 +16,7 @@ from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_serializer
 
-from paradrive.errors import SceneError
+from paradrive.errors import SceneError, validation_message
 from paradrive.io import write_json
 
 R = TypeVar("R", bound="Record")
@@ -66,9 +66,7 @@ class Record(BaseModel):
         try:
             return cls.model_validate(doc)
         except ValidationError as exc:
-            err = exc.errors()[0]
-            where = ".".join(str(x) for x in err["loc"])
-            raise fail(f"{cls.WHAT} field '{where}': {err['msg']}") from exc
+            raise fail(f"{cls.WHAT} {validation_message(exc)}") from exc
 
 
 # --------------------------------------------------------------------------- fit.json
