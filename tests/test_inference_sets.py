@@ -53,7 +53,7 @@ def test_one_row_per_camera_clip_and_offset(inference_build):
     expected = len(render["clips"]) * len(render["offsets_m"])
     assert expected == 24
     assert set(per_camera.values()) == {expected} and len(per_camera) == 2
-    assert read_index(inference_build["dir"])["kind"] == "inference"
+    assert read_index(inference_build["dir"]).kind == "inference"
     final = render["source_checkpoint"]
     assert {r["condition_iteration"] for r in rows} == {final}
     assert {r["source_iteration"] for r in rows} == {None}

@@ -92,7 +92,7 @@ def test_verify_names_each_missing_or_corrupt_file(build, tmp_path):
 def test_verify_checks_shards_against_the_index(build, tmp_path):
     copy = tmp_path / "b"
     shutil.copytree(build, copy)
-    shard = copy / read_index(copy)["shards"][0]["file"]
+    shard = copy / read_index(copy).shards[0].file
     with open(shard, "r+b") as f:
         f.seek(20)
         f.write(b"\0\0\0\0")

@@ -273,7 +273,7 @@ def test_republishing_keeps_foreign_files_and_drops_stale_shards(tmp_path, two_s
     assert (build / "logs" / "run.log").read_text() == "log"
     assert not (build / "media" / "synthetic-b").exists()
     assert not [p for p in build.rglob("*") if ".tmp-" in p.name or "staging" in p.name]
-    assert read_index(build)["totals"]["rows"] == 72
+    assert read_index(build).totals.rows == 72
 
 
 def test_media_hardlinks_share_the_inode_and_copy_does_not(tmp_path, two_scene_data):

@@ -18,7 +18,13 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+# the environment of every command here: nothing that points Python or paradrive at the checkout
+CLEAN_ENV = {k: v for k, v in os.environ.items()
+             if k not in ("PYTHONPATH", "PARADRIVE_STAGES", "PARADRIVE_SPLITS")}
+
+
 def _run(args: list, **kwargs) -> subprocess.CompletedProcess:
+    kwargs.setdefault("env", CLEAN_ENV)
     return subprocess.run([str(a) for a in args], capture_output=True, text=True, timeout=900,
                           **kwargs)
 
@@ -61,8 +67,7 @@ def test_the_wheel_carries_stage_definitions_profiles_and_splits(wheel):
 
 @pytest.mark.slow
 def test_an_installed_wheel_lists_the_stages_and_builds_a_scene(fresh_env, tmp_path):
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PARADRIVE_STAGES",
-                                                             "PARADRIVE_SPLITS")}
+    env = CLEAN_ENV
     where = _run([fresh_env / "bin" / "python", "-c", "import paradrive; print(paradrive.__file__)"],
                  cwd=tmp_path, env=env)
     assert str(fresh_env) in where.stdout, where.stdout + where.stderr   # the wheel, not the checkout
