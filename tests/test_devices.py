@@ -133,7 +133,10 @@ def test_trainer_steps_on_a_device_compute_what_they_compute_on_the_cpu(tmp_path
 
 def test_device_and_backend_choices_say_what_is_wrong(monkeypatch, caplog):
     assert resolve_device("cpu") == torch.device("cpu")
-    assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    assert resolve_backend("auto", torch.device("cpu")) == "cpu"  # the fused CPU kernels
+    assert resolve_backend("torch", torch.device("cpu")) == "torch"  # the torch-op reference
+    with pytest.raises(ConfigError, match="fused CPU kernels"):
+        resolve_backend("cpu", torch.device("cuda"))
     with pytest.raises(ConfigError, match="not a torch device"):
         resolve_device("gpu0")
     with pytest.raises(ConfigError, match="needs a CUDA device"):

@@ -138,9 +138,10 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height,
 
 def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                      sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
-                     radius_clip, tile_size):
+                     radius_clip, tile_size, backend="torch"):
     C, N = viewmats.shape[0], means.shape[0]
-    means2d, conics, depths, radii_xy = _project(
+    project, binner, compositor = _stages(backend)
+    means2d, conics, depths, radii_xy = project(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         near_plane, far_plane, eps2d, radius_clip)
 
@@ -162,11 +163,11 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         feats = depths[..., None]
         bg = means.new_zeros(C, 1)
 
-    bins = bin_gaussians(means2d, radii_xy, depths, width, height, tile_size)
+    bins = binner(means2d, radii_xy, depths, width, height, tile_size)
     if means2d.requires_grad:
         means2d.retain_grad()
     op = opacities.expand(C, N).reshape(C * N)
-    renders, alphas = composite(
+    renders, alphas = compositor(
         means2d.reshape(C * N, 2), conics.reshape(C * N, 3), op,
         feats.reshape(C * N, feats.shape[-1]).contiguous(), bg.to(means.dtype), bins)
 
@@ -177,9 +178,19 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         "means2d": means2d, "radii": radii, "radii_xy": radii_xy, "depths": depths,
         "conics": conics, "width": width, "height": height, "n_cameras": C,
         "tile_size": tile_size, "tile_width": bins.tiles_x, "tile_height": bins.tiles_y,
-        "n_isects": int(bins.flat_ids.numel()), "backend": "torch",
+        "n_isects": int(bins.flat_ids.numel()), "backend": backend,
     }
     return renders, alphas, info
+
+
+def _stages(backend: str):
+    """(projection, binning, compositing) of a CPU-capable backend: the torch-op reference or the
+    fused kernels."""
+    if backend == "torch":
+        return _project, bin_gaussians, composite
+    from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused  # Numba
+
+    return project_fused, bin_gaussians_fused, composite_fused
 
 
 def cuda_backend_available() -> bool:
@@ -243,6 +254,6 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)
-    if backend == "torch":
-        return _torch_rasterize(*args[:-1], TORCH_TILE_SIZE)
+    if backend in ("torch", "cpu"):
+        return _torch_rasterize(*args[:-1], TORCH_TILE_SIZE, backend)
     return _gsplat_rasterize(*args)
