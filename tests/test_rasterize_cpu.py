@@ -66,7 +66,8 @@ def test_means2d_gradient_and_radii_match_torch_reference():
         r, _, info = rasterize(*_leaves(scene), *cams, W, H, backend=backend)
         r.sum().backward()
         infos.append(info)
-    assert infos[0]["backend"] == "cpu" and infos[0]["n_isects"] == infos[1]["n_isects"]
+    assert infos[0]["backend"] == "cpu" and infos[1]["backend"] == "torch"
+    assert (infos[0]["radii"] > 0).sum() > 100
     assert torch.equal(infos[0]["radii"], infos[1]["radii"])
     torch.testing.assert_close(infos[0]["means2d"].grad, infos[1]["means2d"].grad, atol=1e-4, rtol=1e-4)
 

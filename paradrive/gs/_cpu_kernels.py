@@ -4,10 +4,12 @@ Every kernel parallelises over tiles (``prange``) and each tile is the work of o
 fixed order inside it, so images and gradients do not depend on the thread count. Per-Gaussian
 gradients are first written per tile-Gaussian pair and then summed in list order by one thread.
 
-Compositing follows gsplat's CUDA rules, as the torch compositor in ``_tiles`` does:
-alpha = min(0.999, opacity * exp(-sigma)); sigma < 0 or alpha < 1/255 is skipped; a pixel stops
-before the Gaussian that would bring its transmittance to <= 1e-4. Arithmetic is float64 inside,
-the arrays are float32.
+A tile walks its depth-sorted list (front to back, or back to front for the gradient) and each
+Gaussian visits only the pixels of its rows where sigma <= SIGMA_CUT, the rest having alpha
+< 1/255; along a row exp(-sigma) is stepped by multiplication. The compositing rules are gsplat's,
+as in the torch compositor of ``_tiles``: alpha = min(0.999, opacity * exp(-sigma)); sigma < 0 or
+alpha < 1/255 is skipped; a pixel stops before the Gaussian that would bring its transmittance to
+<= 1e-4. Arithmetic is float64 inside, the arrays are float32.
 
 Array layouts: ``gauss`` (n_isects, 6 + D) holds one row per tile-Gaussian pair, in tile list
 order: mean x, mean y, conic a, b, c, opacity, then D colour channels. ``offsets``/``counts``
@@ -17,14 +19,20 @@ order: mean x, mean y, conic a, b, c, opacity, then D colour channels. ``offsets
 from __future__ import annotations
 
 import math
+import warnings
 
 import numba
 import numpy as np
 from numba import njit, prange
 
+# Numba tries TBB first and warns when the installed one is too old; OpenMP is used then.
+warnings.filterwarnings("ignore", message="The TBB threading layer requires", category=Warning)
+
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
 T_MIN = 1e-4
+# Beyond it alpha < 1/255 for any opacity <= 1 (log 255 = 5.5413): pixels past it are not visited.
+SIGMA_CUT = 5.55
 
 
 @njit(cache=True)
@@ -72,48 +80,99 @@ def bin_fill(order: np.ndarray, means2d: np.ndarray, radii: np.ndarray, n_per_ca
 
 
 @njit(cache=True, inline="always")
-def _alpha(row: np.ndarray, px: float, py: float) -> float:
-    """Alpha of one Gaussian row at pixel centre (px, py); 0 where it is skipped."""
-    dx = row[0] - px
-    dy = row[1] - py
-    sigma = 0.5 * (row[2] * dx * dx + row[4] * dy * dy) + row[3] * dx * dy
-    if sigma < 0.0:
+def _row_span(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int) -> tuple[int, int]:
+    """Pixels [x0, x1) of the row at py, clipped to [x_lo, x_hi), outside which entry e has
+    sigma > SIGMA_CUT: the roots of the quadratic in x, widened by a small margin."""
+    a, b, c = gauss[e, 2], gauss[e, 3], gauss[e, 4]
+    if a <= 0.0:
+        return x_lo, x_hi
+    dy = gauss[e, 1] - py
+    disc = (b * b - a * c) * dy * dy + 2.0 * a * SIGMA_CUT
+    if disc < 0.0:
+        return x_lo, x_lo
+    root = math.sqrt(disc) / a
+    mid = gauss[e, 0] + b * dy / a - 0.5  # pixel x whose centre is the parabola's vertex
+    x0 = max(x_lo, math.ceil(mid - root - 1e-3))
+    x1 = min(x_hi, math.floor(mid + root + 1e-3) + 1)
+    return x0, max(x0, x1)
+
+
+@njit(cache=True, inline="always")
+def _row_start(gauss: np.ndarray, e: int, x0: int, py: float) -> tuple[float, float, float]:
+    """(exp(-sigma) at pixel x0, its factor to the next pixel, that factor's own factor).
+
+    Along a row sigma is a quadratic in x, so exp(-sigma) steps by a factor that itself changes
+    by exp(-a): two multiplications per pixel instead of an exp().
+    """
+    a, b, c = gauss[e, 2], gauss[e, 3], gauss[e, 4]
+    dx = gauss[e, 0] - (x0 + 0.5)
+    dy = gauss[e, 1] - py
+    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    return math.exp(-sigma), math.exp(a * dx - 0.5 * a + b * dy), math.exp(-a)
+
+
+@njit(cache=True, inline="always")
+def _alpha_of(gauss: np.ndarray, e: int, E: float) -> float:
+    """Alpha of entry e where exp(-sigma) = E; 0 where it is skipped (sigma < 0: E > 1)."""
+    if E > 1.0:
         return 0.0
-    alpha = min(ALPHA_MAX, row[5] * math.exp(-sigma))
+    alpha = min(ALPHA_MAX, gauss[e, 5] * E)
     return alpha if alpha >= ALPHA_MIN else 0.0
+
+
+@njit(cache=True)
+def _tile_box(t: int, ts: int, tiles_x: int, tiles_y: int, H: int, W: int
+              ) -> tuple[int, int, int, int, int]:
+    """(camera, y_lo, y_hi, x_lo, x_hi) of tile t, clipped to the image."""
+    per_cam = tiles_x * tiles_y
+    cam, r = t // per_cam, t % per_cam
+    y_lo, x_lo = (r // tiles_x) * ts, (r % tiles_x) * ts
+    return cam, y_lo, min(y_lo + ts, H), x_lo, min(x_lo + ts, W)
 
 
 @njit(cache=True)
 def _forward_tile(t: int, gauss: np.ndarray, start: int, n: int, ts: int, tiles_x: int,
                   tiles_y: int, bg: np.ndarray, render: np.ndarray, trans: np.ndarray,
                   last: np.ndarray) -> None:
+    """Entries front to back, each over the pixels of its ellipse; a pixel that saturates is done."""
     C, H, W, D = render.shape
-    per_cam = tiles_x * tiles_y
-    cam, r = t // per_cam, t % per_cam
-    y_lo, x_lo = (r // tiles_x) * ts, (r % tiles_x) * ts
-    acc = np.empty(D)
-    for y in range(y_lo, min(y_lo + ts, H)):
-        for x in range(x_lo, min(x_lo + ts, W)):
-            acc[:] = 0.0
-            T = 1.0
-            stop = 0
-            for j in range(n):
-                row = gauss[start + j]
-                alpha = _alpha(row, x + 0.5, y + 0.5)
-                if alpha == 0.0:
+    cam, y_lo, y_hi, x_lo, x_hi = _tile_box(t, ts, tiles_x, tiles_y, H, W)
+    T = np.ones(ts * ts)
+    acc = np.zeros((ts * ts, D))
+    stop = np.zeros(ts * ts, dtype=np.int64)
+    done = np.zeros(ts * ts, dtype=np.bool_)
+    active = (y_hi - y_lo) * (x_hi - x_lo)
+    for j in range(n):
+        e = start + j
+        for y in range(y_lo, y_hi):
+            x0, x1 = _row_span(gauss, e, y + 0.5, x_lo, x_hi)
+            E, step, ratio = _row_start(gauss, e, x0, y + 0.5)
+            for x in range(x0, x1):
+                p = (y - y_lo) * ts + x - x_lo
+                alpha = _alpha_of(gauss, e, E)
+                E *= step
+                step *= ratio
+                if done[p] or alpha == 0.0:
                     continue
-                next_T = T * (1.0 - alpha)
+                next_T = T[p] * (1.0 - alpha)
                 if next_T <= T_MIN:
-                    break
-                w = alpha * T
+                    done[p] = True
+                    active -= 1
+                    continue
+                w = alpha * T[p]
                 for k in range(D):
-                    acc[k] += w * row[6 + k]
-                T = next_T
-                stop = j + 1
+                    acc[p, k] += w * gauss[e, 6 + k]
+                T[p] = next_T
+                stop[p] = j + 1
+        if active == 0:
+            break
+    for y in range(y_lo, y_hi):
+        for x in range(x_lo, x_hi):
+            p = (y - y_lo) * ts + x - x_lo
             for k in range(D):
-                render[cam, y, x, k] = acc[k] + T * bg[cam, k]
-            trans[cam, y, x] = T
-            last[cam, y, x] = stop
+                render[cam, y, x, k] = acc[p, k] + T[p] * bg[cam, k]
+            trans[cam, y, x] = T[p]
+            last[cam, y, x] = stop[p]
 
 
 @njit(cache=True, parallel=True)
@@ -127,60 +186,69 @@ def composite_forward(gauss: np.ndarray, offsets: np.ndarray, counts: np.ndarray
                       last)
 
 
-@njit(cache=True)
-def _backward_pixel(gauss: np.ndarray, start: int, stop: int, px: float, py: float,
-                    T_final: float, dC: np.ndarray, dA: float, bg_dot: float, buf: np.ndarray,
-                    grads: np.ndarray) -> None:
-    """Walk one pixel's list back to front and add its share to grads[start + j]."""
-    D = dC.shape[0]
-    buf[:] = 0.0
-    T = T_final
-    for j in range(stop - 1, -1, -1):
-        row = gauss[start + j]
-        alpha = _alpha(row, px, py)
-        if alpha == 0.0:
-            continue
-        ra = 1.0 / (1.0 - alpha)
-        T *= ra  # transmittance in front of this Gaussian
-        w = alpha * T
-        g = grads[start + j]
-        v_alpha = T_final * ra * (dA - bg_dot)
-        for k in range(D):
-            g[6 + k] += w * dC[k]
-            v_alpha += (row[6 + k] * T - buf[k] * ra) * dC[k]
-            buf[k] += row[6 + k] * w
-        if alpha >= ALPHA_MAX:
-            continue  # clamped: no gradient to opacity and shape
-        vis = alpha / row[5]
-        v_sigma = -alpha * v_alpha
-        dx = row[0] - px
-        dy = row[1] - py
-        g[0] += v_sigma * (row[2] * dx + row[3] * dy)
-        g[1] += v_sigma * (row[3] * dx + row[4] * dy)
-        g[2] += 0.5 * v_sigma * dx * dx
-        g[3] += v_sigma * dx * dy
-        g[4] += 0.5 * v_sigma * dy * dy
-        g[5] += vis * v_alpha
+@njit(cache=True, inline="always")
+def _backward_pair(gauss: np.ndarray, e: int, alpha: float, px: float, py: float, p: int,
+                   T: np.ndarray, buf: np.ndarray, dC: np.ndarray, q: np.ndarray, g: np.ndarray
+                   ) -> None:
+    """One pixel's share of entry e's gradient, walking back to front: T[p] and buf[p] (the
+    colour behind e) are that pixel's running state; q[p] = T_final (dA - bg . dC)."""
+    ra = 1.0 / (1.0 - alpha)
+    T[p] *= ra  # transmittance in front of this Gaussian
+    w = alpha * T[p]
+    v_alpha = q[p] * ra
+    for k in range(dC.shape[1]):
+        c = gauss[e, 6 + k]
+        g[6 + k] += w * dC[p, k]
+        v_alpha += (c * T[p] - buf[p, k] * ra) * dC[p, k]
+        buf[p, k] += c * w
+    if alpha >= ALPHA_MAX:
+        return  # clamped: no gradient to opacity and shape
+    v_sigma = -alpha * v_alpha
+    dx = gauss[e, 0] - px
+    dy = gauss[e, 1] - py
+    g[0] += v_sigma * (gauss[e, 2] * dx + gauss[e, 3] * dy)
+    g[1] += v_sigma * (gauss[e, 3] * dx + gauss[e, 4] * dy)
+    g[2] += 0.5 * v_sigma * dx * dx
+    g[3] += v_sigma * dx * dy
+    g[4] += 0.5 * v_sigma * dy * dy
+    g[5] += alpha / gauss[e, 5] * v_alpha
 
 
 @njit(cache=True)
 def _backward_tile(t: int, gauss: np.ndarray, start: int, ts: int, tiles_x: int, tiles_y: int,
                    bg: np.ndarray, trans: np.ndarray, last: np.ndarray, d_render: np.ndarray,
                    d_alpha: np.ndarray, grads: np.ndarray) -> None:
+    """Entries back to front, each over the pixels of its ellipse that it reached."""
     C, H, W, D = d_render.shape
-    per_cam = tiles_x * tiles_y
-    cam, r = t // per_cam, t % per_cam
-    y_lo, x_lo = (r // tiles_x) * ts, (r % tiles_x) * ts
-    buf = np.empty(D)
-    dC = np.empty(D)
-    for y in range(y_lo, min(y_lo + ts, H)):
-        for x in range(x_lo, min(x_lo + ts, W)):
+    cam, y_lo, y_hi, x_lo, x_hi = _tile_box(t, ts, tiles_x, tiles_y, H, W)
+    P = ts * ts
+    T, q = np.zeros(P), np.zeros(P)
+    stop = np.zeros(P, dtype=np.int64)
+    buf, dC = np.zeros((P, D)), np.zeros((P, D))
+    for y in range(y_lo, y_hi):
+        for x in range(x_lo, x_hi):
+            p = (y - y_lo) * ts + x - x_lo
+            T[p], stop[p] = trans[cam, y, x], last[cam, y, x]
             bg_dot = 0.0
             for k in range(D):
-                dC[k] = d_render[cam, y, x, k]
-                bg_dot += bg[cam, k] * dC[k]
-            _backward_pixel(gauss, start, last[cam, y, x], x + 0.5, y + 0.5, trans[cam, y, x],
-                            dC, d_alpha[cam, y, x], bg_dot, buf, grads)
+                dC[p, k] = d_render[cam, y, x, k]
+                bg_dot += bg[cam, k] * dC[p, k]
+            q[p] = T[p] * (d_alpha[cam, y, x] - bg_dot)
+    g = np.zeros(grads.shape[1])
+    for j in range(stop.max() - 1, -1, -1):
+        e = start + j
+        g[:] = 0.0
+        for y in range(y_lo, y_hi):
+            x0, x1 = _row_span(gauss, e, y + 0.5, x_lo, x_hi)
+            E, step, ratio = _row_start(gauss, e, x0, y + 0.5)
+            for x in range(x0, x1):
+                p = (y - y_lo) * ts + x - x_lo
+                alpha = _alpha_of(gauss, e, E)
+                E *= step
+                step *= ratio
+                if j < stop[p] and alpha > 0.0:
+                    _backward_pair(gauss, e, alpha, x + 0.5, y + 0.5, p, T, buf, dC, q, g)
+        grads[e] = g
 
 
 @njit(cache=True, parallel=True)

@@ -2,6 +2,8 @@
 
 The maths is ``rasterize._project`` written per Gaussian: one thread owns a Gaussian and walks
 the cameras in order, so results do not depend on the thread count. float64 inside, float32 out.
+Small matrices are row-major tuples (3x3 -> 9 values), which stay in registers: heap-allocated
+arrays per Gaussian would cost more than the arithmetic.
 
 Shapes: means (N, 3), quats (N, 4) wxyz any norm, scales (N, 3), opacities (N,),
 viewmats (C, 4, 4) world-to-camera, Ks (C, 3, 3); outputs are (C, N, ...).
@@ -18,111 +20,116 @@ from paradrive.gs._cpu_kernels import ALPHA_MIN
 
 RADIUS_SIGMAS = 3.33  # as rasterize._project: the opacity-aware box is capped at 3.33 sigma
 
+Mat3 = tuple[float, float, float, float, float, float, float, float, float]
+Vec3 = tuple[float, float, float]
+
+
+@njit(cache=True, inline="always")
+def _mul(A: Mat3, B: Mat3) -> Mat3:
+    return (A[0] * B[0] + A[1] * B[3] + A[2] * B[6], A[0] * B[1] + A[1] * B[4] + A[2] * B[7],
+            A[0] * B[2] + A[1] * B[5] + A[2] * B[8], A[3] * B[0] + A[4] * B[3] + A[5] * B[6],
+            A[3] * B[1] + A[4] * B[4] + A[5] * B[7], A[3] * B[2] + A[4] * B[5] + A[5] * B[8],
+            A[6] * B[0] + A[7] * B[3] + A[8] * B[6], A[6] * B[1] + A[7] * B[4] + A[8] * B[7],
+            A[6] * B[2] + A[7] * B[5] + A[8] * B[8])
+
+
+@njit(cache=True, inline="always")
+def _tr(A: Mat3) -> Mat3:
+    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
+
+
+@njit(cache=True, inline="always")
+def _mv(A: Mat3, v: Vec3) -> Vec3:
+    return (A[0] * v[0] + A[1] * v[1] + A[2] * v[2], A[3] * v[0] + A[4] * v[1] + A[5] * v[2],
+            A[6] * v[0] + A[7] * v[1] + A[8] * v[2])
+
 
 @njit(cache=True)
-def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """The matrix product of two small matrices (Numba's own needs SciPy's BLAS)."""
-    out = np.zeros((A.shape[0], B.shape[1]))
-    for i in range(A.shape[0]):
-        for k in range(A.shape[1]):
-            for j in range(B.shape[1]):
-                out[i, j] += A[i, k] * B[k, j]
-    return out
-
-
-@njit(cache=True)
-def _mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The product of a small matrix and a vector."""
-    out = np.zeros(A.shape[0])
-    for i in range(A.shape[0]):
-        for k in range(A.shape[1]):
-            out[i] += A[i, k] * v[k]
-    return out
-
-
-@njit(cache=True)
-def _rotmat(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R (3, 3), unit quaternion (4,), norm) of a wxyz quaternion of any norm."""
+def _rotmat(q: np.ndarray) -> tuple[Mat3, tuple[float, float, float, float], float]:
+    """(R, unit quaternion, norm) of a wxyz quaternion of any norm."""
     norm = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
     w, x, y, z = q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
-    R = np.empty((3, 3))
-    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-    return R, np.array([w, x, y, z]), norm
+    R = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+    return R, (w, x, y, z), norm
 
 
 @njit(cache=True)
-def _rotmat_vjp(v_R: np.ndarray, qn: np.ndarray, norm: float) -> np.ndarray:
-    """Gradient of the raw quaternion from the gradient of its rotation matrix."""
-    w, x, y, z = qn[0], qn[1], qn[2], qn[3]
-    g = np.empty(4)
-    g[0] = 2 * (-z * v_R[0, 1] + y * v_R[0, 2] + z * v_R[1, 0] - x * v_R[1, 2]
-                - y * v_R[2, 0] + x * v_R[2, 1])
-    g[1] = 2 * (y * v_R[0, 1] + z * v_R[0, 2] + y * v_R[1, 0] - 2 * x * v_R[1, 1]
-                - w * v_R[1, 2] + z * v_R[2, 0] + w * v_R[2, 1] - 2 * x * v_R[2, 2])
-    g[2] = 2 * (-2 * y * v_R[0, 0] + x * v_R[0, 1] + w * v_R[0, 2] + x * v_R[1, 0]
-                + z * v_R[1, 2] - w * v_R[2, 0] + z * v_R[2, 1] - 2 * y * v_R[2, 2])
-    g[3] = 2 * (-2 * z * v_R[0, 0] - w * v_R[0, 1] + x * v_R[0, 2] + w * v_R[1, 0]
-                - 2 * z * v_R[1, 1] + y * v_R[1, 2] + x * v_R[2, 0] + y * v_R[2, 1])
-    # through q / |q| (the 1e-12 floor passes no gradient to the norm)
-    return (g - qn * np.sum(qn * g)) / norm if norm > 1e-12 else g / norm
+def _rotmat_vjp(v: Mat3, qn: tuple[float, float, float, float], norm: float, out: np.ndarray) -> None:
+    """out (4,) = gradient of the raw quaternion from the gradient v of its rotation matrix."""
+    w, x, y, z = qn
+    g0 = 2 * (-z * v[1] + y * v[2] + z * v[3] - x * v[5] - y * v[6] + x * v[7])
+    g1 = 2 * (y * v[1] + z * v[2] + y * v[3] - 2 * x * v[4] - w * v[5] + z * v[6] + w * v[7]
+              - 2 * x * v[8])
+    g2 = 2 * (-2 * y * v[0] + x * v[1] + w * v[2] + x * v[3] + z * v[5] - w * v[6] + z * v[7]
+              - 2 * y * v[8])
+    g3 = 2 * (-2 * z * v[0] - w * v[1] + x * v[2] + w * v[3] - 2 * z * v[4] + y * v[5] + x * v[6]
+              + y * v[7])
+    # through q / max(|q|, 1e-12); the floor passes no gradient to the norm
+    dot = (w * g0 + x * g1 + y * g2 + z * g3) if norm > 1e-12 else 0.0
+    out[0], out[1], out[2], out[3] = ((g0 - w * dot) / norm, (g1 - x * dot) / norm,
+                                      (g2 - y * dot) / norm, (g3 - z * dot) / norm)
 
 
 @njit(cache=True)
-def _camera_frame(mean: np.ndarray, cov3: np.ndarray, view: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(camera-space mean (3,), covariance (3, 3), rotation (3, 3))."""
-    Rv = view[:3, :3].astype(np.float64)
-    mc = _mv(Rv, mean) + view[:3, 3].astype(np.float64)
-    return mc, _mm(_mm(Rv, cov3), Rv.T), Rv
+def _covariance(q: np.ndarray, s: np.ndarray) -> tuple[Mat3, Mat3, Mat3]:
+    """(cov3 = M M^T, M = R diag(s), R)."""
+    R = _rotmat(q)[0]
+    M = (R[0] * s[0], R[1] * s[1], R[2] * s[2], R[3] * s[0], R[4] * s[1], R[5] * s[2],
+         R[6] * s[0], R[7] * s[1], R[8] * s[2])
+    return _mul(M, _tr(M)), M, R
 
 
 @njit(cache=True)
-def _jacobian(mc: np.ndarray, K: np.ndarray, width: int, height: int, near: float, far: float
-              ) -> tuple[np.ndarray, float, bool, bool, float, bool, float]:
-    """(J (2, 3), stand-in depth zs, in depth, x clamped, clamp x, y clamped, clamp y).
+def _view(view: np.ndarray) -> tuple[Mat3, Vec3]:
+    return ((view[0, 0], view[0, 1], view[0, 2], view[1, 0], view[1, 1], view[1, 2],
+             view[2, 0], view[2, 1], view[2, 2]), (view[0, 3], view[1, 3], view[2, 3]))
 
-    As 3DGS: the view direction in J is clamped to 1.3x the field of view; a Gaussian outside
-    the depth range gets zs = 1 so nothing downstream is inf or nan.
+
+@njit(cache=True)
+def _jacobian(mc: Vec3, K: np.ndarray, width: int, height: int, near: float, far: float):
+    """(zs, in depth, clamped x / z, x clamped, clamped y / z, y clamped).
+
+    As 3DGS: the view direction in the Jacobian J = [[fx/zs, 0, -fx tx/zs], [0, fy/zs, -fy ty/zs]]
+    is clamped to 1.3x the field of view; a Gaussian outside the depth range gets the stand-in
+    depth zs = 1 so nothing downstream is inf or nan.
     """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     in_depth = near < mc[2] < far
     zs = mc[2] if in_depth else 1.0
-    lim_xp = (width - cx) / fx + 0.3 * (0.5 * width / fx)
-    lim_xn = cx / fx + 0.3 * (0.5 * width / fx)
-    lim_yp = (height - cy) / fy + 0.3 * (0.5 * height / fy)
-    lim_yn = cy / fy + 0.3 * (0.5 * height / fy)
     rx, ry = mc[0] / zs, mc[1] / zs
-    cl_x, cl_y = max(min(rx, lim_xp), -lim_xn), max(min(ry, lim_yp), -lim_yn)
-    J = np.zeros((2, 3))
-    J[0, 0], J[0, 2] = fx / zs, -fx * cl_x / zs
-    J[1, 1], J[1, 2] = fy / zs, -fy * cl_y / zs
-    return J, zs, in_depth, cl_x != rx, cl_x, cl_y != ry, cl_y
+    tx = max(min(rx, (width - cx) / fx + 0.15 * width / fx), -(cx / fx + 0.15 * width / fx))
+    ty = max(min(ry, (height - cy) / fy + 0.15 * height / fy), -(cy / fy + 0.15 * height / fy))
+    return zs, in_depth, tx, tx != rx, ty, ty != ry
 
 
-@njit(cache=True)
-def _covariance(q: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                        np.ndarray, float]:
-    """(cov3 (3, 3), M = R diag(s), R, unit quaternion, quaternion norm)."""
-    R, qn, norm = _rotmat(q)
-    M = R * s.astype(np.float64)[None, :]
-    return _mm(M, M.T), M, R, qn, norm
+@njit(cache=True, inline="always")
+def _cov2(S: Mat3, j00: float, j02: float, j11: float, j12: float) -> Vec3:
+    """(c00, c11, c01) of J S J^T, J = [[j00, 0, j02], [0, j11, j12]]."""
+    c00 = j00 * j00 * S[0] + 2 * j00 * j02 * S[2] + j02 * j02 * S[8]
+    c11 = j11 * j11 * S[4] + 2 * j11 * j12 * S[5] + j12 * j12 * S[8]
+    c01 = j00 * j11 * S[1] + j00 * j12 * S[2] + j02 * j11 * S[5] + j02 * j12 * S[8]
+    return c00, c11, c01
 
 
 @njit(cache=True)
 def _project_one(mean, cov3, opacity, view, K, width, height, near, far, eps2d, radius_clip,
                  out2d, outconic, outdepth, outradii):
-    mc, covc, _ = _camera_frame(mean, cov3, view)
-    J, zs, in_depth, _, _, _, _ = _jacobian(mc, K, width, height, near, far)
-    cov2 = _mm(_mm(J, covc), J.T)
-    c00, c11 = cov2[0, 0] + eps2d, cov2[1, 1] + eps2d
-    c01 = 0.5 * (cov2[0, 1] + cov2[1, 0])
+    Rv, t = _view(view)
+    m = _mv(Rv, mean)
+    mc = (m[0] + t[0], m[1] + t[1], m[2] + t[2])
+    S = _mul(_mul(Rv, cov3), _tr(Rv))
+    zs, in_depth, tx, _, ty, _ = _jacobian(mc, K, width, height, near, far)
+    fx, fy = K[0, 0], K[1, 1]
+    c00, c11, c01 = _cov2(S, fx / zs, -fx * tx / zs, fy / zs, -fy * ty / zs)
+    c00 += eps2d
+    c11 += eps2d
     det = c00 * c11 - c01 * c01
     d = max(det, 1e-10)
     outconic[0], outconic[1], outconic[2] = c11 / d, -c01 / d, c00 / d
-    u = K[0, 0] * mc[0] / zs + K[0, 2]
-    v = K[1, 1] * mc[1] / zs + K[1, 2]
+    u = fx * mc[0] / zs + K[0, 2]
+    v = fy * mc[1] / zs + K[1, 2]
     out2d[0], out2d[1] = u, v
     outdepth[0] = mc[2]
     extend = min(math.sqrt(2.0 * math.log(max(opacity / ALPHA_MIN, 1.0))), RADIUS_SIGMAS)
@@ -140,18 +147,16 @@ def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height
     """Fill means2d (C, N, 2), conics (C, N, 3), depths (C, N, 1), radii (C, N, 2) int32."""
     for n in prange(means.shape[0]):
         cov3 = _covariance(quats[n], scales[n])[0]
-        mean = means[n].astype(np.float64)
+        mean = (means[n, 0], means[n, 1], means[n, 2])
         for c in range(viewmats.shape[0]):
-            _project_one(mean, cov3, opacities[n], viewmats[c], Ks[c].astype(np.float64),
-                         width, height, near, far, eps2d, radius_clip, means2d[c, n], conics[c, n],
-                         depths[c, n], radii[c, n])
+            _project_one(mean, cov3, opacities[n], viewmats[c], Ks[c], width, height, near, far,
+                         eps2d, radius_clip, means2d[c, n], conics[c, n], depths[c, n], radii[c, n])
 
 
 @njit(cache=True)
-def _cov2_vjp(cov2: np.ndarray, eps2d: float, v_conic: np.ndarray) -> np.ndarray:
-    """Gradient of the 2D covariance J cov J^T (2, 2) from the conic's gradient."""
-    c00, c11 = cov2[0, 0] + eps2d, cov2[1, 1] + eps2d
-    c01 = 0.5 * (cov2[0, 1] + cov2[1, 0])
+def _cov2_vjp(c00: float, c11: float, c01: float, v_conic: np.ndarray) -> Vec3:
+    """(g00, g11, g01): the gradient of J S J^T (symmetric, g01 on each off-diagonal entry)
+    from the conic's gradient; c00 and c11 include eps2d."""
     det = c00 * c11 - c01 * c01
     d = max(det, 1e-10)
     va, vb, vc = v_conic[0], v_conic[1], v_conic[2]
@@ -161,56 +166,85 @@ def _cov2_vjp(cov2: np.ndarray, eps2d: float, v_conic: np.ndarray) -> np.ndarray
         v00 += v_d * c11
         v11 += v_d * c00
         v01 -= 2.0 * v_d * c01
-    G = np.empty((2, 2))
-    G[0, 0], G[1, 1], G[0, 1], G[1, 0] = v00, v11, 0.5 * v01, 0.5 * v01
-    return G
+    return v00, v11, 0.5 * v01
+
+
+@njit(cache=True, inline="always")
+def _sym_outer(g00: float, g11: float, g01: float, r0: Vec3, r1: Vec3) -> Mat3:
+    """J^T G J for J with rows r0, r1 and G = [[g00, g01], [g01, g11]]."""
+    return (g00 * r0[0] * r0[0] + 2 * g01 * r0[0] * r1[0] + g11 * r1[0] * r1[0],
+            g00 * r0[0] * r0[1] + g01 * (r0[0] * r1[1] + r1[0] * r0[1]) + g11 * r1[0] * r1[1],
+            g00 * r0[0] * r0[2] + g01 * (r0[0] * r1[2] + r1[0] * r0[2]) + g11 * r1[0] * r1[2],
+            g00 * r0[1] * r0[0] + g01 * (r0[1] * r1[0] + r1[1] * r0[0]) + g11 * r1[1] * r1[0],
+            g00 * r0[1] * r0[1] + 2 * g01 * r0[1] * r1[1] + g11 * r1[1] * r1[1],
+            g00 * r0[1] * r0[2] + g01 * (r0[1] * r1[2] + r1[1] * r0[2]) + g11 * r1[1] * r1[2],
+            g00 * r0[2] * r0[0] + g01 * (r0[2] * r1[0] + r1[2] * r0[0]) + g11 * r1[2] * r1[0],
+            g00 * r0[2] * r0[1] + g01 * (r0[2] * r1[1] + r1[2] * r0[1]) + g11 * r1[2] * r1[1],
+            g00 * r0[2] * r0[2] + 2 * g01 * r0[2] * r1[2] + g11 * r1[2] * r1[2])
 
 
 @njit(cache=True)
-def _backward_one(mean, cov3, view, K, width, height, near, far, eps2d, v2d, v_conic, v_depth,
-                  v_mean, v_cov3):
-    """Add one camera's share to v_mean (3,) and v_cov3 (3, 3)."""
-    mc, covc, Rv = _camera_frame(mean, cov3, view)
-    J, zs, in_depth, clx, tx, cly, ty = _jacobian(mc, K, width, height, near, far)
+def _backward_one(mean, cov3, view, K, width, height, near, far, eps2d, v2d, v_conic, v_depth
+                  ) -> tuple[Vec3, Mat3]:
+    """One camera's share of (v_mean, v_cov3)."""
+    Rv, t = _view(view)
+    m = _mv(Rv, mean)
+    mc = (m[0] + t[0], m[1] + t[1], m[2] + t[2])
+    S = _mul(_mul(Rv, cov3), _tr(Rv))
+    zs, in_depth, tx, clx, ty, cly = _jacobian(mc, K, width, height, near, far)
     fx, fy = K[0, 0], K[1, 1]
-    G = _cov2_vjp(_mm(_mm(J, covc), J.T), eps2d, v_conic)
-    v_covc = _mm(_mm(J.T, G), J)
-    v_J = 2.0 * _mm(_mm(G, J), covc)
-    v_mc = np.zeros(3)
-    v_mc[0] = v2d[0] * fx / zs
-    v_mc[1] = v2d[1] * fy / zs
-    v_zs = -(v2d[0] * fx * mc[0] + v2d[1] * fy * mc[1]) / (zs * zs)
-    # J = [[fx/zs, 0, -fx tx/zs], [0, fy/zs, -fy ty/zs]] with tx = x/zs unless clamped
-    v_zs -= (v_J[0, 0] * fx + v_J[1, 1] * fy) / (zs * zs)
-    v_zs += (v_J[0, 2] * fx * tx + v_J[1, 2] * fy * ty) / (zs * zs)
-    if not clx:  # J02 = -fx x / zs²
-        v_mc[0] -= v_J[0, 2] * fx / (zs * zs)
-        v_zs += v_J[0, 2] * fx * tx / (zs * zs)
+    r0 = (fx / zs, 0.0, -fx * tx / zs)
+    r1 = (0.0, fy / zs, -fy * ty / zs)
+    c00, c11, c01 = _cov2(S, r0[0], r0[2], r1[1], r1[2])
+    g00, g11, g01 = _cov2_vjp(c00 + eps2d, c11 + eps2d, c01, v_conic)
+    v_S = _sym_outer(g00, g11, g01, r0, r1)
+    # v_J = 2 G J S, rows r_i S
+    u0, u1 = _mv(S, r0), _mv(S, r1)  # S is symmetric: r S = S r
+    vj00 = 2 * (g00 * u0[0] + g01 * u1[0])
+    vj02 = 2 * (g00 * u0[2] + g01 * u1[2])
+    vj11 = 2 * (g01 * u0[1] + g11 * u1[1])
+    vj12 = 2 * (g01 * u0[2] + g11 * u1[2])
+    z2 = zs * zs
+    v_x = v2d[0] * fx / zs
+    v_y = v2d[1] * fy / zs
+    v_zs = -(v2d[0] * fx * mc[0] + v2d[1] * fy * mc[1]) / z2
+    v_zs += (-vj00 * fx - vj11 * fy + vj02 * fx * tx + vj12 * fy * ty) / z2
+    if not clx:  # tx = x / zs
+        v_x -= vj02 * fx / z2
+        v_zs += vj02 * fx * tx / z2
     if not cly:
-        v_mc[1] -= v_J[1, 2] * fy / (zs * zs)
-        v_zs += v_J[1, 2] * fy * ty / (zs * zs)
-    if in_depth:
-        v_mc[2] += v_zs
-    v_mc[2] += v_depth
-    v_mean[:] += _mv(Rv.T, v_mc)
-    v_cov3[:] += _mm(_mm(Rv.T, v_covc), Rv)
+        v_y -= vj12 * fy / z2
+        v_zs += vj12 * fy * ty / z2
+    v_z = v_depth + (v_zs if in_depth else 0.0)
+    RvT = _tr(Rv)
+    return _mv(RvT, (v_x, v_y, v_z)), _mul(_mul(RvT, v_S), Rv)
 
 
 @njit(cache=True)
-def _gaussian_vjp(mean, quat, scale, viewmats, Ks, width, height, near, far, eps2d, v2d, v_conic,
-                  v_depth):
-    """(v_mean (3,), v_quat (4,), v_scale (3,)) of one Gaussian, cameras summed in order."""
-    cov3, M, R, qn, norm = _covariance(quat, scale)
-    mean = mean.astype(np.float64)
-    v_mean = np.zeros(3)
-    v_cov3 = np.zeros((3, 3))
+def _gaussian_vjp(n, means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+                  v_means2d, v_conics, v_depths, v_means, v_quats, v_scales) -> None:
+    """Row n of v_means, v_quats, v_scales, cameras summed in order."""
+    cov3, M, R = _covariance(quats[n], scales[n])
+    mean = (means[n, 0], means[n, 1], means[n, 2])
+    vm = (0.0, 0.0, 0.0)
+    vc = (0.0,) * 9
     for c in range(viewmats.shape[0]):
-        _backward_one(mean, cov3, viewmats[c], Ks[c].astype(np.float64), width, height, near,
-                      far, eps2d, v2d[c], v_conic[c], v_depth[c], v_mean, v_cov3)
-    v_M = _mm(v_cov3 + v_cov3.T, M)
-    v_scale = (v_M * R).sum(axis=0)
-    v_quat = _rotmat_vjp(v_M * scale.astype(np.float64)[None, :], qn, norm)
-    return v_mean, v_quat, v_scale
+        dm, dc = _backward_one(mean, cov3, viewmats[c], Ks[c], width, height, near, far, eps2d,
+                               v_means2d[c, n], v_conics[c, n], v_depths[c, n, 0])
+        vm = (vm[0] + dm[0], vm[1] + dm[1], vm[2] + dm[2])
+        vc = (vc[0] + dc[0], vc[1] + dc[1], vc[2] + dc[2], vc[3] + dc[3], vc[4] + dc[4],
+              vc[5] + dc[5], vc[6] + dc[6], vc[7] + dc[7], vc[8] + dc[8])
+    v_means[n, 0], v_means[n, 1], v_means[n, 2] = vm
+    vs = (vc[0] + vc[0], vc[1] + vc[3], vc[2] + vc[6], vc[3] + vc[1], vc[4] + vc[4],
+          vc[5] + vc[7], vc[6] + vc[2], vc[7] + vc[5], vc[8] + vc[8])
+    v_M = _mul(vs, M)  # d(M M^T) = (V + V^T) M
+    s = scales[n]
+    for j in range(3):
+        v_scales[n, j] = v_M[j] * R[j] + v_M[3 + j] * R[3 + j] + v_M[6 + j] * R[6 + j]
+    v_R = (v_M[0] * s[0], v_M[1] * s[1], v_M[2] * s[2], v_M[3] * s[0], v_M[4] * s[1],
+           v_M[5] * s[2], v_M[6] * s[0], v_M[7] * s[1], v_M[8] * s[2])
+    _, qn, norm = _rotmat(quats[n])
+    _rotmat_vjp(v_R, qn, norm, v_quats[n])
 
 
 @njit(cache=True, parallel=True)
@@ -222,7 +256,6 @@ def project_backward(means, quats, scales, viewmats, Ks, width, height, near, fa
     v_quats = np.zeros((N, 4))
     v_scales = np.zeros((N, 3))
     for n in prange(N):
-        v_means[n], v_quats[n], v_scales[n] = _gaussian_vjp(
-            means[n], quats[n], scales[n], viewmats, Ks, width, height, near, far, eps2d,
-            v_means2d[:, n], v_conics[:, n], v_depths[:, n, 0])
+        _gaussian_vjp(n, means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+                      v_means2d, v_conics, v_depths, v_means, v_quats, v_scales)
     return v_means, v_quats, v_scales

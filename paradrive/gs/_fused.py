@@ -15,9 +15,10 @@ from torch import Tensor
 
 from paradrive.gs import _cpu_kernels as K
 from paradrive.gs import _cpu_project as P
+from paradrive.gs import _cpu_sh as S
 from paradrive.gs._tiles import TileBins
 
-__all__ = ["bin_gaussians_fused", "composite_fused", "project_fused"]
+__all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "shade_fused"]
 
 
 def _f32(t: Tensor) -> np.ndarray:
@@ -145,3 +146,43 @@ def project_fused(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     """Same arguments and outputs as ``rasterize._project``; see FusedProjection."""
     settings = (width, height, float(near_plane), float(far_plane), float(eps2d), float(radius_clip))
     return FusedProjection.apply(means, quats, scales, opacities, viewmats, Ks, settings)
+
+
+class FusedSH(torch.autograd.Function):
+    """``rasterize._shade`` in Numba kernels: means (N, 3), coeffs (N, K, 3), campos (C, 3) (no
+    gradient) -> colours (C, N, 3)."""
+
+    @staticmethod
+    def forward(ctx, means, coeffs, campos, degree: int):
+        colors = np.empty((campos.shape[0], means.shape[0], 3), dtype=np.float32)
+        arrays = (_f32(means), _f32(coeffs), _f32(campos))
+        K.set_threads(torch.get_num_threads())
+        S.sh_forward(degree, *arrays, colors)
+        ctx.arrays, ctx.colors, ctx.degree, ctx.dtype = arrays, colors, degree, means.dtype
+        return torch.from_numpy(colors).to(means.dtype)
+
+    @staticmethod
+    def backward(ctx, v_colors):
+        K.set_threads(torch.get_num_threads())
+        v_means, v_coeffs = S.sh_backward(ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors))
+        return (torch.from_numpy(v_means).to(ctx.dtype), torch.from_numpy(v_coeffs).to(ctx.dtype),
+                None, None)
+
+
+def shade_fused(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> Tensor:
+    """Same as ``rasterize._shade``; per-camera coefficients (C, N, K, 3) take the torch path."""
+    if coeffs.dim() != 3:
+        from paradrive.gs.rasterize import _shade
+
+        return _shade(sh_degree, means, coeffs, campos)
+    _check_sh(sh_degree, coeffs)
+    return FusedSH.apply(means, coeffs, campos.detach(), sh_degree)
+
+
+def _check_sh(degree: int, coeffs: Tensor) -> None:
+    """The errors eval_sh gives, before the kernel indexes past the coefficients."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh_degree={degree} is not supported; use 0..3")
+    if coeffs.shape[-2] < (degree + 1) ** 2:
+        raise ValueError(f"sh_degree={degree} needs {(degree + 1) ** 2} coefficients per Gaussian, "
+                         f"got colors of shape {tuple(coeffs.shape)}")

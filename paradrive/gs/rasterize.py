@@ -1,8 +1,9 @@
-"""Differentiable 3D Gaussian splatting rasterizer: one entry point, two backends.
+"""Differentiable 3D Gaussian splatting rasterizer: one entry point, three backends.
 
 ``rasterize`` uses gsplat's CUDA kernels when the tensors live on a CUDA device and the extension
-loads, and otherwise a tile-based pure-torch backend (any device, fast on CPU) whose images and
-gradients match gsplat's conventions: EWA projection with a 2D low-pass ``eps2d``, opacity-aware
+loads, the fused CPU kernels (``cpu``: Numba, all threads, byte-identical at any thread count) for
+tensors on the CPU, and otherwise a tile-based torch-op backend (``torch``, any device; the
+reference the fused kernels are tested against). All match gsplat's conventions: EWA projection with a 2D low-pass ``eps2d``, opacity-aware
 screen boxes, per-tile depth sorting, front-to-back compositing with alpha clamped to 0.999,
 alpha < 1/255 skipped and early termination at transmittance 1e-4.
 """
@@ -21,6 +22,9 @@ _RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 # Tile edge of the torch backend. The image does not depend on it; 8 px tiles waste fewer
 # pixel-Gaussian pairs than gsplat's 16 and are about 1.6x faster on CPUs.
 TORCH_TILE_SIZE = 8
+# Tile edge of the fused CPU kernels, which visit only the pixels inside each Gaussian's ellipse:
+# measured, 16 px tiles (half the lists) are faster than 8.
+CPU_TILE_SIZE = 16
 
 # Real spherical-harmonics constants (3DGS convention), bands 0..3.
 _SH_C0 = 0.28209479177387814
@@ -136,11 +140,19 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height,
     return means2d, conics, depths, radii_xy
 
 
+def _shade(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> Tensor:
+    """(C, N, 3) colours max(SH(mean - campos) + 0.5, 0); coeffs (N, K, 3) or (C, N, K, 3)."""
+    C = campos.shape[0]
+    dirs = means[None] - campos[:, None, :]  # (C, N, 3)
+    coeffs = coeffs.expand((C,) + coeffs.shape) if coeffs.dim() == 3 else coeffs
+    return torch.clamp_min(eval_sh(sh_degree, coeffs, dirs) + 0.5, 0.0)
+
+
 def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                      sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
                      radius_clip, tile_size, backend="torch"):
     C, N = viewmats.shape[0], means.shape[0]
-    project, binner, compositor = _stages(backend)
+    project, shade, binner, compositor = _stages(backend)
     means2d, conics, depths, radii_xy = project(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         near_plane, far_plane, eps2d, radius_clip)
@@ -150,9 +162,7 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
             feats = colors.expand(C, N, colors.shape[-1]) if colors.dim() == 2 else colors
         else:
             campos = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
-            dirs = means[None] - campos[:, None, :]  # (C, N, 3)
-            coeffs = colors.expand((C,) + colors.shape) if colors.dim() == 3 else colors
-            feats = torch.clamp_min(eval_sh(sh_degree, coeffs, dirs) + 0.5, 0.0)
+            feats = shade(sh_degree, means, colors, campos)
         D = feats.shape[-1]
         if render_mode != "RGB":
             feats = torch.cat([feats, depths[..., None]], dim=-1)
@@ -184,13 +194,13 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
 
 
 def _stages(backend: str):
-    """(projection, binning, compositing) of a CPU-capable backend: the torch-op reference or the
+    """(projection, SH colour, binning, compositing) of a CPU-capable backend: the torch-op reference or the
     fused kernels."""
     if backend == "torch":
-        return _project, bin_gaussians, composite
-    from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused  # Numba
+        return _project, _shade, bin_gaussians, composite
+    from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused, shade_fused
 
-    return project_fused, bin_gaussians_fused, composite_fused
+    return project_fused, shade_fused, bin_gaussians_fused, composite_fused
 
 
 def cuda_backend_available() -> bool:
@@ -233,9 +243,12 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     viewmats (C, 4, 4) world-to-camera (OpenCV); Ks (C, 3, 3); backgrounds (C, 3) or None.
     render_mode: 'RGB' -> (C, H, W, 3); 'RGB+ED' -> (C, H, W, 4), last channel the expected
     depth (alpha-normalised z); 'RGB+D' accumulated depth; 'D' / 'ED' -> (C, H, W, 1).
-    backend: 'auto' (gsplat CUDA when the tensors are on CUDA and its extension loads, else
-    torch, with a warning on CUDA), 'torch' or 'gsplat' (ConfigError when it cannot run); see
-    :func:`paradrive.devices.resolve_backend`. tile_size is gsplat's; the torch backend uses TORCH_TILE_SIZE.
+    backend: 'auto' ('cpu' for CPU tensors; gsplat CUDA when the tensors are on CUDA and its
+    extension loads, else torch, with a warning), 'cpu' (the fused kernels on
+    torch.get_num_threads() threads; viewmats and Ks get no gradient), 'torch' or 'gsplat'
+    (ConfigError when it cannot run); see
+    :func:`paradrive.devices.resolve_backend`. tile_size is gsplat's; the torch backend uses
+    TORCH_TILE_SIZE, the fused CPU kernels ('cpu') CPU_TILE_SIZE.
 
     Returns (renders, alphas (C, H, W, 1), info) with info keys 'means2d' (C, N, 2; in the
     autograd graph, retain_grad() called when it requires grad), 'radii' (C, N) int32 (0 = not
@@ -255,5 +268,6 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)
     if backend in ("torch", "cpu"):
-        return _torch_rasterize(*args[:-1], TORCH_TILE_SIZE, backend)
+        ts = TORCH_TILE_SIZE if backend == "torch" else CPU_TILE_SIZE
+        return _torch_rasterize(*args[:-1], ts, backend)
     return _gsplat_rasterize(*args)
