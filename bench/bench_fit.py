@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shutil
 import sys
@@ -57,10 +58,29 @@ def time_fit(scene_dir: Path, params: dict, backend: str) -> dict:
             "resolution": doc["resolution"], "init": doc["init"]["method"]}
 
 
+def first_call_seconds(backend: str) -> float:
+    """A tiny forward+backward: the one-off cost (Numba loads or compiles its kernels) that the
+    fit would otherwise count as its own."""
+    import torch
+
+    from paradrive.gs.rasterize import rasterize
+
+    leaves = [torch.rand(4, 3).add_(torch.tensor([0.0, 0.0, 2.0])), torch.rand(4, 4),
+              torch.full((4, 3), 0.1), torch.rand(4), torch.rand(4, 16, 3)]
+    leaves = [t.requires_grad_(True) for t in leaves]
+    K = torch.tensor([[[20.0, 0, 16], [0, 20.0, 16], [0, 0, 1]]])
+    t0 = time.perf_counter()
+    out, alphas, _ = rasterize(*leaves, torch.eye(4)[None], K, 32, 32, sh_degree=3,
+                               render_mode="RGB+ED", backend=backend)
+    (out.sum() + alphas.sum()).backward()
+    return round(time.perf_counter() - t0, 2)
+
+
 def bench(profile: str, iterations: int, threads: int | None, backends: list[str],
           root: Path) -> dict:
     import torch
 
+    first = {b: first_call_seconds(b) for b in backends}
     scene_dir, params = ingest(profile, root)
     params.update(checkpoints=[iterations], keep_state=False)
     if threads is not None:
@@ -70,7 +90,8 @@ def bench(profile: str, iterations: int, threads: int | None, backends: list[str
     cam = next(iter(scene["cameras"].values()))
     out = {"profile": profile, "iterations": iterations, "frames": len(scene["frames"]),
            "image_resolution": [cam["width"], cam["height"]], "threads": params["threads"],
-           "torch": torch.__version__, "runs": runs}
+           "torch": torch.__version__, "load_average": [round(x, 2) for x in os.getloadavg()],
+           "first_call_seconds": first, "runs": runs}
     if len(runs) > 1:
         out["speedup"] = round(runs[0]["iterations_per_second"] / runs[1]["iterations_per_second"], 2)
     return out

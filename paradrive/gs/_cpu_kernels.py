@@ -98,26 +98,28 @@ def _row_span(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int) -> tup
 
 
 @njit(cache=True, inline="always")
-def _row_start(gauss: np.ndarray, e: int, x0: int, py: float) -> tuple[float, float, float]:
-    """(exp(-sigma) at pixel x0, its factor to the next pixel, that factor's own factor).
+def _row_alphas(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int, out: np.ndarray
+                ) -> tuple[int, int]:
+    """Alphas of entry e along the row at py: out[x - x_lo] for x in the returned [x0, x1).
 
     Along a row sigma is a quadratic in x, so exp(-sigma) steps by a factor that itself changes
-    by exp(-a): two multiplications per pixel instead of an exp().
+    by exp(-a): two multiplications per pixel instead of an exp(). A pixel with sigma < 0
+    (exp(-sigma) > 1) or alpha < 1/255 gets 0.
     """
-    a, b, c = gauss[e, 2], gauss[e, 3], gauss[e, 4]
+    x0, x1 = _row_span(gauss, e, py, x_lo, x_hi)
+    if x0 == x1:
+        return x0, x1
+    a, b, c, op = gauss[e, 2], gauss[e, 3], gauss[e, 4], gauss[e, 5]
     dx = gauss[e, 0] - (x0 + 0.5)
     dy = gauss[e, 1] - py
-    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    return math.exp(-sigma), math.exp(a * dx - 0.5 * a + b * dy), math.exp(-a)
-
-
-@njit(cache=True, inline="always")
-def _alpha_of(gauss: np.ndarray, e: int, E: float) -> float:
-    """Alpha of entry e where exp(-sigma) = E; 0 where it is skipped (sigma < 0: E > 1)."""
-    if E > 1.0:
-        return 0.0
-    alpha = min(ALPHA_MAX, gauss[e, 5] * E)
-    return alpha if alpha >= ALPHA_MIN else 0.0
+    E = math.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy))
+    step, ratio = math.exp(a * dx - 0.5 * a + b * dy), math.exp(-a)
+    for x in range(x0, x1):
+        alpha = min(ALPHA_MAX, op * E)
+        out[x - x_lo] = alpha if E <= 1.0 and alpha >= ALPHA_MIN else 0.0
+        E *= step
+        step *= ratio
+    return x0, x1
 
 
 @njit(cache=True)
@@ -141,17 +143,15 @@ def _forward_tile(t: int, gauss: np.ndarray, start: int, n: int, ts: int, tiles_
     acc = np.zeros((ts * ts, D))
     stop = np.zeros(ts * ts, dtype=np.int64)
     done = np.zeros(ts * ts, dtype=np.bool_)
+    alphas = np.empty(ts)
     active = (y_hi - y_lo) * (x_hi - x_lo)
     for j in range(n):
         e = start + j
         for y in range(y_lo, y_hi):
-            x0, x1 = _row_span(gauss, e, y + 0.5, x_lo, x_hi)
-            E, step, ratio = _row_start(gauss, e, x0, y + 0.5)
+            x0, x1 = _row_alphas(gauss, e, y + 0.5, x_lo, x_hi, alphas)
             for x in range(x0, x1):
                 p = (y - y_lo) * ts + x - x_lo
-                alpha = _alpha_of(gauss, e, E)
-                E *= step
-                step *= ratio
+                alpha = alphas[x - x_lo]
                 if done[p] or alpha == 0.0:
                     continue
                 next_T = T[p] * (1.0 - alpha)
@@ -235,17 +235,15 @@ def _backward_tile(t: int, gauss: np.ndarray, start: int, ts: int, tiles_x: int,
                 bg_dot += bg[cam, k] * dC[p, k]
             q[p] = T[p] * (d_alpha[cam, y, x] - bg_dot)
     g = np.zeros(grads.shape[1])
+    alphas = np.empty(ts)
     for j in range(stop.max() - 1, -1, -1):
         e = start + j
         g[:] = 0.0
         for y in range(y_lo, y_hi):
-            x0, x1 = _row_span(gauss, e, y + 0.5, x_lo, x_hi)
-            E, step, ratio = _row_start(gauss, e, x0, y + 0.5)
+            x0, x1 = _row_alphas(gauss, e, y + 0.5, x_lo, x_hi, alphas)
             for x in range(x0, x1):
                 p = (y - y_lo) * ts + x - x_lo
-                alpha = _alpha_of(gauss, e, E)
-                E *= step
-                step *= ratio
+                alpha = alphas[x - x_lo]
                 if j < stop[p] and alpha > 0.0:
                     _backward_pair(gauss, e, alpha, x + 0.5, y + 0.5, p, T, buf, dC, q, g)
         grads[e] = g

@@ -82,9 +82,13 @@ def _covariance(q: np.ndarray, s: np.ndarray) -> tuple[Mat3, Mat3, Mat3]:
 
 
 @njit(cache=True)
-def _view(view: np.ndarray) -> tuple[Mat3, Vec3]:
-    return ((view[0, 0], view[0, 1], view[0, 2], view[1, 0], view[1, 1], view[1, 2],
-             view[2, 0], view[2, 1], view[2, 2]), (view[0, 3], view[1, 3], view[2, 3]))
+def _camera_space(mean: Vec3, cov3: Mat3, view: np.ndarray) -> tuple[Vec3, Mat3, Mat3]:
+    """(camera-space mean, camera-space covariance, the view's rotation Rv)."""
+    Rv = (view[0, 0], view[0, 1], view[0, 2], view[1, 0], view[1, 1], view[1, 2],
+          view[2, 0], view[2, 1], view[2, 2])
+    m = _mv(Rv, mean)
+    mc = (m[0] + view[0, 3], m[1] + view[1, 3], m[2] + view[2, 3])
+    return mc, _mul(_mul(Rv, cov3), _tr(Rv)), Rv
 
 
 @njit(cache=True)
@@ -116,10 +120,7 @@ def _cov2(S: Mat3, j00: float, j02: float, j11: float, j12: float) -> Vec3:
 @njit(cache=True)
 def _project_one(mean, cov3, opacity, view, K, width, height, near, far, eps2d, radius_clip,
                  out2d, outconic, outdepth, outradii):
-    Rv, t = _view(view)
-    m = _mv(Rv, mean)
-    mc = (m[0] + t[0], m[1] + t[1], m[2] + t[2])
-    S = _mul(_mul(Rv, cov3), _tr(Rv))
+    mc, S, _ = _camera_space(mean, cov3, view)
     zs, in_depth, tx, _, ty, _ = _jacobian(mc, K, width, height, near, far)
     fx, fy = K[0, 0], K[1, 1]
     c00, c11, c01 = _cov2(S, fx / zs, -fx * tx / zs, fy / zs, -fy * ty / zs)
@@ -187,10 +188,7 @@ def _sym_outer(g00: float, g11: float, g01: float, r0: Vec3, r1: Vec3) -> Mat3:
 def _backward_one(mean, cov3, view, K, width, height, near, far, eps2d, v2d, v_conic, v_depth
                   ) -> tuple[Vec3, Mat3]:
     """One camera's share of (v_mean, v_cov3)."""
-    Rv, t = _view(view)
-    m = _mv(Rv, mean)
-    mc = (m[0] + t[0], m[1] + t[1], m[2] + t[2])
-    S = _mul(_mul(Rv, cov3), _tr(Rv))
+    mc, S, Rv = _camera_space(mean, cov3, view)
     zs, in_depth, tx, clx, ty, cly = _jacobian(mc, K, width, height, near, far)
     fx, fy = K[0, 0], K[1, 1]
     r0 = (fx / zs, 0.0, -fx * tx / zs)
