@@ -5,7 +5,16 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_rasterize import W, H, _grads, _leaves, _loss_weights, assert_grads_close, make_cameras, make_scene
+from test_rasterize import (
+    H,
+    W,
+    _grads,
+    _leaves,
+    _loss_weights,
+    assert_grads_close,
+    make_cameras,
+    make_scene,
+)
 
 from paradrive.gs.rasterize import rasterize
 
@@ -15,7 +24,7 @@ BG = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.0, 0.3]])
 def _both(scene, weights, **kw):
     """(cpu, torch) results of _grads for the same scene, cameras and loss."""
     cams = make_cameras()
-    return [_grads(lambda *x, **k: rasterize(*x, backend=b, **kw, **k), scene, cams, weights)
+    return [_grads(lambda *x, b=b, **k: rasterize(*x, backend=b, **kw, **k), scene, cams, weights)
             for b in ("cpu", "torch")]
 
 
@@ -103,4 +112,4 @@ def test_images_and_gradients_are_byte_identical_at_any_thread_count():
         torch.set_num_threads(old)
     for r, a, g in results[1:]:
         assert torch.equal(r, results[0][0]) and torch.equal(a, results[0][1])
-        assert all(torch.equal(x, y) for x, y in zip(g, results[0][2]))
+        assert all(torch.equal(x, y) for x, y in zip(g, results[0][2], strict=True))

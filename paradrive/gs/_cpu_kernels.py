@@ -166,10 +166,18 @@ def _forward_tile(t: int, gauss: np.ndarray, start: int, n: int, ts: int, tiles_
                 stop[p] = j + 1
         if active == 0:
             break
+    _write_tile(cam, y_lo, y_hi, x_lo, x_hi, ts, acc, T, stop, bg, render, trans, last)
+
+
+@njit(cache=True)
+def _write_tile(cam: int, y_lo: int, y_hi: int, x_lo: int, x_hi: int, ts: int, acc: np.ndarray,
+                T: np.ndarray, stop: np.ndarray, bg: np.ndarray, render: np.ndarray,
+                trans: np.ndarray, last: np.ndarray) -> None:
+    """Copy a tile's pixels out, the background behind what is left of their transmittance."""
     for y in range(y_lo, y_hi):
         for x in range(x_lo, x_hi):
             p = (y - y_lo) * ts + x - x_lo
-            for k in range(D):
+            for k in range(acc.shape[1]):
                 render[cam, y, x, k] = acc[p, k] + T[p] * bg[cam, k]
             trans[cam, y, x] = T[p]
             last[cam, y, x] = stop[p]
