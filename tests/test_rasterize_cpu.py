@@ -113,3 +113,16 @@ def test_images_and_gradients_are_byte_identical_at_any_thread_count():
     for r, a, g in results[1:]:
         assert torch.equal(r, results[0][0]) and torch.equal(a, results[0][1])
         assert all(torch.equal(x, y) for x, y in zip(g, results[0][2], strict=True))
+
+
+def test_torch_keeps_its_thread_count_after_the_kernels_run():
+    """Numba's OpenMP layer shares torch's runtime; a fit's fixed thread count must survive it."""
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        scene = _leaves(make_scene(n=50, seed=30, sh_k=16))
+        r, a, _ = rasterize(*scene, *make_cameras(), W, H, sh_degree=3, backend="cpu")
+        (r.sum() + a.sum()).backward()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(old)

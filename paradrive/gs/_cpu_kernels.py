@@ -47,26 +47,10 @@ def tile_ranges(mx: float, my: float, rx: float, ry: float, ts: int, tiles_x: in
 
 
 @njit(cache=True)
-def bin_counts(order: np.ndarray, means2d: np.ndarray, radii: np.ndarray, n_per_cam: int,
-               ts: int, tiles_x: int, tiles_y: int, n_tiles: int) -> np.ndarray:
-    """Gaussians per tile. order: (M,) flat ids of visible Gaussians, front to back."""
-    counts = np.zeros(n_tiles, dtype=np.int64)
-    for g in order:
-        cam = g // n_per_cam
-        x0, x1, y0, y1 = tile_ranges(means2d[g, 0], means2d[g, 1], radii[g, 0], radii[g, 1],
-                                     ts, tiles_x, tiles_y)
-        for ty in range(y0, y1):
-            for tx in range(x0, x1):
-                counts[(cam * tiles_y + ty) * tiles_x + tx] += 1
-    return counts
-
-
-@njit(cache=True)
-def bin_fill(order: np.ndarray, means2d: np.ndarray, radii: np.ndarray, n_per_cam: int,
-             ts: int, tiles_x: int, tiles_y: int, offsets: np.ndarray, n_isects: int) -> np.ndarray:
-    """Flat Gaussian ids per tile; walking ``order`` front to back keeps each list depth-sorted."""
-    ids = np.empty(n_isects, dtype=np.int64)
-    fill = offsets.copy()
+def _bin_pass(order: np.ndarray, means2d: np.ndarray, radii: np.ndarray, n_per_cam: int,
+              ts: int, tiles_x: int, tiles_y: int, fill: np.ndarray, ids: np.ndarray) -> None:
+    """Walk every (Gaussian, touched tile) pair: fill[t] += 1, and ids[fill[t]] = g first when
+    ids is not empty. order: (M,) flat ids of visible Gaussians, front to back."""
     for g in order:
         cam = g // n_per_cam
         x0, x1, y0, y1 = tile_ranges(means2d[g, 0], means2d[g, 1], radii[g, 0], radii[g, 1],
@@ -74,9 +58,24 @@ def bin_fill(order: np.ndarray, means2d: np.ndarray, radii: np.ndarray, n_per_ca
         for ty in range(y0, y1):
             for tx in range(x0, x1):
                 t = (cam * tiles_y + ty) * tiles_x + tx
-                ids[fill[t]] = g
+                if ids.shape[0]:
+                    ids[fill[t]] = g
                 fill[t] += 1
-    return ids
+
+
+@njit(cache=True)
+def bin_lists(order: np.ndarray, means2d: np.ndarray, radii: np.ndarray, n_per_cam: int,
+              ts: int, tiles_x: int, tiles_y: int, n_tiles: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(flat Gaussian ids grouped by tile, offsets, counts); walking ``order`` front to back
+    keeps each tile's list depth-sorted."""
+    counts = np.zeros(n_tiles, dtype=np.int64)
+    _bin_pass(order, means2d, radii, n_per_cam, ts, tiles_x, tiles_y, counts,
+              np.empty(0, dtype=np.int64))
+    offsets = np.cumsum(counts) - counts
+    ids = np.empty(counts.sum(), dtype=np.int64)
+    _bin_pass(order, means2d, radii, n_per_cam, ts, tiles_x, tiles_y, offsets.copy(), ids)
+    return ids, offsets, counts
 
 
 @njit(cache=True, inline="always")

@@ -8,6 +8,8 @@ interchangeable behind ``rasterize``.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -19,6 +21,19 @@ from paradrive.gs import _cpu_sh as S
 from paradrive.gs._tiles import TileBins
 
 __all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "shade_fused"]
+
+
+@contextmanager
+def _kernel_threads() -> Iterator[None]:
+    """Run Numba on torch's thread count and give torch its count back afterwards: Numba's
+    OpenMP layer shares torch's OpenMP runtime and resets its thread count when it starts."""
+    n = torch.get_num_threads()
+    K.set_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
 
 
 def _f32(t: Tensor) -> np.ndarray:
@@ -38,10 +53,8 @@ def bin_gaussians_fused(means2d: Tensor, radii_xy: Tensor, depths: Tensor, width
     visible = torch.nonzero((radii_xy > 0).all(dim=-1).reshape(-1)).squeeze(1)
     order = visible[torch.sort(depths.detach().reshape(-1)[visible], stable=True).indices]
     m, r = _f32(means2d.reshape(-1, 2)), _f32(radii_xy.reshape(-1, 2))
-    o = order.numpy()
-    counts = K.bin_counts(o, m, r, max(N, 1), tile_size, tiles_x, tiles_y, C * tiles_x * tiles_y)
-    offsets = np.cumsum(counts) - counts
-    ids = K.bin_fill(o, m, r, max(N, 1), tile_size, tiles_x, tiles_y, offsets, int(counts.sum()))
+    ids, offsets, counts = K.bin_lists(order.numpy(), m, r, max(N, 1), tile_size, tiles_x,
+                                       tiles_y, C * tiles_x * tiles_y)
     return TileBins(C, width, height, tile_size, tiles_x, tiles_y, torch.from_numpy(ids),
                     torch.from_numpy(offsets), torch.from_numpy(counts))
 
@@ -68,9 +81,9 @@ class FusedComposite(torch.autograd.Function):
         render = np.empty((C, H, W, D), dtype=np.float32)
         trans = np.empty((C, H, W), dtype=np.float32)
         last = np.empty((C, H, W), dtype=np.int64)
-        K.set_threads(torch.get_num_threads())
-        K.composite_forward(gauss, bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size,
-                            bins.tiles_x, bins.tiles_y, bg, render, trans, last)
+        with _kernel_threads():
+            K.composite_forward(gauss, bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size,
+                                bins.tiles_x, bins.tiles_y, bg, render, trans, last)
         ctx.bins, ctx.arrays, ctx.n_flat = bins, (gauss, bg, trans, last), means2d.shape[0]
         ctx.save_for_backward(backgrounds)
         dtype = means2d.dtype
@@ -83,10 +96,10 @@ class FusedComposite(torch.autograd.Function):
         (backgrounds,) = ctx.saved_tensors
         bins = ctx.bins
         gauss, bg, trans, last = ctx.arrays
-        K.set_threads(torch.get_num_threads())
-        per_isect = K.composite_backward(gauss, bins.offsets.numpy(), bins.tile_size,
-                                         bins.tiles_x, bins.tiles_y, bg, trans, last,
-                                         _f32(grad_renders), _f32(grad_alphas[..., 0]))
+        with _kernel_threads():
+            per_isect = K.composite_backward(gauss, bins.offsets.numpy(), bins.tile_size,
+                                             bins.tiles_x, bins.tiles_y, bg, trans, last,
+                                             _f32(grad_renders), _f32(grad_alphas[..., 0]))
         dtype = grad_renders.dtype
         total = torch.from_numpy(K.sum_by_gaussian(per_isect, bins.flat_ids.numpy(),
                                                    ctx.n_flat)).to(dtype)
@@ -120,8 +133,8 @@ class FusedProjection(torch.autograd.Function):
         radii = np.empty((C, N, 2), dtype=np.int32)
         arrays = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(viewmats),
                   _f32(Ks))
-        K.set_threads(torch.get_num_threads())
-        P.project_forward(*arrays, *settings, means2d, conics, depths, radii)
+        with _kernel_threads():
+            P.project_forward(*arrays, *settings, means2d, conics, depths, radii)
         ctx.arrays, ctx.settings, ctx.dtype = arrays, settings, dtype
         ctx.mark_non_differentiable(radii_t := torch.from_numpy(radii))
         return (torch.from_numpy(means2d).to(dtype), torch.from_numpy(conics).to(dtype),
@@ -131,10 +144,10 @@ class FusedProjection(torch.autograd.Function):
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
         means, quats, scales, _, viewmats, Ks = ctx.arrays
         width, height, near, far, eps2d, _ = ctx.settings
-        K.set_threads(torch.get_num_threads())
-        grads = P.project_backward(means, quats, scales, viewmats, Ks, width, height, near, far,
-                                   eps2d, _f32(v_means2d), _f32(v_conics),
-                                   _f32(v_depths[..., None]))
+        with _kernel_threads():
+            grads = P.project_backward(means, quats, scales, viewmats, Ks, width, height, near, far,
+                                       eps2d, _f32(v_means2d), _f32(v_conics),
+                                       _f32(v_depths[..., None]))
         v_means, v_quats, v_scales = (torch.from_numpy(g).to(ctx.dtype) for g in grads)
         return v_means, v_quats, v_scales, None, None, None, None
 
@@ -156,15 +169,15 @@ class FusedSH(torch.autograd.Function):
     def forward(ctx, means, coeffs, campos, degree: int):
         colors = np.empty((campos.shape[0], means.shape[0], 3), dtype=np.float32)
         arrays = (_f32(means), _f32(coeffs), _f32(campos))
-        K.set_threads(torch.get_num_threads())
-        S.sh_forward(degree, *arrays, colors)
+        with _kernel_threads():
+            S.sh_forward(degree, *arrays, colors)
         ctx.arrays, ctx.colors, ctx.degree, ctx.dtype = arrays, colors, degree, means.dtype
         return torch.from_numpy(colors).to(means.dtype)
 
     @staticmethod
     def backward(ctx, v_colors):
-        K.set_threads(torch.get_num_threads())
-        v_means, v_coeffs = S.sh_backward(ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors))
+        with _kernel_threads():
+            v_means, v_coeffs = S.sh_backward(ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors))
         return (torch.from_numpy(v_means).to(ctx.dtype), torch.from_numpy(v_coeffs).to(ctx.dtype),
                 None, None)
 

@@ -1,11 +1,12 @@
 """Differentiable 3D Gaussian splatting rasterizer: one entry point, three backends.
 
 ``rasterize`` uses gsplat's CUDA kernels when the tensors live on a CUDA device and the extension
-loads, the fused CPU kernels (``cpu``: Numba, all threads, byte-identical at any thread count) for
-tensors on the CPU, and otherwise a tile-based torch-op backend (``torch``, any device; the
-reference the fused kernels are tested against). All match gsplat's conventions: EWA projection with a 2D low-pass ``eps2d``, opacity-aware
-screen boxes, per-tile depth sorting, front-to-back compositing with alpha clamped to 0.999,
-alpha < 1/255 skipped and early termination at transmittance 1e-4.
+loads, the fused CPU kernels (``cpu``: Numba, the torch thread count, byte-identical at any
+count) for tensors on the CPU, and otherwise a tile-based torch-op backend (``torch``, any
+device; the reference the fused kernels are tested against). All match gsplat's conventions:
+EWA projection with a 2D low-pass ``eps2d``, opacity-aware screen boxes, per-tile depth
+sorting, front-to-back compositing with alpha clamped to 0.999, alpha < 1/255 skipped and early
+termination at transmittance 1e-4.
 """
 
 from __future__ import annotations
