@@ -1,18 +1,24 @@
-"""Fit throughput: iterations per second at smoke and demo sizes; prints JSON.
+"""Fit throughput: iterations per second at smoke and demo sizes, fused CPU kernels against the
+torch-op rasterizer; prints JSON.
 
-    .venv/bin/python bench/bench_fit.py [--sizes smoke,demo] [--iterations 60]
+    .venv/bin/python bench/bench_fit.py [--sizes smoke,demo] [--iterations 60] [--threads 2]
+                                        [--backends cpu,torch]
 
 Each size ingests the synthetic street with that profile's ingest parameters, then times a fit
-with that profile's fit parameters shortened to ``--iterations`` (the first iterations, before
-densification, dominate neither way: the count is reported next to the rate). Wall and process
-CPU seconds are both reported; on a shared machine trust the CPU figure.
+per backend with that profile's fit parameters shortened to ``--iterations`` (the first
+iterations, before densification, dominate neither way: the count is reported next to the rate).
+Both fits start from the same scene and the same initial Gaussians; ``speedup`` is the ratio of
+their rates, measured in the same process. Wall and process CPU seconds are both reported; on a
+shared machine trust the ratio.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import shutil
 import sys
 import tempfile
 import time
@@ -22,10 +28,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def bench(profile: str, iterations: int, root: Path) -> dict:
-    import torch
-
-    from paradrive.gs.fit import fit_scene
+def ingest(profile: str, root: Path) -> tuple[Path, dict]:
+    """The synthetic street ingested with the profile's parameters: (scene dir, fit params)."""
     from paradrive.pipeline import StageRegistry, run_build
 
     config = StageRegistry().resolve(profile)
@@ -34,35 +38,77 @@ def bench(profile: str, iterations: int, root: Path) -> dict:
     if report.failures():
         raise RuntimeError([r.error for r in report.failures()])
     (scene_dir,) = (root / "data" / "scenes").iterdir()
-    params = dict(config.params["fit"])
-    params["checkpoints"] = [iterations]
-    params["keep_state"] = False
+    return scene_dir, dict(config.params["fit"])
+
+
+def time_fit(scene_dir: Path, params: dict, backend: str) -> dict:
+    """One fit of the scene with ``backend``, from scratch (its gs/ folder removed first)."""
+    from paradrive.gs.fit import fit_scene
+
+    shutil.rmtree(scene_dir / "gs", ignore_errors=True)
     t0, c0 = time.perf_counter(), time.process_time()
-    doc = fit_scene(scene_dir, params)
+    doc = fit_scene(scene_dir, {**params, "backend": backend})
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     last = doc["checkpoints"][-1]
-    scene = json.loads((scene_dir / "scene.json").read_text())
-    cam = next(iter(scene["cameras"].values()))
-    return {"profile": profile, "iterations": iterations, "frames": len(scene["frames"]),
-            "train_resolution": doc["resolution"], "image_resolution": [cam["width"], cam["height"]],
-            "gaussians": last["num_gaussians"], "init": doc["init"]["method"],
+    return {"backend": backend, "gaussians": last["num_gaussians"],
             "fit_seconds": round(last["seconds"], 2), "wall_seconds_with_setup": round(wall, 2),
             "cpu_seconds": round(cpu, 2),
-            "iterations_per_second": round(iterations / last["seconds"], 3),
+            "iterations_per_second": round(params["checkpoints"][-1] / last["seconds"], 3),
             "psnr": round(last["psnr"], 2), "peak_rss_mb": last["peak_rss_mb"],
-            "torch_threads": params["threads"], "device": doc["device"],
-            "torch": torch.__version__}
+            "resolution": doc["resolution"], "init": doc["init"]["method"]}
+
+
+def first_call_seconds(backend: str) -> float:
+    """A tiny forward+backward: the one-off cost (Numba loads or compiles its kernels) that the
+    fit would otherwise count as its own."""
+    import torch
+
+    from paradrive.gs.rasterize import rasterize
+
+    leaves = [torch.rand(4, 3).add_(torch.tensor([0.0, 0.0, 2.0])), torch.rand(4, 4),
+              torch.full((4, 3), 0.1), torch.rand(4), torch.rand(4, 16, 3)]
+    leaves = [t.requires_grad_(True) for t in leaves]
+    K = torch.tensor([[[20.0, 0, 16], [0, 20.0, 16], [0, 0, 1]]])
+    t0 = time.perf_counter()
+    out, alphas, _ = rasterize(*leaves, torch.eye(4)[None], K, 32, 32, sh_degree=3,
+                               render_mode="RGB+ED", backend=backend)
+    (out.sum() + alphas.sum()).backward()
+    return round(time.perf_counter() - t0, 2)
+
+
+def bench(profile: str, iterations: int, threads: int | None, backends: list[str],
+          root: Path) -> dict:
+    import torch
+
+    first = {b: first_call_seconds(b) for b in backends}
+    scene_dir, params = ingest(profile, root)
+    params.update(checkpoints=[iterations], keep_state=False)
+    if threads is not None:
+        params["threads"] = threads
+    runs = [time_fit(scene_dir, params, b) for b in backends]
+    scene = json.loads((scene_dir / "scene.json").read_text())
+    cam = next(iter(scene["cameras"].values()))
+    out = {"profile": profile, "iterations": iterations, "frames": len(scene["frames"]),
+           "image_resolution": [cam["width"], cam["height"]], "threads": params["threads"],
+           "torch": torch.__version__, "load_average": [round(x, 2) for x in os.getloadavg()],
+           "first_call_seconds": first, "runs": runs}
+    if len(runs) > 1:
+        out["speedup"] = round(runs[0]["iterations_per_second"] / runs[1]["iterations_per_second"], 2)
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="smoke,demo")
     ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--threads", type=int, default=None, help="override the profile's fit threads")
+    ap.add_argument("--backends", default="cpu,torch", help="the first is compared to the second")
     args = ap.parse_args()
+    backends = [b.strip() for b in args.backends.split(",")]
     results = []
     for size in args.sizes.split(","):
         with tempfile.TemporaryDirectory() as tmp:
-            results.append(bench(size.strip(), args.iterations, Path(tmp)))
+            results.append(bench(size.strip(), args.iterations, args.threads, backends, Path(tmp)))
     print(json.dumps({"bench": "fit", "machine": platform.machine(), "results": results}, indent=2))
 
 

@@ -1,20 +1,23 @@
-"""Forward+backward time of the torch rasterizer backend on CPU, against gsplat's pure-torch
-reference pipeline (the test oracle in tests/test_rasterize.py) on the same inputs.
+"""Forward+backward time of the CPU rasterizers: the fused kernels (backend 'cpu') against the
+torch-op rasterizer (backend 'torch') on the same scene, and both against gsplat's pure-torch
+reference pipeline (the test oracle in tests/test_rasterize.py).
 
-    python bench/bench_rasterize.py [--gaussians 100000 --width 832 --height 480]
+    python bench/bench_rasterize.py [--gaussians 100000 --width 832 --height 480] [--threads 2]
 
-The reference builds its tile lists in a Python loop per Gaussian and expands every
-tile-Gaussian pair to all tile pixels, so it is measured on the first --ref-gaussians of the
-same scene (default: min(--gaussians, 20000)); ours is measured at that size too (the ratio) and
-at full size. Prints one JSON object.
+``full.speedup`` is torch-op time / fused time at full size, measured in the same process. The
+reference builds its tile lists in a Python loop per Gaussian and expands every tile-Gaussian
+pair to all tile pixels, so it is measured on the first --ref-gaussians of the same scene
+(default: min(--gaussians, 20000)), with both backends at that size too. Prints one JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import json
 import math
+import os
 import platform
 import statistics
 import sys
@@ -87,27 +90,30 @@ def main(argv=None):
     n_ref = a.ref_gaussians or min(a.gaussians, 20_000)
     W, H = a.width, a.height
 
-    def ours(*args, **kw):
-        return rasterize(*args, backend="torch", **kw)
-
+    backends = {name: functools.partial(rasterize, backend=name) for name in ("cpu", "torch")}
     scene, viewmats, Ks = make_scene(a.gaussians, W, H)
-    _, _, info = ours(*scene.values(), viewmats, Ks, W, H, sh_degree=3)  # warm-up
+    for fn in backends.values():  # warm-up (and Numba's first load)
+        _, _, info = fn(*scene.values(), viewmats, Ks, W, H, sh_degree=3)
+    full = {name: time_fwd_bwd(fn, scene, viewmats, Ks, W, H, a.repeats)
+            for name, fn in backends.items()}
     result = {
         "device": "cpu", "torch": torch.__version__, "threads": torch.get_num_threads(),
         "machine": platform.processor() or platform.machine(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
         "width": W, "height": H, "cameras": 1, "sh_degree": 3,
         "full": {"gaussians": a.gaussians, "visible": int((info["radii"] > 0).sum()),
-                 "tile_isects": info["n_isects"],
-                 "ours": time_fwd_bwd(ours, scene, viewmats, Ks, W, H, a.repeats)},
+                 "tile_isects": info["n_isects"], **full,
+                 "speedup": round(full["torch"]["total_s"] / full["cpu"]["total_s"], 2)},
     }
     if not a.no_reference:
         small = {k: v[:n_ref] for k, v in scene.items()}
-        reference = load_reference()
-        ours_small = time_fwd_bwd(ours, small, viewmats, Ks, W, H, a.repeats)
-        ref_small = time_fwd_bwd(reference, small, viewmats, Ks, W, H, 1)
+        times = {name: time_fwd_bwd(fn, small, viewmats, Ks, W, H, a.repeats)
+                 for name, fn in backends.items()}
+        ref_small = time_fwd_bwd(load_reference(), small, viewmats, Ks, W, H, 1)
         result["compared"] = {
-            "gaussians": n_ref, "ours": ours_small, "reference": ref_small,
-            "speedup": round(ref_small["total_s"] / ours_small["total_s"], 2),
+            "gaussians": n_ref, **times, "reference": ref_small,
+            "speedup_vs_reference": {name: round(ref_small["total_s"] / t["total_s"], 2)
+                                     for name, t in times.items()},
         }
     print(json.dumps(result, indent=2))
 

@@ -2,13 +2,14 @@
 
 ``device`` parameters read ``auto`` (CUDA when torch sees a GPU, else the CPU), ``cpu``, ``cuda``
 or any torch device (``cuda:1``). ``backend`` parameters read ``auto`` (gsplat's CUDA kernels for
-tensors on CUDA when its extension loads, else the torch rasterizer), ``torch`` or ``gsplat``.
+tensors on CUDA when its extension loads; the fused CPU kernels for tensors on the CPU; else the
+torch-op rasterizer), ``cpu`` (the fused kernels), ``torch`` (the torch-op reference) or ``gsplat``.
 """
 
 from __future__ import annotations
 
 import logging
-from functools import lru_cache
+from functools import lru_cache, cache
 
 import torch
 
@@ -16,7 +17,7 @@ from paradrive.errors import ConfigError
 
 __all__ = ["resolve_device", "resolve_backend", "gsplat_status", "BACKENDS"]
 
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "cpu", "torch", "gsplat")
 log = logging.getLogger("paradrive.devices")
 
 
@@ -51,15 +52,20 @@ def gsplat_status() -> tuple[bool, str]:
 
 
 def resolve_backend(name: str, device: torch.device) -> str:
-    """The rasterizer backend (``torch`` or ``gsplat``) for tensors on ``device``.
+    """The rasterizer backend (``cpu``, ``torch`` or ``gsplat``) for tensors on ``device``.
 
     ``auto`` on a CUDA device without a working gsplat falls back to the (much slower) torch
     rasterizer with a warning that says why; an explicit ``gsplat`` that cannot run is an error.
     """
     if name not in BACKENDS:
         raise ConfigError(f"backend {name!r}: expected one of {', '.join(BACKENDS)}")
+    if name in ("auto", "cpu") and device.type == "cpu":
+        return "cpu"
     if name == "torch" or (name == "auto" and device.type != "cuda"):
         return "torch"
+    if name == "cpu":
+        raise ConfigError(f"backend cpu runs the fused CPU kernels, but the tensors are on {device}; "
+                          "use device: cpu, or backend: auto")
     if device.type != "cuda":
         raise ConfigError(f"backend gsplat needs a CUDA device, but the tensors are on {device}; "
                           "use backend: auto or torch, or device: cuda")
@@ -72,7 +78,7 @@ def resolve_backend(name: str, device: torch.device) -> str:
     return "torch"
 
 
-@lru_cache(maxsize=None)
+@cache
 def _warn_fallback(device: str, why: str) -> None:
     """Once per process and device: the rasterizer is called every iteration."""
     log.warning("gsplat cannot rasterize on %s: %s; falling back to the torch rasterizer "

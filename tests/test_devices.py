@@ -26,6 +26,9 @@ from paradrive.gs.ply import load_ply
 
 # densify at 4, 8, 12, 16; reset at 12; checkpoints at 10 and 20; the kill at 14 lands after both
 FIT = {**TINY_FIT, "checkpoints": [10, 20]}
+# The stand-in device runs the torch-op rasterizer (what CUDA runs without gsplat), so the CPU
+# reference runs it too; the fused CPU kernels are compared with it in test_rasterize_cpu.py.
+CPU_REF = {"device": "cpu", "backend": "torch"}
 DEVICES = ["simulated"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
@@ -68,7 +71,7 @@ def _fit_on(device: str, scene: Path, **kwargs) -> dict:
 @pytest.mark.parametrize("device", DEVICES)
 def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, tiny_scene, tmp_path):
     cpu = _copy_scene(tiny_scene, tmp_path / "cpu")
-    fit_scene(cpu, fit_params("smoke", **FIT, device="cpu"))
+    fit_scene(cpu, fit_params("smoke", **FIT, **CPU_REF))
     dev = _copy_scene(tiny_scene, tmp_path / "dev")
     partial = _fit_on(device, dev, stop_after=14)
     assert not partial.complete and (dev / "gs" / "state.pt").is_file()
@@ -96,7 +99,7 @@ def test_checkpoint_renders_on_a_device_as_on_the_cpu(device, tiny_scene, tmp_pa
     frames = json.loads((scene / "scene.json").read_text())["frames"][:3]
     c2w = np.stack([np.reshape(f["cameras"]["front"]["c2w"], (4, 4)) for f in frames])
     ply = scene / "gs" / "ckpt_000020.ply"
-    ref = render_checkpoint(ply, c2w, K, cam["width"], cam["height"], render_depth=True, device="cpu")
+    ref = render_checkpoint(ply, c2w, K, cam["width"], cam["height"], render_depth=True, **CPU_REF)
     context, name = _on(device)
     with context:
         out = render_checkpoint(ply, c2w, K, cam["width"], cam["height"], render_depth=True,
@@ -134,7 +137,10 @@ def test_trainer_steps_on_a_device_compute_what_they_compute_on_the_cpu(tmp_path
 
 def test_device_and_backend_choices_say_what_is_wrong(monkeypatch, caplog):
     assert resolve_device("cpu") == torch.device("cpu")
-    assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    assert resolve_backend("auto", torch.device("cpu")) == "cpu"  # the fused CPU kernels
+    assert resolve_backend("torch", torch.device("cpu")) == "torch"  # the torch-op reference
+    with pytest.raises(ConfigError, match="fused CPU kernels"):
+        resolve_backend("cpu", torch.device("cuda"))
     with pytest.raises(ConfigError, match="not a torch device"):
         resolve_device("gpu0")
     with pytest.raises(ConfigError, match="needs a CUDA device"):

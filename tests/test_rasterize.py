@@ -17,7 +17,8 @@ import gsplat.cuda._torch_impl as gsplat_ref   # the oracle: part of the test ex
 import pytest
 import torch
 
-from paradrive.gs.rasterize import eval_sh, rasterize
+from paradrive.gs.rasterize import rasterize
+from paradrive.gs.sh import eval_sh
 
 W, H = 70, 45  # not multiples of the 16-pixel tile
 
@@ -175,7 +176,7 @@ def reference_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, w
 def brute_force_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                           backgrounds=None):
     """Every visible Gaussian at every pixel, composited one at a time in depth order."""
-    C, N = viewmats.shape[0], means.shape[0]
+    C = viewmats.shape[0]
     covars, _ = gsplat_ref._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
     radii, means2d, depths, conics, _ = gsplat_ref._fully_fused_projection(
         means, covars, viewmats, Ks, width, height)

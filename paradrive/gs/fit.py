@@ -473,7 +473,7 @@ class _Fit:
 @torch.no_grad()
 def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, height: int, *,
                       render_depth: bool = False, params: Params | None = None,
-                      device: str = "auto") -> dict:
+                      device: str = "auto", backend: str = "auto") -> dict:
     """Render a checkpoint from N cameras sharing one intrinsic matrix.
 
     ply_path: a 3DGS PLY (or None with ``params`` from :func:`load_ply` to skip re-reading);
@@ -481,6 +481,7 @@ def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, he
     (width x height) output. Returns numpy float32 arrays: ``rgb`` (N, H, W, 3) in [0, 1],
     ``alpha`` (N, H, W), and ``depth`` (N, H, W) expected z-depth in metres (None unless
     ``render_depth``). The sky dome counts as geometry (alpha ~ 1, depth ~ dome distance).
+    backend: the rasterizer, see :func:`paradrive.devices.resolve_backend`.
     """
     if params is None:
         if ply_path is None:
@@ -497,7 +498,8 @@ def render_checkpoint(ply_path: str | os.PathLike | None, c2w, K, width: int, he
     rgbs, alphas, depths = [], [], []
     for i in range(len(viewmats)):
         out, alpha, _ = render_gaussians(params, viewmats[i:i + 1], Kt[None], int(width), int(height),
-                               sh_degree=deg, render_mode="RGB+ED" if render_depth else "RGB")
+                                         sh_degree=deg, render_mode="RGB+ED" if render_depth else "RGB",
+                                         backend=backend)
         rgbs.append(out[0, ..., :3].clamp(0, 1).float().cpu().numpy())
         alphas.append(alpha[0, ..., 0].clamp(0, 1).float().cpu().numpy())
         if render_depth:

@@ -138,8 +138,9 @@ def scene_scale_of(c2w: torch.Tensor | np.ndarray) -> float:
 def deterministic_torch(threads: int):
     """Fixed thread count and deterministic kernels (fit, render); restored afterwards.
 
-    The CPU rasterizer's many small ops run fastest on one thread, and a fixed count makes the
-    floating-point sums, hence the files, identical whichever executor runs the stage.
+    The fused CPU rasterizer kernels run on the same count (their results do not depend on it);
+    a fixed count makes torch's floating-point sums, hence the files, identical whichever
+    executor runs the stage.
     """
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()

@@ -1,10 +1,12 @@
-"""Differentiable 3D Gaussian splatting rasterizer: one entry point, two backends.
+"""Differentiable 3D Gaussian splatting rasterizer: one entry point, three backends.
 
 ``rasterize`` uses gsplat's CUDA kernels when the tensors live on a CUDA device and the extension
-loads, and otherwise a tile-based pure-torch backend (any device, fast on CPU) whose images and
-gradients match gsplat's conventions: EWA projection with a 2D low-pass ``eps2d``, opacity-aware
-screen boxes, per-tile depth sorting, front-to-back compositing with alpha clamped to 0.999,
-alpha < 1/255 skipped and early termination at transmittance 1e-4.
+loads, the fused CPU kernels (``cpu``: Numba, the torch thread count, byte-identical at any
+count) for tensors on the CPU, and otherwise a tile-based torch-op backend (``torch``, any
+device; the reference the fused kernels are tested against). All match gsplat's conventions:
+EWA projection with a 2D low-pass ``eps2d``, opacity-aware screen boxes, per-tile depth
+sorting, front-to-back compositing with alpha clamped to 0.999, alpha < 1/255 skipped and early
+termination at transmittance 1e-4.
 """
 
 from __future__ import annotations
@@ -14,60 +16,17 @@ from torch import Tensor
 
 from paradrive.devices import gsplat_status, resolve_backend
 from paradrive.gs._tiles import ALPHA_MIN, bin_gaussians, composite
+from paradrive.gs.sh import shade
 
-__all__ = ["rasterize", "eval_sh", "cuda_backend_available"]
+__all__ = ["rasterize", "cuda_backend_available"]
 
 _RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 # Tile edge of the torch backend. The image does not depend on it; 8 px tiles waste fewer
 # pixel-Gaussian pairs than gsplat's 16 and are about 1.6x faster on CPUs.
 TORCH_TILE_SIZE = 8
-
-# Real spherical-harmonics constants (3DGS convention), bands 0..3.
-_SH_C0 = 0.28209479177387814
-_SH_C1 = 0.4886025119029199
-_SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-          -1.0925484305920792, 0.5462742152960396)
-_SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
-
-
-def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
-    """Evaluate real SH of bands 0..degree.
-
-    coeffs: (..., K, 3) with K >= (degree+1)^2; dirs: (..., 3) view directions (need not be unit).
-    Returns (..., 3), without the +0.5 offset.
-    """
-    if not 0 <= degree <= 3:
-        raise ValueError(f"sh_degree={degree} is not supported; use 0..3")
-    if coeffs.shape[-2] < (degree + 1) ** 2:
-        raise ValueError(f"sh_degree={degree} needs {(degree + 1) ** 2} coefficients per Gaussian, "
-                         f"got colors of shape {tuple(coeffs.shape)}")
-    out = _SH_C0 * coeffs[..., 0, :]
-    if degree == 0:
-        return out
-    d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    x, y, z = (d[..., i:i + 1] for i in range(3))
-    out = out + _SH_C1 * (-y * coeffs[..., 1, :] + z * coeffs[..., 2, :] - x * coeffs[..., 3, :])
-    if degree == 1:
-        return out
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    out = (out
-           + _SH_C2[0] * xy * coeffs[..., 4, :]
-           + _SH_C2[1] * yz * coeffs[..., 5, :]
-           + _SH_C2[2] * (2.0 * zz - xx - yy) * coeffs[..., 6, :]
-           + _SH_C2[3] * xz * coeffs[..., 7, :]
-           + _SH_C2[4] * (xx - yy) * coeffs[..., 8, :])
-    if degree == 2:
-        return out
-    return (out
-            + _SH_C3[0] * y * (3.0 * xx - yy) * coeffs[..., 9, :]
-            + _SH_C3[1] * xy * z * coeffs[..., 10, :]
-            + _SH_C3[2] * y * (4.0 * zz - xx - yy) * coeffs[..., 11, :]
-            + _SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * coeffs[..., 12, :]
-            + _SH_C3[4] * x * (4.0 * zz - xx - yy) * coeffs[..., 13, :]
-            + _SH_C3[5] * z * (xx - yy) * coeffs[..., 14, :]
-            + _SH_C3[6] * x * (xx - 3.0 * yy) * coeffs[..., 15, :])
-
+# Tile edge of the fused CPU kernels, which visit only the pixels inside each Gaussian's ellipse:
+# measured, 16 px tiles (half the lists) are faster than 8.
+CPU_TILE_SIZE = 16
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """(N, 4) wxyz, any norm -> (N, 3, 3) rotation."""
@@ -138,9 +97,10 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height,
 
 def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                      sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
-                     radius_clip, tile_size):
+                     radius_clip, tile_size, backend="torch"):
     C, N = viewmats.shape[0], means.shape[0]
-    means2d, conics, depths, radii_xy = _project(
+    project, shade, binner, compositor = _stages(backend)
+    means2d, conics, depths, radii_xy = project(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         near_plane, far_plane, eps2d, radius_clip)
 
@@ -149,9 +109,7 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
             feats = colors.expand(C, N, colors.shape[-1]) if colors.dim() == 2 else colors
         else:
             campos = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
-            dirs = means[None] - campos[:, None, :]  # (C, N, 3)
-            coeffs = colors.expand((C,) + colors.shape) if colors.dim() == 3 else colors
-            feats = torch.clamp_min(eval_sh(sh_degree, coeffs, dirs) + 0.5, 0.0)
+            feats = shade(sh_degree, means, colors, campos)
         D = feats.shape[-1]
         if render_mode != "RGB":
             feats = torch.cat([feats, depths[..., None]], dim=-1)
@@ -162,11 +120,11 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         feats = depths[..., None]
         bg = means.new_zeros(C, 1)
 
-    bins = bin_gaussians(means2d, radii_xy, depths, width, height, tile_size)
+    bins = binner(means2d, radii_xy, depths, width, height, tile_size)
     if means2d.requires_grad:
         means2d.retain_grad()
     op = opacities.expand(C, N).reshape(C * N)
-    renders, alphas = composite(
+    renders, alphas = compositor(
         means2d.reshape(C * N, 2), conics.reshape(C * N, 3), op,
         feats.reshape(C * N, feats.shape[-1]).contiguous(), bg.to(means.dtype), bins)
 
@@ -177,9 +135,19 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         "means2d": means2d, "radii": radii, "radii_xy": radii_xy, "depths": depths,
         "conics": conics, "width": width, "height": height, "n_cameras": C,
         "tile_size": tile_size, "tile_width": bins.tiles_x, "tile_height": bins.tiles_y,
-        "n_isects": int(bins.flat_ids.numel()), "backend": "torch",
+        "n_isects": int(bins.flat_ids.numel()), "backend": backend,
     }
     return renders, alphas, info
+
+
+def _stages(backend: str):
+    """(projection, SH colour, binning, compositing) of a CPU-capable backend: the torch-op reference or the
+    fused kernels."""
+    if backend == "torch":
+        return _project, shade, bin_gaussians, composite
+    from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused, shade_fused
+
+    return project_fused, shade_fused, bin_gaussians_fused, composite_fused
 
 
 def cuda_backend_available() -> bool:
@@ -222,9 +190,12 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     viewmats (C, 4, 4) world-to-camera (OpenCV); Ks (C, 3, 3); backgrounds (C, 3) or None.
     render_mode: 'RGB' -> (C, H, W, 3); 'RGB+ED' -> (C, H, W, 4), last channel the expected
     depth (alpha-normalised z); 'RGB+D' accumulated depth; 'D' / 'ED' -> (C, H, W, 1).
-    backend: 'auto' (gsplat CUDA when the tensors are on CUDA and its extension loads, else
-    torch, with a warning on CUDA), 'torch' or 'gsplat' (ConfigError when it cannot run); see
-    :func:`paradrive.devices.resolve_backend`. tile_size is gsplat's; the torch backend uses TORCH_TILE_SIZE.
+    backend: 'auto' ('cpu' for CPU tensors; gsplat CUDA when the tensors are on CUDA and its
+    extension loads, else torch, with a warning), 'cpu' (the fused kernels on
+    torch.get_num_threads() threads; viewmats and Ks get no gradient), 'torch' or 'gsplat'
+    (ConfigError when it cannot run); see
+    :func:`paradrive.devices.resolve_backend`. tile_size is gsplat's; the torch backend uses
+    TORCH_TILE_SIZE, the fused CPU kernels ('cpu') CPU_TILE_SIZE.
 
     Returns (renders, alphas (C, H, W, 1), info) with info keys 'means2d' (C, N, 2; in the
     autograd graph, retain_grad() called when it requires grad), 'radii' (C, N) int32 (0 = not
@@ -243,6 +214,7 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)
-    if backend == "torch":
-        return _torch_rasterize(*args[:-1], TORCH_TILE_SIZE)
+    if backend in ("torch", "cpu"):
+        ts = TORCH_TILE_SIZE if backend == "torch" else CPU_TILE_SIZE
+        return _torch_rasterize(*args[:-1], ts, backend)
     return _gsplat_rasterize(*args)

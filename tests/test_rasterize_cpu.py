@@ -1,0 +1,128 @@
+"""The fused CPU rasterizer (backend 'cpu'): images and gradients against the torch-op reference,
+and byte-identical results at any thread count."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_rasterize import (
+    H,
+    W,
+    _grads,
+    _leaves,
+    _loss_weights,
+    assert_grads_close,
+    make_cameras,
+    make_scene,
+)
+
+from paradrive.gs.rasterize import rasterize
+
+BG = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.0, 0.3]])
+
+
+def _both(scene, weights, **kw):
+    """(cpu, torch) results of _grads for the same scene, cameras and loss."""
+    cams = make_cameras()
+    return [_grads(lambda *x, b=b, **k: rasterize(*x, backend=b, **kw, **k), scene, cams, weights)
+            for b in ("cpu", "torch")]
+
+
+def _assert_same(ours, ref, channels=slice(None)):
+    (r, a, g), (r_ref, a_ref, g_ref) = ours, ref
+    torch.testing.assert_close(r[..., channels], r_ref[..., channels], atol=1e-4, rtol=0)
+    torch.testing.assert_close(a, a_ref, atol=1e-4, rtol=0)
+    assert_grads_close(g, g_ref)
+
+
+def test_rgb_with_background_matches_torch_reference():
+    ours, ref = _both(make_scene(seed=3), _loss_weights(3, seed=4), backgrounds=BG)
+    assert ours[1].max() > 0.5  # the scene is not empty
+    _assert_same(ours, ref)
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_spherical_harmonics_match_torch_reference(degree):
+    scene = make_scene(n=150, seed=10 + degree, sh_k=16)
+    ours, ref = _both(scene, _loss_weights(3, seed=20 + degree), sh_degree=degree)
+    _assert_same(ours, ref)
+    if degree < 3:
+        assert ours[2][4][:, (degree + 1) ** 2:].abs().max() == 0  # unused bands get no gradient
+
+
+def test_opaque_scene_terminates_early_like_torch_reference():
+    means, quats, scales, opac, colors = make_scene(n=400, seed=5)
+    scene = [means, quats, scales * 5.0, torch.where(opac > 0.5, 1.0, 0.97), colors]
+    ours, ref = _both(scene, _loss_weights(3, seed=6))
+    assert (ours[1] > 0.999).float().mean() > 0.3  # saturated pixels and clamped alphas
+    _assert_same(ours, ref)
+
+
+def test_expected_depth_matches_torch_reference():
+    ours, ref = _both(make_scene(seed=8), _loss_weights(4, seed=9), render_mode="RGB+ED",
+                      backgrounds=BG)
+    assert ours[0].shape == (2, H, W, 4)
+    _assert_same(ours, ref, channels=slice(0, 3))
+    covered = ours[1][..., 0] > 0.05
+    torch.testing.assert_close(ours[0][..., 3][covered], ref[0][..., 3][covered], atol=1e-3, rtol=1e-4)
+
+
+def test_means2d_gradient_and_radii_match_torch_reference():
+    scene = make_scene(seed=14)
+    cams = make_cameras()
+    infos = []
+    for backend in ("cpu", "torch"):
+        r, _, info = rasterize(*_leaves(scene), *cams, W, H, backend=backend)
+        r.sum().backward()
+        infos.append(info)
+    assert infos[0]["backend"] == "cpu" and infos[1]["backend"] == "torch"
+    assert (infos[0]["radii"] > 0).sum() > 100
+    assert torch.equal(infos[0]["radii"], infos[1]["radii"])
+    torch.testing.assert_close(infos[0]["means2d"].grad, infos[1]["means2d"].grad, atol=1e-4, rtol=1e-4)
+
+
+def test_empty_and_culled_scenes_return_the_background():
+    cams = make_cameras()
+    z = torch.zeros(0, 3)
+    r, a, _ = rasterize(z, torch.zeros(0, 4), z, torch.zeros(0), z, *cams, W, H, backgrounds=BG,
+                        backend="cpu")
+    torch.testing.assert_close(r, BG[:, None, None, :].expand(2, H, W, 3))
+    assert (a == 0).all()
+    means, quats, scales, opac, colors = _leaves(make_scene(n=20, seed=13))
+    r, a, _ = rasterize(-means, quats, scales, opac, colors, *cams, W, H, backgrounds=BG,
+                        backend="cpu")
+    torch.testing.assert_close(r, BG[:, None, None, :].expand(2, H, W, 3))
+    (r.sum() + a.sum()).backward()
+    assert means.grad.abs().max() == 0
+
+
+def test_images_and_gradients_are_byte_identical_at_any_thread_count():
+    scene = make_scene(n=300, seed=21, sh_k=16)
+    cams = make_cameras()
+    weights = _loss_weights(4, seed=22)
+    old = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2, 1):
+            torch.set_num_threads(threads)
+            results.append(_grads(lambda *x, **k: rasterize(*x, backend="cpu", sh_degree=3,
+                                                            render_mode="RGB+ED", **k),
+                                  scene, cams, weights))
+    finally:
+        torch.set_num_threads(old)
+    for r, a, g in results[1:]:
+        assert torch.equal(r, results[0][0]) and torch.equal(a, results[0][1])
+        assert all(torch.equal(x, y) for x, y in zip(g, results[0][2], strict=True))
+
+
+def test_torch_keeps_its_thread_count_after_the_kernels_run():
+    """Numba's OpenMP layer shares torch's runtime; a fit's fixed thread count must survive it."""
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        scene = _leaves(make_scene(n=50, seed=30, sh_k=16))
+        r, a, _ = rasterize(*scene, *make_cameras(), W, H, sh_degree=3, backend="cpu")
+        (r.sum() + a.sum()).backward()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(old)
