@@ -288,7 +288,7 @@ def export_cmd(
     from paradrive.ingest.export import export_scene
     from paradrive.pipeline import StageRegistry, parse_overrides
 
-    params = StageRegistry().resolve(profile, parse_overrides(set_)).params["ingest"]
+    params = StageRegistry().resolve(profile, parse_overrides(set_)).typed("ingest")
     try:
         print(export_scene(scene, fmt, out, params))
     except (ValueError, SceneError) as exc:

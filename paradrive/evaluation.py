@@ -256,8 +256,10 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                          path=layout.scene_json, fix="evaluate a 'synthetic:' scene")
     from paradrive.inference import scene_ingest_params
 
+    from paradrive.stages.ingest import params_of
+
     ingested = scene_ingest_params(scene_dir, ingest_params)
-    street = street_from_uri(parse_uri(scene.source), ingested)
+    street = street_from_uri(parse_uri(scene.source), params_of(ingested))
     moving = moving_actors(scene, ingested)
     renders = RendersRecord.load(layout.renders_json, sid) if layout.renders_json.is_file() else None
     conds = render_params.condition_checkpoints

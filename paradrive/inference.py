@@ -57,7 +57,10 @@ def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: ClipsRec
     from paradrive.uri import parse_uri
     from paradrive.video import encode_video
 
-    street = street_from_uri(parse_uri(clips.source), scene_ingest_params(Path(scene_dir), None))
+    from paradrive.stages.ingest import params_of
+
+    street = street_from_uri(parse_uri(clips.source),
+                             params_of(scene_ingest_params(Path(scene_dir), None)))
     width, height, sid = clips.width, clips.height, clips.scene_id
 
     def truth(clip: ClipRecord, offset_m: float, novel_c2w: np.ndarray) -> MediaFile:

@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from conftest import stage_params
+
 from paradrive.evaluation import depth_abs_rel, depth_signed_rel, evaluate_scene, image_quality
 
 from test_render import SCENE, SID, smoke_params
@@ -70,7 +72,7 @@ def test_a_shift_to_the_left_renders_what_the_ray_caster_sees_from_the_left(eval
 
     scene_dir = evaluated["data_dir"] / "scenes" / SID
     scene = load_scene(scene_dir)
-    rp, ingest = evaluated["config"].params["render"], evaluated["config"].params["ingest"]
+    rp, ingest = evaluated["config"].params["render"], evaluated["config"].typed("ingest")
     np.testing.assert_allclose(scene.ego2world()[0], np.eye(4), atol=1e-12)
     c2w = scene.c2w("front")[0]
     by_hand = {d: c2w.copy() for d in (2.0, -2.0)}
@@ -131,7 +133,8 @@ def test_signed_depth_error_of_a_scaled_true_depth():
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.uri import parse_uri
 
-    street = street_from_uri(parse_uri("synthetic:demo?seed=7&frames=2&width=64&height=40"))
+    street = street_from_uri(parse_uri("synthetic:demo?seed=7&frames=2&width=64&height=40"),
+                             stage_params("ingest"))
     spec = street.cameras["front"]
     truth = street.render(street.c2w("front"), spec.K(), spec.width, spec.height)["depth"]
     assert np.isinf(truth).any() and np.isfinite(truth).any()   # sky and surfaces

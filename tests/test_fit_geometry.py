@@ -41,7 +41,7 @@ def street_scene(tmp_path_factory):
     scene_dir = ingest_synthetic(tmp_path_factory.mktemp("street"), 10, 96, 64)
     config = StageRegistry().resolve("smoke", {"ingest": {
         "synthetic_frames": 10, "synthetic_width": 96, "synthetic_height": 64}})
-    street = street_from_uri(parse_uri("synthetic:demo?seed=7"), config.params["ingest"])
+    street = street_from_uri(parse_uri("synthetic:demo?seed=7"), config.typed("ingest"))
     return {"dir": scene_dir, "street": street}
 
 

@@ -94,7 +94,7 @@ def test_targets_are_the_ray_casters_shifted_views(inference_build):
 
     config = inference_build["config"]
     scene = load_scene(inference_build["data_dir"] / "scenes" / SCENE)
-    street = street_from_uri(parse_uri(scene.source), config.params["ingest"])
+    street = street_from_uri(parse_uri(scene.source), config.typed("ingest"))
     ego = scene.ego2world()
     rows = [r for r in read_pairs(inference_build["dir"]).to_pylist() if r["scene_id"] == SCENE]
     for row in rows[::5]:  # a spread of clips and offsets

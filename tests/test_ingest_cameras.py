@@ -32,7 +32,7 @@ def test_default_fit_sets_are_drivestudios_per_dataset():
                                            ("drivestudio", FRONT3)])
 def test_each_exported_format_ingests_its_datasets_fit_set(tmp_path, fmt, expected):
     params = ingest_params()
-    uri = export_scene(SCENE, fmt, tmp_path / "log", params.source)
+    uri = export_scene(SCENE, fmt, tmp_path / "log", params)
     summary = ingest(uri, tmp_path / "scene", params)
     scene = load_scene(tmp_path / "scene")
     assert summary["cameras"] == sorted(expected)
@@ -56,14 +56,14 @@ def test_cameras_override_keeps_only_the_listed_cameras(tmp_path):
 
 def test_null_cameras_ingest_every_camera_of_the_log(tmp_path):
     params = ingest_params()
-    uri = export_scene(SCENE, "waymo", tmp_path / "log", params.source)
+    uri = export_scene(SCENE, "waymo", tmp_path / "log", params)
     summary = ingest(uri, tmp_path / "scene", ingest_params("ingest.cameras=null"))
     assert summary["cameras"] == sorted(FRONT3)
 
 
 def test_fit_set_missing_from_the_log_names_scene_file_and_fix(tmp_path):
     front_only = ingest_params("ingest.cameras=[front]")
-    uri = export_scene(SCENE, "nuscenes", tmp_path / "log", front_only.source)
+    uri = export_scene(SCENE, "nuscenes", tmp_path / "log", front_only)
     with pytest.raises(SceneError) as err:
         ingest(uri, tmp_path / "nuscenes-demo", ingest_params())
     text = str(err.value)

@@ -46,7 +46,7 @@ def rendered(request, tmp_path_factory):
     scene_dir = root / "data" / "scenes" / SID
     doc = json.loads((scene_dir / "renders" / "renders.json").read_text())
     return {"dir": scene_dir, "doc": doc, "params": config.params["render"],
-            "ingest": config.params["ingest"]}
+            "ingest": config.typed("ingest")}
 
 
 # --------------------------------------------------------------------------- intrinsics (pure)

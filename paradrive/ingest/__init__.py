@@ -5,21 +5,26 @@ The ingest stage itself is :mod:`paradrive.stages.ingest`.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from paradrive.errors import SceneError
 
+if TYPE_CHECKING:
+    from paradrive.stages.ingest import Params as IngestParams
 
-def requested_cameras(params: dict, dataset: str, *, scene_id: str) -> list[str] | None:
+
+def requested_cameras(params: IngestParams, dataset: str, *, scene_id: str) -> list[str] | None:
     """The cameras ``ingest.cameras`` asks for in a log of ``dataset`` (None = all the log has).
 
     ``auto`` is the dataset's fit set, ``ingest.camera_sets[dataset]`` (stages/ingest.yaml).
     """
-    wanted = params.get("cameras")
+    wanted = params.cameras
     if wanted is None or isinstance(wanted, (list, tuple)):
         return None if wanted is None else list(wanted)
     if wanted != "auto":
         raise SceneError(f"ingest.cameras = {wanted!r} is neither auto, null nor a list of cameras",
                          scene_id=scene_id, fix="set ingest.cameras to auto or e.g. [front]")
-    sets = params.get("camera_sets") or {}
+    sets = params.camera_sets
     if dataset not in sets:
         raise SceneError(f"ingest.cameras is auto but ingest.camera_sets has no {dataset} entry "
                          f"(has: {', '.join(sets) or 'none'})", scene_id=scene_id,
@@ -28,7 +33,7 @@ def requested_cameras(params: dict, dataset: str, *, scene_id: str) -> list[str]
     return list(sets[dataset])
 
 
-def select_cameras(available, params: dict, dataset: str, *, scene_id: str, where) -> list[str]:
+def select_cameras(available, params: IngestParams, dataset: str, *, scene_id: str, where) -> list[str]:
     """The cameras to ingest (``requested_cameras``), each of which must be in ``available``."""
     wanted = requested_cameras(params, dataset, scene_id=scene_id)
     if wanted is None:
@@ -36,7 +41,7 @@ def select_cameras(available, params: dict, dataset: str, *, scene_id: str, wher
     missing = [c for c in wanted if c not in available]
     if missing:
         asked = (f"ingest.cameras is auto, the {dataset} fit set (ingest.camera_sets.{dataset})"
-                 if params.get("cameras") == "auto" else "ingest.cameras asks for them")
+                 if params.cameras == "auto" else "ingest.cameras asks for them")
         keep = [c for c in wanted if c in available] or list(available)
         raise SceneError(f"calibration missing for camera(s) {', '.join(missing)} "
                          f"(log has: {', '.join(available) or 'none'}; {asked})",

@@ -116,7 +116,3 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a pose (4, 4) to points (M, 3)."""
     return points @ pose[:3, :3].T + pose[:3, 3]
 
-
-def max_frames(params: dict) -> int | None:
-    value = params.get("max_frames")
-    return None if value is None else int(value)

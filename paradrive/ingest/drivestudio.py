@@ -28,6 +28,8 @@ Neither flavour stores timestamps: frames are ``1e6 / fps`` us apart, fps from `
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import json
 import re
 from pathlib import Path
@@ -39,12 +41,15 @@ from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
 from paradrive.ingest.common import (
-    OPENCV_TO_FLU, check_size, checked_pose, decode_jpeg, max_frames, save_points, store_image,
+    OPENCV_TO_FLU, check_size, checked_pose, decode_jpeg, save_points, store_image,
     transform_points,
 )
 from paradrive.ingest.undistort import distortion_is_zero, undistort_image
 from paradrive.scene import Camera, Frame, FrameCamera, Scene, read_image, write_image
 from paradrive.uri import SceneURI
+
+if TYPE_CHECKING:
+    from paradrive.stages.ingest import Params as IngestParams
 
 WAYMO_CAMERAS = {0: "front", 1: "front_left", 2: "front_right", 3: "side_left", 4: "side_right"}
 NUSCENES_CAMERAS = {0: "front", 1: "front_left", 2: "front_right", 3: "back_left",
@@ -176,7 +181,7 @@ def instance_actors(folder: Path, numbers: list[int], known: set[int], world_fro
     return act.keep_valid(found, range(len(numbers)), scene_id=scene_id, where=where)
 
 
-def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
+def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
     folder = Path(uri.path).expanduser()
     _check_folder(folder, scene_id)
     return _Reader(uri, folder, out_dir, params, scene_id).scene()
@@ -209,7 +214,7 @@ def _check_numbering(numbers: list[int], folder: Path, scene_id: str) -> None:
 class _Reader:
     """One DriveStudio folder read into a canonical scene, step by step."""
 
-    def __init__(self, uri: SceneURI, folder: Path, out_dir: Path, params: dict, scene_id: str):
+    def __init__(self, uri: SceneURI, folder: Path, out_dir: Path, params: IngestParams, scene_id: str):
         self.uri, self.folder, self.out_dir, self.params = uri, folder, out_dir, params
         self.scene_id = scene_id
         self.flavour = flavour_of(folder, uri, scene_id)
@@ -227,7 +232,7 @@ class _Reader:
                                      where=folder / "extrinsics")
         _check_numbering(numbers, folder, scene_id)
         self.known = set(numbers)
-        limit = max_frames(params)
+        limit = params.max_frames
         self.numbers = numbers[:limit] if limit is not None else numbers
         self.cam_id = {name: cid for cid, name in ids.items()}
 
@@ -265,7 +270,7 @@ class _Reader:
         for cam in self.chosen:
             cameras[cam] = self.camera_images(cam, cam2ego[cam], frames,
                                               [world @ c for c in c2w_global[cam]])
-        if self.params.get("lidar", True) and (self.folder / "lidar").is_dir():
+        if self.params.lidar and (self.folder / "lidar").is_dir():
             self.lidar([world @ e for e in ego_global], world)
         return Scene(scene_id=self.scene_id, dataset="drivestudio", source=self.uri.text,
                      fps=self.fps, cameras=cameras, frames=frames,
@@ -297,16 +302,16 @@ class _Reader:
                                 fx=fx, fy=fy, cx=cx, cy=cy, cam2ego=cam2ego)
             check_size(pixels, camera.width, camera.height, scene_id=sid, where=path,
                        what=f"camera {cam} image")
-            rel = f"images/{cam}/{i:06d}.{self.params.get('image_ext', 'jpg')}"
+            rel = f"images/{cam}/{i:06d}.{self.params.image_ext}"
             store_image(self.out_dir, rel, pixels, K=camera.K(), dist=dist,
-                        quality=int(self.params.get("jpeg_quality", 95)), original=data)
+                        quality=self.params.jpeg_quality, original=data)
             frames[i].cameras[cam] = FrameCamera(image=rel, c2w=c2w[i])
             self.sky_mask(folder / "sky_masks" / f"{t:03d}_{cid}.png", cam, i, camera.K(), dist)
         assert camera is not None  # numbers is never empty
         return camera
 
     def sky_mask(self, path: Path, cam: str, i: int, K: np.ndarray, dist: np.ndarray) -> None:
-        if not (self.params.get("sky_masks", True) and path.is_file()):
+        if not (self.params.sky_masks and path.is_file()):
             return
         mask = read_image(path, scene_id=self.scene_id)[..., :1]
         if not distortion_is_zero(dist):

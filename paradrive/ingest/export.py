@@ -18,6 +18,8 @@ so that a reader that forgets to re-anchor the world at the first ego pose fails
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import functools
 import hashlib
 import json
@@ -38,6 +40,9 @@ from paradrive.ingest.tfrecord import write_records
 from paradrive.ingest.undistort import distort_image, distortion_is_zero
 from paradrive.io import atomic_path, write_bytes
 from paradrive.scene import Camera, Scene, write_image
+
+if TYPE_CHECKING:
+    from paradrive.stages.ingest import Params as IngestParams
 
 # global-from-world of exported logs: 30 deg yaw, a small roll, km-scale offsets
 GLOBAL = geometry.make_pose(
@@ -569,7 +574,7 @@ EXPORT_CAMERAS = {"waymo": tuple(n.lower() for n in wp.CAMERA_IDS if n != "UNKNO
                   "drivestudio": tuple(DRIVESTUDIO_WAYMO_IDS)}
 
 
-def export_cameras(fmt: str, ingest_params: dict, scene_id: str) -> list[str]:
+def export_cameras(fmt: str, ingest_params: IngestParams, scene_id: str) -> list[str]:
     """The rig cameras a log in format ``fmt`` carries: those its ingest asks for with
     ``ingest_params`` (``auto``: the dataset's fit set), or, for every camera, all the format holds."""
     from paradrive.ingest import requested_cameras
@@ -579,7 +584,7 @@ def export_cameras(fmt: str, ingest_params: dict, scene_id: str) -> list[str]:
     return wanted if wanted is not None else [c for c in CAMERA_NAMES if c in EXPORT_CAMERAS[fmt]]
 
 
-def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: dict) -> str:
+def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: IngestParams) -> str:
     """Write the synthetic scene ``scene_uri`` in format ``fmt`` under ``out``; returns its URI.
 
     The log carries the cameras that ingesting it with ``ingest_params`` keeps (``export_cameras``).
@@ -593,7 +598,7 @@ def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: dict)
     if fmt not in EXPORT_DATASETS:
         raise ValueError(f"unknown format {fmt!r}; use waymo, nuscenes or drivestudio")
     cameras = export_cameras(fmt, ingest_params, uri.scene_id)
-    street = street_from_uri(uri, {**ingest_params, "cameras": cameras})
+    street = street_from_uri(uri, ingest_params.model_copy(update={"cameras": cameras}))
     out = Path(out).resolve()
     name = uri.scene_id
     if fmt == "waymo":

@@ -20,6 +20,8 @@ each track is interpolated to the camera frames between its first and last annot
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import json
 from pathlib import Path
 
@@ -30,11 +32,14 @@ from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
 from paradrive.ingest.common import (
-    check_increasing, check_size, checked_pose, decode_jpeg, fps_from, max_frames, save_points,
+    check_increasing, check_size, checked_pose, decode_jpeg, fps_from, save_points,
     store_image, transform_points,
 )
 from paradrive.scene import Camera, Frame, FrameCamera, Scene
 from paradrive.uri import SceneURI
+
+if TYPE_CHECKING:
+    from paradrive.stages.ingest import Params as IngestParams
 
 REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
 OPTIONAL_TABLES = ("log", "category", "instance", "sample_annotation")
@@ -215,7 +220,7 @@ def annotation_actors(tables, samples: list[str], stamps: list[int], world_from_
                           scene_id=scene_id, where=where)
 
 
-def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
+def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
     root = Path(uri.path).expanduser()
     if not root.is_dir():
         raise SceneError("nuScenes dataroot does not exist", scene_id=scene_id, path=root,
@@ -240,7 +245,7 @@ def _first_sample_data(tables: dict, first_sample: str, scene_id: str, where: Pa
 class _Reader:
     """One scene of a nuScenes dataroot read into a canonical scene, step by step."""
 
-    def __init__(self, uri: SceneURI, root: Path, out_dir: Path, params: dict, scene_id: str):
+    def __init__(self, uri: SceneURI, root: Path, out_dir: Path, params: IngestParams, scene_id: str):
         self.uri, self.root, self.out_dir, self.params, self.scene_id = uri, root, out_dir, params, scene_id
         self.version = find_version(root, uri, scene_id)
         self.meta = meta = root / self.version
@@ -255,7 +260,7 @@ class _Reader:
                                   set(self.samples), scene_id=scene_id, where=self.where_sd)
                        for cam in self.chosen}
         clock = self.chains[self.chosen[0]]
-        limit = max_frames(params)
+        limit = params.max_frames
         self.clock = clock[:limit] if limit is not None else clock
         self.stamps = [int(sd["timestamp"]) for sd in self.clock]
         check_increasing(self.stamps, scene_id=scene_id, where=self.where_sd,
@@ -313,7 +318,7 @@ class _Reader:
                     int(np.argmin(np.abs(chain_stamps[cam] - self.stamps[i])))]
                 frame.cameras[cam] = self.image(cameras[cam], sd, i)
             frames.append(frame)
-        if self.params.get("lidar", True) and "LIDAR_TOP" in self.firsts:
+        if self.params.lidar and "LIDAR_TOP" in self.firsts:
             self.lidar()
         row = self.scene_row
         log = self.tables.get("log", {}).get(str(row.get("log_token")), {})
@@ -339,8 +344,8 @@ class _Reader:
             c.width, c.height = pixels.shape[1], pixels.shape[0]
         check_size(pixels, c.width, c.height, scene_id=self.scene_id, where=image_path,
                    what=f"camera {c.name} image")
-        rel = f"images/{c.name}/{i:06d}.{self.params.get('image_ext', 'jpg')}"
-        store_image(self.out_dir, rel, pixels, quality=int(self.params.get("jpeg_quality", 95)),
+        rel = f"images/{c.name}/{i:06d}.{self.params.image_ext}"
+        store_image(self.out_dir, rel, pixels, quality=self.params.jpeg_quality,
                     original=data if image_path.suffix.lower() in (".jpg", ".jpeg") else None)
         _, cam2ego = self.calib_of(sd)
         return FrameCamera(image=rel, c2w=self.world @ self.ego_of(sd) @ cam2ego)

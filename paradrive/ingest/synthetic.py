@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from pathlib import Path
 
 import numpy as np
@@ -12,17 +14,19 @@ from paradrive.ingest import select_cameras
 from paradrive.scene import Frame, FrameCamera, Scene, write_image
 from paradrive.uri import SceneURI
 
+if TYPE_CHECKING:
+    from paradrive.stages.ingest import Params as IngestParams
+
 # URI query keys and their types; the stage's synthetic_* params are the defaults.
 QUERY_KEYS = {"seed": int, "frames": int, "width": int, "height": int, "curvature": float,
               "speed": float, "cameras": str, "traffic": int}
 
 
-def street_from_uri(uri: SceneURI, params: dict | None = None):
+def street_from_uri(uri: SceneURI, params: IngestParams):
     """The SyntheticStreet a URI names, with the ingest parameters as defaults."""
     from paradrive.synthetic import SyntheticStreet
     from paradrive.synthetic.street import CAMERA_NAMES
 
-    params = params or {}
     query = {}
     for key, value in uri.query.items():
         if key not in QUERY_KEYS:
@@ -35,11 +39,11 @@ def street_from_uri(uri: SceneURI, params: dict | None = None):
                              scene_id=uri.scene_id, fix="fix the scene URI") from exc
     kwargs = dict(
         name=uri.path, seed=query.get("seed", 7),
-        frames=query.get("frames", params.get("synthetic_frames", 200)),
-        width=query.get("width", params.get("synthetic_width", 832)),
-        height=query.get("height", params.get("synthetic_height", 480)),
-        curvature=query.get("curvature", params.get("synthetic_curvature", 0.0)),
-        lidar=bool(params.get("lidar", True)),
+        frames=query.get("frames", params.synthetic_frames),
+        width=query.get("width", params.synthetic_width),
+        height=query.get("height", params.synthetic_height),
+        curvature=query.get("curvature", params.synthetic_curvature),
+        lidar=params.lidar,
     )
     if "speed" in query:
         kwargs["speed_mps"] = query["speed"]
@@ -53,12 +57,11 @@ def street_from_uri(uri: SceneURI, params: dict | None = None):
     return SyntheticStreet(**kwargs)
 
 
-def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
+def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
     street = street_from_uri(uri, params)
     cam_names = list(street.cameras)
-    ext = params.get("image_ext", "jpg")
-    quality = int(params.get("jpeg_quality", 95))
-    n = street.frames if params.get("max_frames") is None else min(street.frames, params["max_frames"])
+    ext, quality = params.image_ext, params.jpeg_quality
+    n = street.frames if params.max_frames is None else min(street.frames, params.max_frames)
     ego = street.ego2world()[:n]
     stamps = street.timestamps_us()[:n]
     cameras = {}
@@ -75,11 +78,11 @@ def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
                 i = start + j
                 rel = f"images/{name}/{i:06d}.{ext}"
                 write_image(out_dir / rel, views["rgb"][j], quality=quality)
-                if params.get("sky_masks", True):
+                if params.sky_masks:
                     mask = (views["sky"][j].astype(np.uint8) * 255)
                     write_image(out_dir / "masks" / "sky" / name / f"{i:06d}.png", mask)
                 frames[i].cameras[name] = FrameCamera(image=rel, c2w=c2w[i])
-    if params.get("lidar", True):
+    if params.lidar:
         for i in range(n):
             pts = street.lidar_points(i).astype(np.float32)
             path = out_dir / "lidar" / f"{i:06d}.npy"

@@ -22,7 +22,7 @@ import math
 import re
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 import numpy as np
 
@@ -32,13 +32,16 @@ from paradrive.errors import SceneError
 from paradrive.ingest import select_cameras
 from paradrive.ingest import waymo_proto as wp
 from paradrive.ingest.common import (
-    OPENCV_TO_FLU, check_size, checked_pose, decode_jpeg, fps_from, max_frames, save_points,
+    OPENCV_TO_FLU, check_size, checked_pose, decode_jpeg, fps_from, save_points,
     store_image, transform_points,
 )
 from paradrive.ingest.protowire import WireError, decode
 from paradrive.ingest.tfrecord import RecordError, iter_records
 from paradrive.scene import Camera, Frame, FrameCamera, Scene
 from paradrive.uri import SceneURI
+
+if TYPE_CHECKING:
+    from paradrive.stages.ingest import Params as IngestParams
 
 SUFFIXES = (".tfrecord", ".tfrecords")
 FPS = 10.0
@@ -243,12 +246,10 @@ def label_actors(labels: list[list], vehicle2world: list[np.ndarray], *, scene_i
 
 # --------------------------------------------------------------------------- reader
 
-def read(uri: SceneURI, out_dir: Path, params: dict, scene_id: str) -> Scene:
+def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
     segment = resolve_segment(uri, scene_id)
-    limit = max_frames(params)
-    ext = params.get("image_ext", "jpg")
-    quality = int(params.get("jpeg_quality", 95))
-    want_lidar = bool(params.get("lidar", True))
+    limit = params.max_frames
+    ext, quality, want_lidar = params.image_ext, params.jpeg_quality, params.lidar
 
     cameras: dict[str, Camera] = {}
     calibs: dict[str, Any] = {}

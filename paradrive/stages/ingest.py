@@ -13,6 +13,7 @@ import importlib
 import os
 import shutil
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,15 @@ class Params(StageParams):
     moving_threshold_m: float | None
 
 
+def params_of(values: Mapping[str, Any] | None = None) -> Params:
+    """Ingest parameters from a recorded mapping (a scene's ingest marker); the YAML's values
+    fill what an older marker lacks, and keys the YAML no longer has are left out."""
+    from paradrive.pipeline.specs import StageRegistry
+
+    known = {k: v for k, v in (values or {}).items() if k in Params.model_fields}
+    return Params.of("ingest", {**StageRegistry().resolve(None).params["ingest"], **known})
+
+
 class IngestSummary(dict[str, Any]):
     """What ingest reports: frames, cameras and dataset of the scene (scene.json is the record)."""
 
@@ -66,7 +76,7 @@ def ingest(scene_uri: str, layout: SceneLayout | Path, params: Params) -> Ingest
     tmp = temporary_name(scene_dir)
     tmp.mkdir(parents=True)
     try:
-        scene = reader.read(uri, tmp, params.source, scene_dir.name)
+        scene = reader.read(uri, tmp, params, scene_dir.name)
         scene.scene_id = scene_dir.name
         write_scene(scene, tmp)
         if params.moving_threshold_m is not None:
