@@ -80,6 +80,7 @@ class _ClipWriter:
         self.scene, self.layout, self.renders, self.params = scene, layout, renders, params
         self.tmp_root, self.progress, self.total, self.done = tmp_root, progress, total, 0
         self.suffix = container_suffix(params.codec)
+        self.timestamps = scene.timestamps_us()
 
     def clip(self, cam_name: str, cam: RenderedCamera, window: WindowRecord) -> ClipRecord:
         sid = self.scene.scene_id
@@ -104,12 +105,11 @@ class _ClipWriter:
             self.done += 1
             if self.progress:
                 self.progress(self.done, self.total)
-        timestamps = self.scene.timestamps_us()
         return ClipRecord(
             camera=cam_name, clip=window.clip, frame_start=window.frame_start,
             num_frames=window.num_frames,
             frame_indices=[int(self.scene.frames[p].index) for p in positions],
-            timestamps_us=[int(timestamps[p]) for p in positions],
+            timestamps_us=[int(self.timestamps[p]) for p in positions],
             c2w=[cam.c2w[r] for r in rows], streams=streams, quality=quality)
 
     def frames(self, stream: RenderedStream, positions: list[int]) -> np.ndarray:

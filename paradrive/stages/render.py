@@ -99,10 +99,11 @@ def check_params(params: Params, scene: Scene, layout: SceneLayout) -> None:
     if params.clip_frames <= 0:
         raise SceneError(f"render.clip_frames = {params.clip_frames} is not positive",
                          scene_id=sid, fix="set render.clip_frames >= 1")
-    if len({s.name for s in params.streams()}) != len(params.streams()):
+    streams = params.streams()
+    if len({s.name for s in streams}) != len(streams):
         raise SceneError(f"render.offsets_m {params.offsets_m} repeats an offset", scene_id=sid,
                          fix="list each lateral offset once")
-    for it in sorted({s.iteration for s in params.streams() if s.iteration is not None}):
+    for it in sorted({s.iteration for s in streams if s.iteration is not None}):
         if not layout.checkpoint(it).is_file():
             raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid,
                              path=layout.checkpoint(it),
@@ -142,6 +143,7 @@ class _Renderer:
         init = FitRecord.load(layout.fit_json).init if params.depth and layout.fit_json.is_file() else None
         self.sky = sky_dome_of(scene, init) if params.depth else None
         self.cache: dict[int, dict] = {}
+        self.streams = params.streams()
 
     def tick(self, count: int = 1) -> None:
         self.done += count
@@ -153,7 +155,7 @@ class _Renderer:
         recorded = self.scene.c2w(plan.name)[frames] if frames else np.zeros((0, 4, 4))
         ego = self.scene.ego2world()[frames] if frames else np.zeros((0, 4, 4))
         streams = {}
-        for stream in self.params.streams() if frames else []:
+        for stream in self.streams if frames else []:
             c2w = (geometry.lateral_shift(recorded, ego, stream.offset_m)
                    if stream.offset_m is not None else recorded)
             folder = self.root / stream_dir(plan.name, stream.name)
@@ -220,7 +222,8 @@ def render_scene(layout: SceneLayout | Path, params: Params, *, log: logging.Log
     scene = load_scene(layout.root)
     check_params(params, scene, layout)
     plans = [plan_camera(scene, name, params, log) for name in params.cameras]
-    total = sum(len(p.frames) for p in plans) * len(params.streams())
+    n_streams = len(params.streams())
+    total = sum(len(p.frames) for p in plans) * n_streams
     with atomic_path(layout.renders_dir) as tmp_root:
         tmp_root.mkdir(parents=True)
         renderer = _Renderer(scene, layout, params, tmp_root, progress, total)
@@ -229,7 +232,7 @@ def render_scene(layout: SceneLayout | Path, params: Params, *, log: logging.Log
             cameras[plan.name] = renderer.camera(plan)
             log.info("render: %s camera %s: %d frames x %d streams, %d clips skipped",
                      scene.scene_id, plan.name, len(plan.frames),
-                     len(params.streams()) if plan.frames else 0, len(plan.skipped))
+                     n_streams if plan.frames else 0, len(plan.skipped))
         sky = renderer.sky
         record = RendersRecord(
             scene_id=scene.scene_id, width=params.width, height=params.height,
