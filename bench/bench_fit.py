@@ -41,21 +41,25 @@ def ingest(profile: str, root: Path) -> tuple[Path, dict]:
     return scene_dir, dict(config.params["fit"])
 
 
-def time_fit(scene_dir: Path, params: dict, backend: str) -> dict:
+def time_fit(scene_dir: Path, params: dict, backend: str, *, label: str | None = None,
+             moving_threshold_m: float | None = None) -> dict:
     """One fit of the scene with ``backend``, from scratch (its gs/ folder removed first)."""
     from paradrive.gs.fit import fit_scene
+    from paradrive.stages.fit import Params
 
     shutil.rmtree(scene_dir / "gs", ignore_errors=True)
+    typed = Params.of("fit", {**params, "backend": backend})
     t0, c0 = time.perf_counter(), time.process_time()
-    doc = fit_scene(scene_dir, {**params, "backend": backend})
+    record = fit_scene(scene_dir, typed, moving_threshold_m=moving_threshold_m)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    last = doc["checkpoints"][-1]
-    return {"backend": backend, "gaussians": last["num_gaussians"],
-            "fit_seconds": round(last["seconds"], 2), "wall_seconds_with_setup": round(wall, 2),
+    last = record.checkpoints[-1]
+    return {"run": label or backend, "backend": backend, "gaussians": last.num_gaussians,
+            "actor_nodes": len(record.actors),
+            "fit_seconds": round(last.seconds, 2), "wall_seconds_with_setup": round(wall, 2),
             "cpu_seconds": round(cpu, 2),
-            "iterations_per_second": round(params["checkpoints"][-1] / last["seconds"], 3),
-            "psnr": round(last["psnr"], 2), "peak_rss_mb": last["peak_rss_mb"],
-            "resolution": doc["resolution"], "init": doc["init"]["method"]}
+            "iterations_per_second": round(typed.iterations / last.seconds, 3),
+            "psnr": round(last.psnr, 2), "peak_rss_mb": last.peak_rss_mb,
+            "resolution": record.resolution, "init": record.init.method}
 
 
 def first_call_seconds(backend: str) -> float:

@@ -5,8 +5,10 @@ renders any pose exactly. For one scene this measures
 
 * **shifted**: the source (final) checkpoint rendered on the recorded trajectory shifted by each
   offset, against the street's true view from the same shifted poses (PSNR, SSIM, and the median
-  relative error of the rendered z-depth on non-sky pixels), and ``psnr_static`` on the pixels
-  outside the moving actors' boxes (``dynamic_fraction`` of them inside: a static fit's ghosts);
+  relative error of the rendered z-depth on non-sky pixels), ``psnr_static`` on the pixels
+  outside the moving actors' boxes (``dynamic_fraction`` of them inside: a static fit's ghosts)
+  and ``psnr_dynamic`` on the pixels inside (the actors of a scene-graph fit, placed by their
+  tracks; the same moments of the truth);
 * **recorded**: the source checkpoint on the recorded trajectory against the recorded frames
   (offset 0, the fit's own quality on the clip frames);
 * **conditions**: each under-fitted checkpoint on the recorded trajectory against the recorded
@@ -58,15 +60,27 @@ def image_quality(pred: np.ndarray, truth: np.ndarray) -> dict:
     return {"psnr": value, "ssim": structure}
 
 
+def masked_psnr(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float | None:
+    """PSNR (dB) of uint8 (N, H, W, 3) images on the pixels of ``mask`` (N, H, W): the mean
+    squared error over every such pixel of every frame (a frame with a small actor weighs by its
+    pixels); None when the mask is empty."""
+    if not mask.any():
+        return None
+    err = ((pred.astype(np.float64) - truth.astype(np.float64)) / 255.0) ** 2
+    return float(10.0 * np.log10(1.0 / max(float(err[mask].mean()), 1e-10)))
+
+
 def static_quality(pred: np.ndarray, truth: np.ndarray, dynamic: np.ndarray) -> dict:
     """``psnr_static``: mean PSNR (dB) over frames of uint8 (N, H, W, 3) images on the pixels
-    outside ``dynamic`` (N, H, W) (moving actors' boxes; None when no pixel is left), and
-    ``dynamic_fraction``, the share of pixels inside."""
+    outside ``dynamic`` (N, H, W) (moving actors' boxes; None when no pixel is left),
+    ``psnr_dynamic`` on the pixels inside (:func:`masked_psnr`), and ``dynamic_fraction``, the
+    share of pixels inside."""
     err = ((pred.astype(np.float64) - truth.astype(np.float64)) / 255.0) ** 2
     keep = ~dynamic
     values = [10.0 * np.log10(1.0 / max(float(err[i][keep[i]].mean()), 1e-10))
               for i in range(len(err)) if keep[i].any()]
     return {"psnr_static": float(np.mean(values)) if values else None,
+            "psnr_dynamic": masked_psnr(pred, truth, dynamic),
             "dynamic_fraction": float(dynamic.mean())}
 
 
@@ -141,11 +155,11 @@ def _plan_camera(scene, cam_name: str, render_params: RenderParams,
     return frames, out
 
 
-def _render(params, c2w, out, *, depth: bool, batch: int, device: str, sky=None):
+def _render(model, c2w, frames, out, *, depth: bool, batch: int, device: str, sky=None):
     from paradrive.gs.views import render_views
 
     rgb, dep = [], []
-    for r in render_views(params, c2w, out.K, out.width, out.height, depth=depth,
+    for r in render_views(model, c2w, out.K, out.width, out.height, frames=frames, depth=depth,
                           batch_frames=batch, sky=sky, device=device):
         rgb.append(r["rgb"])
         if depth:
@@ -175,16 +189,23 @@ class _EvalContext:
     """What evaluating one camera of a scene needs: the scene, its street, the fit, the params."""
 
     def __init__(self, scene, layout: SceneLayout, street, moving: list, render_params: RenderParams,
-                 renders: RendersRecord | None, sky, log: logging.Logger):
-        self.scene, self.layout, self.street, self.moving = scene, layout, street, moving
-        self.p, self.renders, self.sky, self.log = render_params, renders, sky, log
+                 renders: RendersRecord | None, fit: FitRecord | None, log: logging.Logger):
+        from paradrive.gs.views import sky_dome_of
 
-    def render(self, params, c2w, out, depth: bool):
-        return _render(params, c2w, out, depth=depth, batch=self.p.batch_frames,
+        self.scene, self.layout, self.street, self.moving = scene, layout, street, moving
+        self.p, self.renders, self.fit, self.log = render_params, renders, fit, log
+        self.sky = sky_dome_of(scene, fit.init if fit else None)
+
+    def render(self, model, c2w, frames, out, depth: bool):
+        return _render(model, c2w, frames, out, depth=depth, batch=self.p.batch_frames,
                        device=self.p.device, sky=self.sky if depth else None)
 
+    def model(self, iteration: int):
+        from paradrive.gs.graph import load_model
+
+        return load_model(self.layout, iteration, self.scene, self.fit)
+
     def camera(self, cam_name: str, max_frames: int | None) -> dict[str, Any]:
-        from paradrive.gs.views import load_checkpoint
         from paradrive.streams import crop_resize
 
         scene, sid, p = self.scene, self.scene.scene_id, self.p
@@ -194,21 +215,20 @@ class _EvalContext:
         target = np.stack([crop_resize(scene.load_image(f, cam_name), out) for f in frames])
         conditions = []
         for it in p.condition_checkpoints:
-            rgb, _ = self.render(load_checkpoint(self.layout.checkpoint(it), scene_id=sid),
-                                 recorded, out, depth=False)
+            rgb, _ = self.render(self.model(it), recorded, frames, out, depth=False)
             q = image_quality(rgb, target)
             conditions.append({"iteration": it, "stream": condition_stream(it), **q})
             self.log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it,
                           q["psnr"], q["ssim"])
-        final = load_checkpoint(self.layout.checkpoint(p.source_checkpoint), scene_id=sid)
+        final = self.model(p.source_checkpoint)
         instants = [scene.frames[f].index for f in frames]  # actors move: truth at those frames
-        rgb, dep = self.render(final, recorded, out, depth=True)
+        rgb, dep = self.render(final, recorded, frames, out, depth=True)
         truth = self.street.render(recorded, out.K, out.width, out.height, frames=instants)
         recorded_doc = {"iteration": p.source_checkpoint, **image_quality(rgb, target),
                         "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
                         **self.truth_quality(rgb, dep, truth, instants, recorded, out)}
         ego = scene.ego2world()[frames]
-        shifted_rows = [self.shifted(final, recorded, ego, float(d), instants, out, cam_name)
+        shifted_rows = [self.shifted(final, recorded, ego, float(d), frames, out, cam_name)
                         for d in p.offsets_m]
         return {"intrinsics": out.intrinsics, "frames": frames, "conditions": conditions,
                 "shifted": shifted_rows, "recorded": recorded_doc,
@@ -218,9 +238,10 @@ class _EvalContext:
         dynamic = views_mask(self.moving, instants, c2w, out.K, out.width, out.height)
         return {**static_quality(rgb, truth["rgb"], dynamic), **depth_errors(dep, truth["depth"])}
 
-    def shifted(self, final, recorded, ego, d: float, instants: list[int], out, cam_name: str) -> dict:
+    def shifted(self, final, recorded, ego, d: float, frames: list[int], out, cam_name: str) -> dict:
         shifted = geometry.lateral_shift(recorded, ego, d)
-        rgb, dep = self.render(final, shifted, out, depth=True)
+        instants = [self.scene.frames[f].index for f in frames]
+        rgb, dep = self.render(final, shifted, frames, out, depth=True)
         truth = self.street.render(shifted, out.K, out.width, out.height, frames=instants)
         q = image_quality(rgb, truth["rgb"])
         self.log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", self.scene.scene_id, cam_name,
@@ -240,7 +261,6 @@ def _by_abs_offset(rows: list[dict]) -> dict[str, dict]:
 
 def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, cameras, max_frames,
                     out_dir, log) -> dict:
-    from paradrive.gs.views import sky_dome_of
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.scene import load_scene
     from paradrive.uri import parse_uri
@@ -270,14 +290,13 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                              path=layout.checkpoint(it),
                              fix="run the fit stage with the same profile first")
     fit = FitRecord.load(layout.fit_json, sid) if layout.fit_json.is_file() else None
-    sky = sky_dome_of(scene, fit.init if fit else None)
     cams = list(cameras or render_params.cameras)
     for c in cams:
         if c not in scene.cameras or c not in street.cameras:
             raise SceneError(f"camera {c} is not in the scene", scene_id=sid,
                              path=layout.scene_json, fix="choose a camera the scene has")
 
-    ctx = _EvalContext(scene, layout, street, moving, render_params, renders, sky, log)
+    ctx = _EvalContext(scene, layout, street, moving, render_params, renders, fit, log)
     doc_cams = {cam_name: ctx.camera(cam_name, max_frames) for cam_name in cams}
 
     doc = {"schema_version": EVAL_SCHEMA_VERSION, "scene_id": sid, "source": scene.source,

@@ -18,11 +18,13 @@ import torch
 from simulated_device import DEVICE, DeviceMismatch, OnDevice, simulated_device, to_cpu
 from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 
+from paradrive import geometry
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError
 from paradrive.gs import strategy as strategy_module
 from paradrive.gs.fit import fit_scene, render_checkpoint
 from paradrive.gs.ply import load_ply
+from paradrive.stages.layout import SceneLayout
 
 # densify at 4, 8, 12, 16; reset at 12; checkpoints at 10 and 20; the kill at 14 lands after both
 FIT = {**TINY_FIT, "checkpoints": [10, 20]}
@@ -68,26 +70,56 @@ def _fit_on(device: str, scene: Path, **kwargs) -> dict:
         return fit_scene(scene, fit_params("smoke", **FIT, device=name), **kwargs)
 
 
+@pytest.mark.parametrize("graph", [False, True], ids=["static", "scene-graph"])
 @pytest.mark.parametrize("device", DEVICES)
-def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, tiny_scene, tmp_path):
+def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, graph, tiny_scene, tmp_path):
+    moving = {"moving_threshold_m": 1.0} if graph else {}   # the actors that move get nodes
     cpu = _copy_scene(tiny_scene, tmp_path / "cpu")
-    fit_scene(cpu, fit_params("smoke", **FIT, **CPU_REF))
+    ref = fit_scene(cpu, fit_params("smoke", **FIT, **CPU_REF), **moving)
+    assert bool(ref.actors) == graph
     dev = _copy_scene(tiny_scene, tmp_path / "dev")
-    partial = _fit_on(device, dev, stop_after=14)
+    partial = _fit_on(device, dev, stop_after=14, **moving)
     assert not partial.complete and (dev / "gs" / "state.pt").is_file()
-    done = _fit_on(device, dev)
+    done = _fit_on(device, dev, **moving)
 
     assert done.complete and done.device.startswith(str(DEVICE if device == "simulated" else device))
     totals = done.densify
     assert totals["duplicated"] + totals["split"] > 0 and totals["reset"] == 1, totals
     assert not (dev / "gs" / "state.pt").exists()   # removed once the fit completed
     for it in FIT["checkpoints"]:
-        name = f"gs/ckpt_{it:06d}.ply"
-        if device == "simulated":   # the same arithmetic on the same host: the same bytes
-            assert (dev / name).read_bytes() == (cpu / name).read_bytes(), name
-        else:                       # gsplat's kernels: the same model up to float noise
-            a, b = load_ply(dev / name), load_ply(cpu / name)
-            assert a["means"].shape == b["means"].shape
+        names = [f"gs/ckpt_{it:06d}.ply"] + [str(SceneLayout(dev).actor_checkpoint(it, n.file).relative_to(dev))
+                                             for n in done.actors]
+        for name in names:
+            if device == "simulated":   # the same arithmetic on the same host: the same bytes
+                assert (dev / name).read_bytes() == (cpu / name).read_bytes(), name
+            else:                       # gsplat's kernels: the same model up to float noise
+                a, b = load_ply(dev / name), load_ply(cpu / name)
+                assert a["means"].shape == b["means"].shape
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_scene_graph_renders_on_a_device_as_on_the_cpu(device, tiny_scene, tmp_path):
+    from paradrive.gs.graph import load_model
+    from paradrive.gs.views import render_views
+    from paradrive.scene import load_scene
+    from paradrive.stages.records import FitRecord
+
+    scene_dir = _copy_scene(tiny_scene, tmp_path / "scene")
+    record = fit_scene(scene_dir, fit_params("smoke", **FIT, device="cpu"), moving_threshold_m=1.0)
+    scene = load_scene(scene_dir)
+    model = load_model(SceneLayout(scene_dir), 20, scene, FitRecord.load(SceneLayout(scene_dir).fit_json))
+    assert record.actors and model.dynamic
+    cam = scene.cameras["front"]
+    shifted = geometry.lateral_shift(scene.c2w("front"), scene.ego2world(), 2.0)
+    frames = list(range(len(scene.frames)))
+    kwargs = {"frames": frames, "depth": True, "batch_frames": 3}
+    ref = list(render_views(model, shifted, cam.K(), cam.width, cam.height, **kwargs, **CPU_REF))
+    context, name = _on(device)
+    with context:
+        out = list(render_views(model, shifted, cam.K(), cam.width, cam.height, device=name, **kwargs))
+    for a, b in zip(out, ref):
+        for key in ("rgb", "alpha", "depth"):
+            np.testing.assert_allclose(a[key], b[key], atol=0 if device == "simulated" else 2)
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -233,9 +233,11 @@ def test_lidar_init_filters_points_and_colours_them_from_images(tiny_scene):
     scene = load_scene(tiny_scene)
     views = load_views(scene, None, 1)
     p = fit_params("smoke", **{**TINY_FIT, "init": "lidar", "init_points": 800})
-    raw, is_sky, desc = initial_model(scene, views, p, scene_scale_of(scene.c2w("front")),
-                                      __import__("logging").getLogger("test"))
+    raw, is_sky, node, init = initial_model(scene, views, p, scene_scale_of(scene.c2w("front")),
+                                            __import__("logging").getLogger("test"))
+    desc = init["init"]
     assert desc["method"] == "lidar" and desc["points"] == 800
+    assert (node == -1).all(), "without a graph every Gaussian is the background's"
     assert int(is_sky.sum()) == p.sky_points
     assert raw["means"].shape[0] == 800 + p.sky_points
     rgb = raw["sh0"][:800, 0] * 0.28209479177387814 + 0.5

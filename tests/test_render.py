@@ -14,7 +14,7 @@ from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.pipeline import StageRegistry, run_build
 from paradrive.streams import crop_resize, output_camera
-from paradrive.gs.views import load_checkpoint, render_views
+from paradrive.gs.views import render_views
 from paradrive.exr import read_depth_exr, write_depth_exr
 from paradrive.stages.render import render_scene
 from paradrive.scene import load_scene, read_image
@@ -22,6 +22,16 @@ from paradrive.scene import load_scene, read_image
 SCENE = "synthetic:demo?seed=7"
 SID = "synthetic-demo-s7"
 
+
+
+def fitted_model(scene_dir, iteration: int):
+    """The checkpoint as the render stage loads it (background plus actor nodes)."""
+    from paradrive.gs.graph import load_model
+    from paradrive.stages.layout import SceneLayout
+    from paradrive.stages.records import FitRecord
+
+    layout = SceneLayout(scene_dir)
+    return load_model(layout, iteration, load_scene(scene_dir), FitRecord.load(layout.fit_json))
 
 def smoke_params(**render) -> dict:
     """Resolved smoke parameters (the smoke profile must render checkpoints its fit writes)."""
@@ -188,8 +198,8 @@ def test_alpha_is_written_when_asked(rendered):
     shifted = geometry.lateral_shift(scene.c2w("front")[[pos]], scene.ego2world()[[pos]], 2.0)
     fx, fy, cx, cy = cam["intrinsics"]
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    params = load_checkpoint(scene_dir / "gs" / f"ckpt_{rendered['params']['source_checkpoint']:06d}.ply")
-    expected = next(render_views(params, shifted, K, 160, 96))["alpha"][0]
+    model = fitted_model(scene_dir, rendered["params"]["source_checkpoint"])
+    expected = next(render_views(model, shifted, K, 160, 96, frames=[pos]))["alpha"][0]
     assert np.abs(alpha[..., 0] / 255.0 - expected).max() <= 1.0 / 255 + 1e-6
     # the sky dome closes the view: few pixels show the empty background through more than half
     assert (expected >= 0.5).mean() > 0.95 and expected.mean() > 0.85, (expected.min(), expected.mean())
@@ -198,16 +208,23 @@ def test_alpha_is_written_when_asked(rendered):
 def test_batch_size_does_not_change_the_renders(rendered):
     scene_dir = rendered["dir"]
     it = rendered["params"]["source_checkpoint"]
-    params = load_checkpoint(scene_dir / "gs" / f"ckpt_{it:06d}.ply")
+    model = fitted_model(scene_dir, it)
     cam = rendered["doc"]["cameras"]["front"]
     fx, fy, cx, cy = cam["intrinsics"]
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
     c2w = load_scene(scene_dir).c2w("front")[cam["frames"][:3]]
-    batched = list(render_views(params, c2w, K, 160, 96, batch_frames=3))
-    single = list(render_views(params, c2w, K, 160, 96, batch_frames=1))
+    static = model.params   # the background alone: cameras of several frames share a pass
+    batched = list(render_views(static, c2w, K, 160, 96, batch_frames=3))
+    single = list(render_views(static, c2w, K, 160, 96, batch_frames=1))
     assert len(batched) == 1 and len(single) == 3
     diff = np.abs(batched[0]["rgb"].astype(int) - np.concatenate([s["rgb"] for s in single]))
     assert diff.max() <= 1
+    # a scene graph renders frame by frame whatever the batch, as the render stage wrote it
+    frames = cam["frames"][:3]
+    batched = list(render_views(model, c2w, K, 160, 96, frames=frames, batch_frames=3))
+    single = list(render_views(model, c2w, K, 160, 96, frames=frames, batch_frames=1))
+    assert model.dynamic and len(batched) == len(single) == 3
+    assert all(np.array_equal(a["rgb"], b["rgb"]) for a, b in zip(batched, single))
     stored = read_image(scene_dir / "renders/front/source+0m" / f"{cam['frames'][0]:06d}.png")
     assert np.abs(stored.astype(int) - batched[0]["rgb"][0]).max() <= 1
 
@@ -218,12 +235,12 @@ def test_a_narrower_output_crops_the_same_picture(rendered):
     scene = load_scene(scene_dir)
     c = scene.cameras["front"]
     it = rendered["params"]["source_checkpoint"]
-    params = load_checkpoint(scene_dir / "gs" / f"ckpt_{it:06d}.ply")
+    model = fitted_model(scene_dir, it)
     c2w = scene.c2w("front")[:1]
-    full = next(render_views(params, c2w, c.K(), c.width, c.height))["rgb"][0]
+    full = next(render_views(model, c2w, c.K(), c.width, c.height, frames=[0]))["rgb"][0]
     out = output_camera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, 128, 96)
     x0 = out.crop[0]
-    narrow = next(render_views(params, c2w, out.K, 128, 96))["rgb"][0]
+    narrow = next(render_views(model, c2w, out.K, 128, 96, frames=[0]))["rgb"][0]
     assert np.abs(narrow.astype(int) - full[:, x0:x0 + 128]).mean() < 1.0
     target = crop_resize(scene.load_image(0, "front"), out)
     assert np.array_equal(target, scene.load_image(0, "front")[:, x0:x0 + 128])

@@ -29,6 +29,7 @@ import logging
 import os
 import random
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from collections.abc import Callable, Sequence
@@ -37,19 +38,22 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from paradrive.actors import Actor, dynamic_mask, is_moving
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import SceneError
 from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries
 from paradrive.metrics import peak_rss_mb, psnr, ssim
-from paradrive.stages.layout import SceneLayout
+from paradrive.stages.layout import SceneLayout, actor_files
 from paradrive.stages.records import FitRecord
 
 from . import init as gsinit
+from .graph import (BACKGROUND, FittedModel, actor_points_init, boxes_containing, node_poses, place,
+                    save_model)
 from .init import View
 from .losses import DepthTarget, depth_loss, flatten_loss, lidar_depth_target, shape_ratio_loss
 from .model import (PARAM_KEYS, Gaussians, Params, cat_params, deterministic_torch, new_params, render_gaussians,
                     scene_scale_of, sh_degree_of)
-from .ply import load_ply, save_ply
+from .ply import load_ply
 from .strategy import DensifyStrategy
 
 if TYPE_CHECKING:
@@ -107,7 +111,8 @@ def load_views(scene, cameras: Sequence[str] | None, downscale: float) -> list[V
             K[1] *= h / cam.height
             c2w = torch.tensor(np.asarray(frame.cameras[name].c2w), dtype=torch.float64)
             views.append(View(image=t.contiguous(), sky=sky, K=K.float(), c2w=c2w, camera=name,
-                              frame=fi, ground_z=float(np.asarray(frame.ego2world)[2, 3])))
+                              frame=fi, ground_z=float(np.asarray(frame.ego2world)[2, 3]),
+                              frame_index=frame.index))
     if not views:
         raise SceneError("fit: the scene has no images for the chosen cameras",
                          scene_id=scene.scene_id, fix="check scene.json frames / 'cameras'")
@@ -116,21 +121,79 @@ def load_views(scene, cameras: Sequence[str] | None, downscale: float) -> list[V
 
 # --------------------------------------------------------------------------- model building
 
+@dataclass
+class Graph:
+    """The fit's actors: ``nodes`` get Gaussians of their own (in box frames); ``carved`` (the
+    nodes and the moving actors whose pixels the loss leaves out) are cut from the background."""
+
+    nodes: list[Actor] = field(default_factory=list)
+    carved: list[Actor] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, scene, p: FitParams, moving_threshold_m: float | None) -> Graph:
+        if p.dynamic == "off" or moving_threshold_m is None:
+            return cls()
+        moving = [a for a in scene.actors if is_moving(a, moving_threshold_m)]
+        return cls(nodes=[a for a in moving if a.rigid or p.nonrigid == "rigid"], carved=moving)
+
+    @property
+    def masked(self) -> list[Actor]:
+        return [a for a in self.carved if a not in self.nodes]
+
+
+def _lidar_split(scene, graph: Graph) -> tuple[np.ndarray | None, list[np.ndarray]]:
+    """The scene's LiDAR without the moving actors' returns, and each node's returns (box frame)."""
+    if not graph.carved:
+        return scene.lidar_points(), [np.zeros((0, 3))] * len(graph.nodes)
+    background: list[np.ndarray] = []
+    local: list[list[np.ndarray]] = [[] for _ in graph.nodes]
+    for fi, frame in enumerate(scene.frames):
+        pts = scene.lidar_frame(fi)
+        if pts is None:
+            continue
+        inside, parts = boxes_containing(pts.astype(np.float64), graph.carved, frame.index)
+        background.append(pts[~inside])
+        for k, actor in enumerate(graph.nodes):
+            local[k].append(parts[graph.carved.index(actor)])
+    if not background:
+        return None, [np.zeros((0, 3))] * len(graph.nodes)
+    return (np.concatenate(background),
+            [np.concatenate(x) if x else np.zeros((0, 3)) for x in local])
+
+
+def _outside_swept_boxes(means: torch.Tensor, scene, graph: Graph) -> torch.Tensor:
+    """(N,) bool: points in no moving actor's box at any frame (a LiDAR-free init cannot tell
+    which frame a point came from, so the whole swept volume is left to the actors)."""
+    keep = np.ones(len(means), dtype=bool)
+    pts = means.double().numpy()
+    for frame in scene.frames if graph.carved else []:
+        inside, _ = boxes_containing(pts, graph.carved, frame.index)
+        keep &= ~inside
+    return torch.from_numpy(keep)
+
+
 def initial_model(scene, views: list[View], p: FitParams, scene_scale: float,
-                  log: logging.Logger) -> tuple[Params, torch.Tensor, dict]:
-    """Initial raw parameters, the sky flag per Gaussian, and a description for fit.json."""
+                  log: logging.Logger, graph: Graph | None = None,
+                  ) -> tuple[Params, torch.Tensor, torch.Tensor, dict]:
+    """Initial raw parameters, the sky flag and node (:data:`BACKGROUND` or an index into
+    ``graph.nodes``) per Gaussian, and a description for fit.json."""
+    graph = graph or Graph()
     gen = torch.Generator().manual_seed(p.seed)
     # colour look-ups walk the views in time order, spread over the whole drive
     order = sorted(range(len(views)), key=lambda i: (views[i].frame, views[i].camera))
     ordered = [views[i] for i in order]
     mode = p.init
-    lidar = scene.lidar_points() if mode in ("auto", "lidar") else None
+    lidar, node_lidar = _lidar_split(scene, graph) if mode in ("auto", "lidar") else (None, [])
     if mode == "lidar" and lidar is None:
         raise SceneError("fit: init 'lidar' asked but the scene has no lidar/", scene_id=scene.scene_id,
                          fix="use init: auto or frustum, or ingest the LiDAR")
     cap = p.max_gaussians if p.max_gaussians > 0 else None
     n_sky = p.sky_points
-    budget = p.init_points if cap is None else min(p.init_points, max(cap - n_sky, 1))
+    # the nodes' points come out of init_points (at most a quarter of them), so a scene graph
+    # starts with as many Gaussians as the static model of the same scene
+    per_node = min(p.actor_init_points, p.init_points // max(4 * len(graph.nodes), 1))
+    budget = p.init_points - per_node * len(graph.nodes)
+    budget = budget if cap is None else min(budget, max(cap - n_sky - per_node * len(graph.nodes), 1))
     if lidar is not None and len(lidar):
         means, rgb = gsinit.lidar_points_init(lidar, ordered, voxel=p.lidar_voxel,
                                               max_points=min(p.lidar_max_points, budget),
@@ -143,11 +206,24 @@ def initial_model(scene, views: list[View], p: FitParams, scene_scale: float,
                                                 depth_candidates=p.init_depth_candidates,
                                                 ground_margin=p.init_ground_margin,
                                                 generator=gen)
+        keep = _outside_swept_boxes(means, scene, graph)
+        means, rgb = means[keep], rgb[keep]
         how = "frustum"
     scales = gsinit.knn_scales(means, max_scale=0.1 * scene_scale)
     params = new_params(means, rgb, scales, opacity=p.init_opacity,
                         sh_degree=p.sh_degree)
-    is_sky = torch.zeros(len(means), dtype=torch.bool)
+    node = torch.full((len(means),), BACKGROUND, dtype=torch.int64)
+    actor_points = []
+    for k, actor in enumerate(graph.nodes):
+        local = node_lidar[k] if k < len(node_lidar) else np.zeros((0, 3))
+        a_means, a_rgb = actor_points_init(actor, local, ordered, n_points=per_node,
+                                           voxel=p.lidar_voxel, generator=gen)
+        a_scales = gsinit.knn_scales(a_means, max_scale=0.25 * float(min(actor.size)))
+        params = cat_params(params, new_params(a_means, a_rgb, a_scales, opacity=p.init_opacity,
+                                               sh_degree=p.sh_degree))
+        node = torch.cat([node, torch.full((len(a_means),), k, dtype=torch.int64)])
+        actor_points.append(len(a_means))
+    is_sky = torch.zeros(len(node), dtype=torch.bool)
     radius = p.sky_radius
     if n_sky > 0:
         centers = torch.stack([v.c2w[:3, 3] for v in views]).float()
@@ -156,10 +232,12 @@ def initial_model(scene, views: list[View], p: FitParams, scene_scale: float,
         sky = new_params(s_means, s_rgb, s_scales, opacity=0.9, sh_degree=p.sh_degree)
         params = cat_params(params, sky)
         is_sky = torch.cat([is_sky, torch.ones(len(s_means), dtype=torch.bool)])
+        node = torch.cat([node, torch.full((len(s_means),), BACKGROUND, dtype=torch.int64)])
     desc = {"method": how, "points": int(len(means)), "sky_points": int(is_sky.sum()),
             "sky_radius_m": radius, "scene_scale_m": scene_scale}
-    log.info("fit: init %s with %d points + %d sky", how, len(means), int(is_sky.sum()))
-    return params, is_sky, desc
+    log.info("fit: init %s with %d points + %d sky + %d in %d actor nodes", how, len(means),
+             int(is_sky.sum()), sum(actor_points), len(graph.nodes))
+    return params, is_sky, node, {"init": desc, "actor_points": actor_points}
 
 
 def lidar_depth_targets(scene, views: Sequence[View],
@@ -174,6 +252,19 @@ def lidar_depth_targets(scene, views: Sequence[View],
         target = None if pts is None or not len(pts) else lidar_depth_target(pts, v)
         targets.append(target.to(device) if target is not None and len(target.pixels) else None)
     return targets
+
+
+def _loss_masks(actors: list[Actor], views: Sequence[View],
+                device: torch.device) -> list[torch.Tensor | None]:
+    """Per view, the pixels of ``actors`` (moving, no node of their own) the loss leaves out."""
+    masks: list[torch.Tensor | None] = []
+    for v in views:
+        m = None
+        if actors and v.frame_index is not None:
+            hit = dynamic_mask(actors, v.frame_index, v.c2w.numpy(), v.K.double().numpy(), v.width, v.height)
+            m = torch.from_numpy(hit).to(device) if hit.any() else None
+        masks.append(m)
+    return masks
 
 
 def _make_optimizers(params: dict[str, torch.nn.Parameter], p: FitParams,
@@ -237,14 +328,15 @@ def _save_state(path: Path, *, step, params, optimizers, strategy_state, gen, or
 # --------------------------------------------------------------------------- evaluation
 
 @torch.no_grad()
-def evaluate(params: Gaussians, views: Sequence[View], indices: Sequence[int], sh_degree: int,
+def evaluate(model: Gaussians | FittedModel, views: Sequence[View], indices: Sequence[int], sh_degree: int,
              device: torch.device, backend: str = "auto") -> dict:
     """Mean PSNR (dB) and SSIM of renders against the training images of ``indices``."""
+    model = model if isinstance(model, FittedModel) else FittedModel(dict(model))
     ps, ss = [], []
     for i in indices:
         v = views[i]
-        out, _, _ = render_gaussians(params, v.viewmat()[None].to(device), v.K[None].to(device), v.width,
-                           v.height, sh_degree=sh_degree, backend=backend)
+        out, _, _ = render_gaussians(model.at(v.frame), v.viewmat()[None].to(device), v.K[None].to(device),
+                                     v.width, v.height, sh_degree=sh_degree, backend=backend)
         pred = out[0, ..., :3].clamp(0, 1).cpu()
         gt = v.rgb()
         ps.append(float(psnr(pred, gt)))
@@ -263,11 +355,13 @@ def _eval_indices(n_views: int, n_eval: int) -> list[int]:
 def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
               log: logging.Logger | None = None,
               progress: Callable[[int, int], None] | None = None,
-              stop_after: int | None = None) -> FitRecord:
+              stop_after: int | None = None, moving_threshold_m: float | None = None) -> FitRecord:
     """Fit the scene folder ``scene`` with the fit stage's parameters ``p``; returns fit.json.
 
     Resumes from ``gs/state.pt`` when present and made with the same parameters.
     ``stop_after``: return after this many total iterations (tests; the state is saved).
+    ``moving_threshold_m``: the ingest's (a track moving farther is a moving actor: a node of
+    the scene graph unless ``p.dynamic`` is off); None = no actor moves.
     """
     from paradrive.scene import load_scene
 
@@ -276,13 +370,13 @@ def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
     remove_stale_temporaries(layout.gs_dir)
     device = resolve_device(p.device)
     with deterministic_torch(p.threads):
-        return _fit(load_scene(layout.root), layout, p, device, log or log_default, progress,
-                    stop_after)
+        loaded = load_scene(layout.root)
+        graph = Graph.of(loaded, p, moving_threshold_m)
+        return _fit(_Fit(loaded, layout, p, device, log or log_default, graph), progress, stop_after)
 
 
-def _fit(scene, layout: SceneLayout, p: FitParams, device: torch.device,
-         log: logging.Logger, progress, stop_after) -> FitRecord:
-    run = _Fit(scene, layout, p, device, log)
+def _fit(run: _Fit, progress, stop_after) -> FitRecord:
+    p, layout = run.p, run.layout
     total = p.iterations
     while run.step < total:
         if stop_after is not None and run.step >= stop_after:
@@ -324,9 +418,15 @@ class _Fit:
     order and the clocks; :meth:`iterate` takes one step, the rest writes what a step earned."""
 
     def __init__(self, scene, layout: SceneLayout, p: FitParams, device: torch.device,
-                 log: logging.Logger):
+                 log: logging.Logger, graph: Graph | None = None):
         self.scene, self.layout, self.p, self.device, self.log = scene, layout, p, device, log
-        self.fp = _fingerprint({**p.source, "checkpoints": p.checkpoints})
+        self.graph = graph = graph or Graph()
+        ids = [a.id for a in graph.nodes]
+        self.fp = _fingerprint({**p.source, "checkpoints": p.checkpoints,
+                                **({"nodes": ids, "masked": [a.id for a in graph.masked]}
+                                   if graph.carved else {})})
+        self.files = actor_files(ids)
+        self.poses = node_poses(scene, graph.nodes).to(device) if graph.nodes else None
         self.views = views = load_views(scene, p.cameras, p.downscale)
         scene_scale = scene_scale_of(torch.stack([v.c2w for v in views]))
         self.strategy = DensifyStrategy(
@@ -342,6 +442,13 @@ class _Fit:
         raw = self._resume(saved) if saved is not None else self._start(scene_scale)
         self.params = {k: torch.nn.Parameter(raw[k].to(device).contiguous()) for k in PARAM_KEYS}
         self.optimizers = _make_optimizers(self.params, p, scene_scale)
+        # box refinement: per frame and node a translation and a turn about the box's z axis
+        self.boxes = None
+        if self.poses is not None and p.actor_pose_lr > 0:
+            start = raw.get("boxes")
+            zeros = torch.zeros(len(scene.frames), len(graph.nodes), 4, device="cpu")
+            self.boxes = torch.nn.Parameter((zeros if start is None else start).to(device))
+            self.optimizers["boxes"] = torch.optim.Adam([self.boxes], lr=p.actor_pose_lr, eps=1e-15)
         self.strat_state: dict[str, Any] = {k: (v.to(device) if isinstance(v, torch.Tensor) else v)
                                             for k, v in self.strat_state.items()}
         if saved is not None:
@@ -355,6 +462,7 @@ class _Fit:
                         and any(v.sky is not None for v in views))
         self.depth_targets = (lidar_depth_targets(scene, views, device) if p.depth_weight > 0
                               else [None] * len(views))
+        self.loss_masks = _loss_masks(graph.masked, views, device)
         self.eval_idx = _eval_indices(len(views), p.eval_views)
         self.gpu_views = [(v.viewmat()[None].to(device), v.K[None].to(device)) for v in views]
         self.t_start, self.c_start = time.perf_counter(), time.process_time()
@@ -371,10 +479,15 @@ class _Fit:
         return saved["params"]
 
     def _start(self, scene_scale: float) -> Params:
-        raw, is_sky, init_desc = initial_model(self.scene, self.views, self.p, scene_scale, self.log)
-        self.extra = {"init": init_desc, "scene_scale": scene_scale}
+        raw, is_sky, node, init = initial_model(self.scene, self.views, self.p, scene_scale, self.log,
+                                                self.graph)
+        nodes = [{"id": a.id, "cls": a.cls, "rigid": a.rigid, "file": f, "init_points": n}
+                 for a, f, n in zip(self.graph.nodes, self.files, init["actor_points"])]
+        self.extra = {"init": init["init"], "scene_scale": scene_scale, "dynamic": bool(nodes),
+                      "actors": nodes}
         self.strat_state = self.strategy.initialize_state(len(is_sky), scene_scale, is_sky,
                                                           device=self.device)
+        self.strat_state["node"] = node.to(self.device)
         self.step, self.metrics, self.elapsed0, self.cpu0 = 0, [], 0.0, 0.0
         self.order, self.cursor = torch.randperm(len(self.views), generator=self.gen), 0
         return raw
@@ -410,11 +523,17 @@ class _Fit:
         viewmat, K = self.gpu_views[vi]
         use_sky = self.has_sky and view.sky is not None and p.sky_depth_weight > 0
         target = self.depth_targets[vi]
-        out, _, info = render_gaussians(self.params, viewmat, K, view.width, view.height,
+        gaussians, index = place(self.params, self.strat_state.get("node"), self.poses, view.frame,
+                                 self.boxes)
+        out, _, info = render_gaussians(gaussians, viewmat, K, view.width, view.height,
                                         sh_degree=deg, backend=self.backend,
                                         render_mode="RGB+ED" if use_sky or target is not None else "RGB")
+        info["gaussian_ids"] = index
         pred = out[0, ..., :3]
         gt = view.rgb().to(device)
+        masked = self.loss_masks[vi]
+        if masked is not None:   # non-rigid actors left out: their pixels cost nothing
+            pred = torch.where(masked[..., None], gt, pred)
         lam = p.ssim_lambda
         loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
         if use_sky and view.sky is not None:
@@ -435,8 +554,9 @@ class _Fit:
     def checkpoint(self) -> None:
         """The PLY of this iteration, its metrics, the resume state and fit.json."""
         step, params, device = self.step, self.params, self.device
-        save_ply(self.layout.checkpoint(step), params)
-        m = evaluate(params, self.views, self.eval_idx, self.p.sh_degree, device, self.backend)
+        model = self.model()
+        save_model(self.layout, step, params, model.node, self.files, self.boxes)
+        m = evaluate(model, self.views, self.eval_idx, self.p.sh_degree, device, self.backend)
         entry = {"iteration": step, **m, "num_gaussians": int(params["means"].shape[0]),
                  "seconds": round(self.elapsed(), 3), "cpu_seconds": round(self.cpu_seconds(), 3),
                  "peak_rss_mb": round(peak_rss_mb(), 1)}
@@ -449,8 +569,16 @@ class _Fit:
         self.save_state()
         self.record(step >= self.p.iterations)
 
+    def model(self) -> FittedModel:
+        """The model as a renderer loads its checkpoint (refined boxes applied)."""
+        if self.poses is None:
+            return FittedModel(self.params)
+        poses = self.poses if self.boxes is None else self.poses.corrected(self.boxes)
+        return FittedModel(self.params, self.strat_state["node"], poses)
+
     def save_state(self) -> None:
-        _save_state(self.layout.fit_state, step=self.step, params=self.params,
+        boxes = {} if self.boxes is None else {"boxes": self.boxes}
+        _save_state(self.layout.fit_state, step=self.step, params={**self.params, **boxes},
                     optimizers=self.optimizers, strategy_state=self.strat_state, gen=self.gen,
                     order=self.order, cursor=self.cursor, metrics=self.metrics,
                     elapsed=self.elapsed(), fingerprint=self.fp,

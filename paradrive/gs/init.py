@@ -32,6 +32,7 @@ class View:
     camera: str
     frame: int
     ground_z: float | None = None  # world z of the road under the vehicle (ego origin height)
+    frame_index: int | None = None  # the scene frame's ``index`` (actor tracks use it)
 
     @property
     def height(self) -> int:

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from paradrive.errors import SceneError
 from paradrive.io import atomic_path
 
 from .model import Gaussians, num_sh_bases
 
-__all__ = ["save_ply", "load_ply", "ply_property_names"]
+__all__ = ["save_ply", "load_ply", "load_checkpoint", "ply_property_names"]
 
 
 def ply_property_names(sh_degree: int) -> list[str]:
@@ -102,3 +103,14 @@ def load_ply(path: str | os.PathLike) -> dict[str, torch.Tensor]:
         "sh0": torch.from_numpy(cols(["f_dc_0", "f_dc_1", "f_dc_2"])[:, None, :].copy()),
         "shN": torch.from_numpy(np.ascontiguousarray(f_rest)),
     }
+
+
+def load_checkpoint(path: str | os.PathLike, *, scene_id: str | None = None) -> dict:
+    """Gaussian parameters of a 3DGS PLY checkpoint; a file that cannot be read is a SceneError
+    naming it and the fix."""
+    path = Path(path)
+    try:
+        return load_ply(path)
+    except (OSError, ValueError, KeyError) as exc:
+        raise SceneError(f"checkpoint cannot be read: {type(exc).__name__}: {exc}",
+                         scene_id=scene_id, path=path, fix="re-run the fit stage") from exc

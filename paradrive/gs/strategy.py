@@ -7,7 +7,9 @@ split in two, sampled from the Gaussian itself (large ones); Gaussians with opac
 steps opacities are clamped to ``2 * prune_opa``. ``max_gaussians`` bounds the count: when the
 candidates would exceed it, the ones with the largest gradients win.
 
-Sky-dome Gaussians (``state["is_sky"]``) are left alone: never grown, pruned or reset.
+Sky-dome Gaussians (``state["is_sky"]``) are left alone: never grown, pruned or reset. Other
+per-Gaussian state (a scene graph's ``node``) follows its Gaussians through every change; a split
+samples its children in the Gaussian's own frame, so actor nodes densify in their box frames.
 
 The mutable state is an explicit dict of tensors, saved with the fit for exact resumption.
 Every topology change is expressed as an index map (new Gaussian i comes from old ``index[i]``)
@@ -94,7 +96,11 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def update_state(self, state: dict[str, Any], info: dict[str, Any]) -> None:
-        """Accumulate the view-space gradient norms of ``info['means2d']`` (C, N, 2)."""
+        """Accumulate the view-space gradient norms of ``info['means2d']`` (C, M, 2).
+
+        ``info['gaussian_ids']`` (M,), when set, maps the rendered Gaussians to the model's (a
+        scene-graph frame renders only the nodes present at it); None or absent = all of them.
+        """
         m2d = info["means2d"]
         if m2d.grad is None:
             return
@@ -105,8 +111,13 @@ class DensifyStrategy:
         radii = info["radii"]
         visible = radii > 0 if radii.dim() == 2 else (radii > 0).all(-1)   # (C, N)
         norms = torch.where(visible, grads.norm(dim=-1), torch.zeros_like(grads[..., 0]))
-        state["grad2d"] += norms.sum(0)
-        state["count"] += visible.float().sum(0)
+        ids = info.get("gaussian_ids")
+        if ids is None:
+            state["grad2d"] += norms.sum(0)
+            state["count"] += visible.float().sum(0)
+        else:
+            state["grad2d"].index_add_(0, ids, norms.sum(0))
+            state["count"].index_add_(0, ids, visible.float().sum(0))
 
     @torch.no_grad()
     def step_post_backward(self, params, optimizers, state: dict[str, Any], step: int,

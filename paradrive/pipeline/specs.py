@@ -128,6 +128,10 @@ def _suggest(name: str, options) -> str:
 def coerce(stage: str, key: str, param: Param, value: Any, origin: str) -> Any:
     """Check an override against the default's type (ints pass where floats are expected)."""
     default = param.default
+    if isinstance(value, bool) and isinstance(default, str):
+        # YAML 1.1 reads an unquoted on / off / yes / no as a boolean: take the word back
+        value = next((c for c in param.choices or () if c in (("on", "yes", "true") if value
+                                                                 else ("off", "no", "false"))), value)
     if param.choices is not None and value not in param.choices:
         raise ConfigError(f"{origin}: {stage}.{key} = {value!r} is not one of {param.choices}")
     if param.types is not None and value is not None:

@@ -61,6 +61,10 @@ class Params(StageParams):
     eval_views: int
     state_interval: int
     keep_state: bool
+    dynamic: str
+    nonrigid: str
+    actor_init_points: int
+    actor_pose_lr: float
 
     @field_validator("checkpoints")
     @classmethod
@@ -85,5 +89,8 @@ class Params(StageParams):
 
 def run(ctx: StageContext[Params]) -> FitRecord:
     from paradrive.gs.fit import fit_scene
+    from paradrive.stages.ingest import recorded_params
 
-    return fit_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress)
+    threshold = recorded_params(ctx.layout).moving_threshold_m
+    return fit_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress,
+                     moving_threshold_m=threshold)

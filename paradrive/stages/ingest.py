@@ -10,6 +10,7 @@ whole scene is valid, so a failed ingest leaves nothing half-written.
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import shutil
 from pathlib import Path
@@ -57,6 +58,17 @@ def params_of(values: Mapping[str, Any] | None = None) -> Params:
 
     known = {k: v for k, v in (values or {}).items() if k in Params.model_fields}
     return Params.of("ingest", {**StageRegistry().resolve(None).params["ingest"], **known})
+
+
+def recorded_params(layout: SceneLayout) -> Params:
+    """The parameters the scene at ``layout`` was ingested with (its stage marker), typed; the
+    YAML's values where it has no marker (a scene folder made without the runner)."""
+    try:
+        doc = json.loads(layout.marker("ingest").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        doc = None
+    values = doc.get("params") if isinstance(doc, dict) else None
+    return params_of(values if isinstance(values, dict) else None)
 
 
 class IngestSummary(dict[str, Any]):

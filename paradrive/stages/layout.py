@@ -7,7 +7,8 @@ A scene lives at ``<data>/scenes/<scene_id>/``::
     lidar/<frame:06d>.npy                         world points (optional)
     masks/sky/<camera>/<frame:06d>.png            sky masks (optional)
     masks/dynamic/<camera>/<frame:06d>.png        moving actors' boxes (optional)
-    gs/ckpt_<iteration:06d>.ply  gs/fit.json  gs/state.pt      the fit
+    gs/ckpt_<iteration:06d>.ply  gs/fit.json  gs/state.pt      the fit (background and sky)
+    gs/actors/ckpt_<iteration:06d>/<actor>.ply    a scene-graph fit's actor nodes, box frame
     renders/renders.json  renders/<camera>/<stream>/<frame:06d>.png  (+ depth/, alpha/)
     clips/clips.json  clips/<camera>/<clip>/<stream>.<mp4|mkv>      the clips
     .paradrive/<stage>.json                       a completed stage's marker
@@ -87,6 +88,10 @@ class SceneLayout:
     def checkpoint(self, iteration: int) -> Path:
         return self.gs_dir / f"ckpt_{int(iteration):06d}.ply"
 
+    def actor_checkpoint(self, iteration: int, file: str) -> Path:
+        """An actor node of a scene-graph checkpoint (``file`` from :func:`actor_files`)."""
+        return self.gs_dir / "actors" / f"ckpt_{int(iteration):06d}" / file
+
     @property
     def fit_json(self) -> Path:
         return self.gs_dir / "fit.json"
@@ -120,6 +125,15 @@ class SceneLayout:
 
 RENDERS_JSON = "renders.json"
 CLIPS_JSON = "clips.json"
+
+
+def actor_files(actor_ids: list[str]) -> list[str]:
+    """Checkpoint file names of actor nodes: the id made file-safe, numbered when two collide."""
+    names: list[str] = []
+    for k, actor_id in enumerate(actor_ids):
+        name = safe_name(actor_id)
+        names.append(f"{name}.ply" if f"{name}.ply" not in names else f"{name}-{k}.ply")
+    return names
 
 
 def stream_dir(camera: str, stream: str) -> str:

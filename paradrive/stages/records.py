@@ -90,6 +90,16 @@ class FitInit(Part):
     scene_scale_m: float
 
 
+class ActorNode(Part):
+    """One actor node of a scene-graph fit: its track's id, class and checkpoint file name."""
+
+    id: str
+    cls: str
+    rigid: bool
+    file: str
+    init_points: int
+
+
 class FitRecord(Record):
     WHAT: ClassVar[str] = "fit.json"
     FIX: ClassVar[str] = "re-run the fit stage for this scene"
@@ -107,6 +117,8 @@ class FitRecord(Record):
     init: FitInit
     scene_scale: float
     densify: dict[str, int]
+    dynamic: bool = False
+    actors: list[ActorNode] = []
 
     def summary(self) -> dict[str, Any]:
         last = self.at(None)

@@ -40,6 +40,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +55,9 @@ from paradrive.stages.records import (FitRecord, RenderedCamera, RenderedStream,
                                       SkippedClip, SkyDomeRecord, WindowRecord)
 from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_windows, crop_resize,
                                frames_needed, output_camera, plan_streams)
+
+if TYPE_CHECKING:
+    from paradrive.gs.graph import FittedModel
 
 log_default = logging.getLogger("paradrive.render")
 Progress = Callable[[int, int], None]
@@ -103,12 +107,13 @@ def check_params(params: Params, scene: Scene, layout: SceneLayout) -> None:
     if len({s.name for s in streams}) != len(streams):
         raise SceneError(f"render.offsets_m {params.offsets_m} repeats an offset", scene_id=sid,
                          fix="list each lateral offset once")
+    nodes = FitRecord.load(layout.fit_json).actors if layout.fit_json.is_file() else []
     for it in sorted({s.iteration for s in streams if s.iteration is not None}):
-        if not layout.checkpoint(it).is_file():
-            raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid,
-                             path=layout.checkpoint(it),
-                             fix=f"add {it} to fit.checkpoints (render.condition_checkpoints and "
-                                 f"render.source_checkpoint must be fitted) and re-run fit")
+        for path in [layout.checkpoint(it)] + [layout.actor_checkpoint(it, a.file) for a in nodes]:
+            if not path.is_file():
+                raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid, path=path,
+                                 fix=f"add {it} to fit.checkpoints (render.condition_checkpoints and "
+                                     f"render.source_checkpoint must be fitted) and re-run fit")
     unknown = [c for c in params.cameras if c not in scene.cameras]
     if unknown:
         raise SceneError(f"render.cameras names {', '.join(unknown)}, which the scene does not "
@@ -140,9 +145,10 @@ class _Renderer:
 
         self.scene, self.layout, self.params, self.root = scene, layout, params, root
         self.progress, self.total, self.done = progress, total, 0
-        init = FitRecord.load(layout.fit_json).init if params.depth and layout.fit_json.is_file() else None
+        self.fit = FitRecord.load(layout.fit_json) if layout.fit_json.is_file() else None
+        init = self.fit.init if params.depth and self.fit is not None else None
         self.sky = sky_dome_of(scene, init) if params.depth else None
-        self.cache: dict[int, dict] = {}
+        self.cache: dict[int, FittedModel] = {}
         self.streams = params.streams()
 
     def tick(self, count: int = 1) -> None:
@@ -182,13 +188,12 @@ class _Renderer:
             write_image(folder / frame_file(pos), crop_resize(image, plan.out))
             self.tick()
 
-    def checkpoint(self, iteration: int) -> dict:
-        from paradrive.gs.views import load_checkpoint
+    def checkpoint(self, iteration: int) -> FittedModel:
+        from paradrive.gs.graph import load_model
 
         if iteration not in self.cache:
             self.cache.clear()  # one checkpoint in memory at a time
-            self.cache[iteration] = load_checkpoint(self.layout.checkpoint(iteration),
-                                                    scene_id=self.scene.scene_id)
+            self.cache[iteration] = load_model(self.layout, iteration, self.scene, self.fit)
         return self.cache[iteration]
 
     def rendered(self, plan: CameraPlan, stream: StreamPlan, c2w: np.ndarray, folder: Path) -> None:
@@ -197,8 +202,9 @@ class _Renderer:
         assert stream.iteration is not None
         p = self.params
         k = 0
+        # only the ego moves in a shifted stream: the actors stand where the log saw them
         for result in render_views(self.checkpoint(stream.iteration), c2w, plan.out.K, p.width,
-                                   p.height, depth=p.depth, batch_frames=p.batch_frames,
+                                   p.height, frames=plan.frames, depth=p.depth, batch_frames=p.batch_frames,
                                    sky=self.sky, device=p.device, backend=p.backend):
             for j in range(len(result["rgb"])):
                 self.write_frame(folder, plan.frames[k], result, j)

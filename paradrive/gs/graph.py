@@ -1,0 +1,333 @@
+"""The scene graph: background Gaussians in the world plus one rigid node per moving actor.
+
+A node's Gaussians live in its actor's box frame (origin at the box centre, x along the heading,
+z up; :mod:`paradrive.actors`). At scene frame ``f`` (a position in ``scene.json``'s ``frames``)
+:func:`place` moves them by the actor's ``box2world`` at that frame and returns one set of
+Gaussians in the world, so background and actors are rasterized together in one pass and their
+depth order is right. A node whose actor has no box at ``f`` (not yet seen, or gone) is left out
+of that frame.
+
+The model is a flat parameter set (the layout of :mod:`paradrive.gs.model`) and ``node`` (N,)
+int64, the node of each Gaussian (:data:`BACKGROUND` for the world's own, the sky dome included),
+so densification, pruning and the Adam moments work on it unchanged, per Gaussian in its own
+frame. View-dependent colour (SH bands above 0) is evaluated with world directions for every
+Gaussian; a turning car keeps its base colour exactly and its view-dependent part approximately.
+
+Checkpoints (:func:`save_model` / :func:`load_model`)::
+
+    gs/ckpt_<iteration:06d>.ply                     background and sky, in the world (any 3DGS viewer)
+    gs/actors/ckpt_<iteration:06d>/<actor>.ply      one per node, in its box frame
+
+``fit.json`` lists the nodes (``actors``: id, class, file); a renderer places each by its track.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from paradrive import geometry
+from paradrive.errors import SceneError
+
+from .model import PARAM_KEYS, Gaussians
+
+if TYPE_CHECKING:
+    from paradrive.actors import Actor
+
+    from .init import View
+    from paradrive.stages.layout import SceneLayout
+    from paradrive.stages.records import FitRecord
+
+__all__ = ["BACKGROUND", "NodePoses", "FittedModel", "node_poses", "place", "save_model", "load_model",
+           "boxes_containing"]
+
+BACKGROUND = -1
+BOX_REFINEMENT = "box_refinement.npy"   # beside a checkpoint's node PLYs, when boxes are refined
+# a point this close above a box's floor still belongs to the road it stands on
+FLOOR_MARGIN_M = 0.1
+
+
+@dataclass
+class NodePoses:
+    """Where each node is at each scene frame.
+
+    ids: node k's actor id; box2world (F, K, 4, 4) float32 (identity where absent); present
+    (F, K) bool; quats (F, K, 4) the rotations as w x y z.
+    """
+
+    ids: list[str]
+    box2world: torch.Tensor
+    present: torch.Tensor
+    quats: torch.Tensor
+
+    def to(self, device: torch.device | str) -> NodePoses:
+        return NodePoses(self.ids, self.box2world.to(device), self.present.to(device),
+                         self.quats.to(device))
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def at(self, frame: int, correction: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(box2world (K, 4, 4), rotation quaternions (K, 4)) of every node at ``frame``.
+
+        correction: None, or (F, K, 4) per frame and node a box refinement (dx, dy, dz in the
+        world, metres; a turn about the box's z axis, radians): box2world becomes
+        T(d) box2world Rz(yaw). Differentiable in ``correction``.
+        """
+        box, quats = self.box2world[frame], self.quats[frame]
+        if correction is None:
+            return box, quats
+        c = correction[frame].to(box.device)
+        yaw = c[:, 3]
+        cos, sin, zero, one = torch.cos(yaw), torch.sin(yaw), torch.zeros_like(yaw), torch.ones_like(yaw)
+        rz = torch.stack([cos, -sin, zero, sin, cos, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+        rot = box[:, :3, :3] @ rz
+        top = torch.cat([rot, (box[:, :3, 3] + c[:, :3])[:, :, None]], 2)
+        bottom = box[:, 3:4, :]
+        half = 0.5 * yaw
+        qz = torch.stack([torch.cos(half), zero, zero, torch.sin(half)], -1)
+        return torch.cat([top, bottom], 1), quat_multiply(quats, qz)
+
+    def corrected(self, correction: torch.Tensor) -> NodePoses:
+        """These poses with a box refinement (F, K, 4) (see :meth:`at`) applied at every frame."""
+        with torch.no_grad():
+            pairs = [self.at(f, correction) for f in range(len(self.box2world))]
+        return NodePoses(self.ids, torch.stack([b for b, _ in pairs]), self.present,
+                         torch.stack([q for _, q in pairs]))
+
+
+def node_poses(scene, actors: Sequence[Actor]) -> NodePoses:
+    """The poses of ``actors`` at every frame of ``scene`` (by frame position), on the CPU."""
+    position = {f.index: i for i, f in enumerate(scene.frames)}
+    n_frames, k = len(scene.frames), len(actors)
+    poses = np.tile(np.eye(4), (n_frames, k, 1, 1))
+    present = np.zeros((n_frames, k), dtype=bool)
+    for j, actor in enumerate(actors):
+        for frame, pose in zip(actor.frames, actor.box2world):
+            if int(frame) in position:
+                poses[position[int(frame)], j] = pose
+                present[position[int(frame)], j] = True
+    quats = np.zeros((n_frames, k, 4))
+    quats[..., 0] = 1.0
+    for f, j in zip(*np.nonzero(present)):
+        quats[f, j] = geometry.rotation_to_quaternion(poses[f, j, :3, :3])
+    return NodePoses([a.id for a in actors], torch.tensor(poses, dtype=torch.float32, device="cpu"),
+                     torch.tensor(present, device="cpu"),
+                     torch.tensor(quats, dtype=torch.float32, device="cpu"))
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of quaternions (..., 4) w x y z (rotation ``a`` after ``b``)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def place(params: Gaussians, node: torch.Tensor | None, poses: NodePoses | None,
+          frame: int, correction: torch.Tensor | None = None) -> tuple[Gaussians, torch.Tensor | None]:
+    """The Gaussians of scene frame ``frame`` in the world.
+
+    Background Gaussians (``node == BACKGROUND``) as they are; node k's moved by its box2world at
+    ``frame`` (refined by ``correction``, see :meth:`NodePoses.at`); those of nodes absent there
+    left out. Returns (Gaussians, ``index`` (M,) of the kept ones in ``params``, or None when all
+    are kept). Differentiable in ``params`` and ``correction``.
+    """
+    if poses is None or node is None or not len(poses):
+        return params, None
+    present = poses.present[frame]
+    keep_node = torch.cat([torch.ones(1, dtype=torch.bool, device=present.device), present])
+    kept = keep_node[node + 1]
+    index = None if bool(kept.all()) else torch.nonzero(kept).squeeze(1)
+    sub = {k: params[k] for k in PARAM_KEYS} if index is None else {k: params[k][index] for k in PARAM_KEYS}
+    sub_node = node if index is None else node[index]
+    actor = sub_node >= 0
+    if not bool(actor.any()):
+        return sub, index
+    dev = sub["means"].device
+    box, quats = poses.at(frame, correction)
+    eye = torch.eye(4, dtype=torch.float32, device=dev)[None]
+    mats = torch.cat([eye, box.to(dev)])[sub_node + 1]                           # (M, 4, 4)
+    ident = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float32, device=dev)
+    rots = torch.cat([ident, quats.to(dev)])[sub_node + 1]                       # (M, 4)
+    means = torch.einsum("nij,nj->ni", mats[:, :3, :3], sub["means"]) + mats[:, :3, 3]
+    out = dict(sub)
+    out["means"] = means
+    out["quats"] = quat_multiply(rots, sub["quats"])
+    return out, index
+
+
+def boxes_containing(points: np.ndarray, actors: Sequence[Actor], frame_index: int,
+                     ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Which ``points`` (M, 3) world lie in the actors' boxes at scene frame ``frame_index``.
+
+    Returns (inside_any (M,) bool, per actor the box-frame coordinates of its points (Mk, 3)).
+    A point within ``FLOOR_MARGIN_M`` of a box's floor belongs to the road, not the actor.
+    """
+    inside = np.zeros(len(points), dtype=bool)
+    local: list[np.ndarray] = []
+    for actor in actors:
+        pose = actor.pose_at(frame_index)
+        if pose is None or not len(points):
+            local.append(np.zeros((0, 3)))
+            continue
+        p = (points - pose[:3, 3]) @ pose[:3, :3]
+        half = 0.5 * np.asarray(actor.size, dtype=np.float64)
+        hit = ((np.abs(p[:, :2]) <= half[:2]).all(1) & (p[:, 2] <= half[2])
+               & (p[:, 2] >= -half[2] + FLOOR_MARGIN_M))
+        inside |= hit
+        local.append(p[hit])
+    return inside, local
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+@dataclass
+class FittedModel:
+    """A checkpoint as a renderer takes it: flat parameters, each Gaussian's node and the poses
+    (None for a static fit)."""
+
+    params: Gaussians
+    node: torch.Tensor | None = None
+    poses: NodePoses | None = None
+
+    @property
+    def dynamic(self) -> bool:
+        return self.poses is not None and len(self.poses) > 0
+
+    def to(self, device: torch.device | str) -> FittedModel:
+        return FittedModel({k: v.to(device) for k, v in self.params.items()},
+                           None if self.node is None else self.node.to(device),
+                           None if self.poses is None else self.poses.to(device))
+
+    def at(self, frame: int | None) -> Gaussians:
+        """The Gaussians of scene frame ``frame`` in the world (any frame for a static model)."""
+        if not self.dynamic:
+            return self.params
+        if frame is None:
+            raise ValueError("a scene-graph checkpoint renders at a frame: pass the frames")
+        return place(self.params, self.node, self.poses, int(frame))[0]
+
+
+def save_model(layout: SceneLayout, iteration: int, params: Gaussians, node: torch.Tensor | None,
+               files: Sequence[str], correction: torch.Tensor | None = None) -> None:
+    """The background checkpoint PLY and, per node k, ``gs/actors/ckpt_<it>/<files[k]>``; with a
+    box refinement, its (F, K, 4) values in ``gs/actors/ckpt_<it>/box_refinement.npy``."""
+    from paradrive.io import atomic_path
+
+    from .ply import save_ply
+
+    if correction is not None:
+        path = layout.actor_checkpoint(iteration, BOX_REFINEMENT)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.save(f, correction.detach().to("cpu").numpy().astype(np.float32))
+
+    if node is None:
+        save_ply(layout.checkpoint(iteration), params)
+        return
+    node = node.to("cpu")
+    pick = {k: v.detach().to("cpu") for k, v in params.items() if k in PARAM_KEYS}
+    for k, file in enumerate(files):
+        path = layout.actor_checkpoint(iteration, file)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_ply(path, {key: v[node == k] for key, v in pick.items()})
+    # the background last: its PLY is the checkpoint a skip check looks for
+    save_ply(layout.checkpoint(iteration), {k: v[node == BACKGROUND] for k, v in pick.items()})
+
+
+def load_model(layout: SceneLayout, iteration: int, scene, fit: FitRecord | None) -> FittedModel:
+    """The checkpoint of ``iteration``: the background PLY plus, when ``fit`` lists actor nodes,
+    each node's PLY placed by the scene's tracks."""
+    from .ply import load_checkpoint
+
+    sid = scene.scene_id
+    params = load_checkpoint(layout.checkpoint(iteration), scene_id=sid)
+    nodes = fit.actors if fit is not None else []
+    if not nodes:
+        return FittedModel(params)
+    by_id = {a.id: a for a in scene.actors}
+    missing = [n.id for n in nodes if n.id not in by_id]
+    if missing:
+        raise SceneError(f"fit.json names actor {missing[0]}, which scene.json does not have",
+                         scene_id=sid, path=layout.fit_json, fix="re-run the fit stage")
+    parts, node = [params], [torch.full((len(params["means"]),), BACKGROUND, dtype=torch.int64,
+                                        device="cpu")]
+    for k, n in enumerate(nodes):
+        path = layout.actor_checkpoint(iteration, n.file)
+        part = load_checkpoint(path, scene_id=sid)
+        parts.append(part)
+        node.append(torch.full((len(part["means"]),), k, dtype=torch.int64, device="cpu"))
+    flat = {key: torch.cat([p[key] for p in parts]) for key in PARAM_KEYS}
+    poses = node_poses(scene, [by_id[n.id] for n in nodes])
+    refined = layout.actor_checkpoint(iteration, BOX_REFINEMENT)
+    if refined.is_file():
+        correction = torch.from_numpy(np.load(refined)).float()
+        if tuple(correction.shape) != (len(scene.frames), len(nodes), 4):
+            raise SceneError(f"box refinement has shape {tuple(correction.shape)}, not "
+                             f"({len(scene.frames)}, {len(nodes)}, 4)", scene_id=sid, path=refined,
+                             fix="re-run the fit stage")
+        poses = poses.corrected(correction)
+    return FittedModel(flat, torch.cat(node), poses)
+
+
+# --------------------------------------------------------------------------- initialisation
+
+def _voxel_thin(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point per ``voxel``-sized cell (the first in sorted order): deterministic thinning."""
+    if voxel <= 0 or not len(points):
+        return points
+    points = points[np.lexsort((points[:, 2], points[:, 1], points[:, 0]))]
+    _, first = np.unique(np.floor(points / voxel).astype(np.int64), axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def actor_points_init(actor: Actor, local: np.ndarray, views: Sequence[View], *, n_points: int,
+                      voxel: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Initial points of an actor node in its box frame, and their colours.
+
+    local: LiDAR returns inside the box over the track (box frame, (M, 3)); thinned to one per
+    ``voxel`` and at most ``n_points`` drawn with ``generator``. With fewer than a tenth of
+    ``n_points`` (no LiDAR, or a far actor) the rest are drawn uniformly in the box. Colours come
+    from the nearest views (by the box's distance) of frames where the actor is tracked.
+    """
+    pts = torch.from_numpy(_voxel_thin(np.asarray(local, dtype=np.float64), voxel)).float()
+    if len(pts) > n_points:
+        pts = pts[torch.randperm(len(pts), generator=generator)[:n_points].sort().values]
+    if len(pts) < max(1, n_points // 10):
+        half = torch.tensor(0.5 * np.asarray(actor.size), dtype=torch.float32)
+        fill = (torch.rand(n_points - len(pts), 3, generator=generator) * 2.0 - 1.0) * half
+        pts = torch.cat([pts, fill])
+    return pts, _actor_colours(actor, pts, views)
+
+
+def _actor_colours(actor: Actor, pts: torch.Tensor, views: Sequence[View],
+                   max_views: int = 24) -> torch.Tensor:
+    from .init import project
+
+    rgb = torch.full((len(pts), 3), 0.5)
+    todo = torch.ones(len(pts), dtype=torch.bool)
+    seen = []
+    for view in views:
+        pose = actor.pose_at(view.frame_index) if view.frame_index is not None else None
+        if pose is not None:
+            seen.append((float(np.linalg.norm(view.c2w[:3, 3].numpy() - pose[:3, 3])), view, pose))
+    for _, view, pose in sorted(seen, key=lambda s: s[0])[:max_views]:
+        if not todo.any():
+            break
+        idx = torch.nonzero(todo).squeeze(1)
+        R = torch.from_numpy(pose[:3, :3]).float()
+        world = pts[idx] @ R.T + torch.from_numpy(pose[:3, 3]).float()
+        uv, _, ok = project(world, view)
+        idx, uv = idx[ok], uv[ok]
+        x = uv[:, 0].long().clamp(0, view.width - 1)
+        y = uv[:, 1].long().clamp(0, view.height - 1)
+        rgb[idx] = view.image[y, x].float() / 255.0
+        todo[idx] = False
+    return rgb
