@@ -1,15 +1,23 @@
 """Throughput of the trainer's adapter (paradrive.data) on pairs of 3 x 121 frames at 480x832.
 
 Makes its own build: synthetic moving frames encoded with PyAV (H.264 yuv420p, as the clip stage
-writes them) behind a real clips.json and a real manifest, so it runs anywhere. Prints JSON:
+writes them) behind a real clips.json and a real manifest, so it runs anywhere. Prints JSON, every
+speed in samples/s (one sample = the source, condition and target videos of a pair) and, where it
+says so, as a ratio to a baseline measured in the same run:
 
-* baseline: samples/s reading every frame of the three files of a pair (plain PyAV decode to
-  RGB arrays, nothing else): the floor any loader pays;
-* adapter with 0, 2 and 4 DataLoader workers: samples/s of PairDataset (decode, crop/resize,
-  float tensors in [-1, 1], poses), and its ratio to the baseline;
-* PairDataset[i] called in-process (no DataLoader collate copy), float32 and bfloat16;
-* a 25-frame window late in the clip, with the x264 default GOP and with a 30-frame GOP (seeking
-  decodes from the keyframe before the window, so a shorter GOP decodes fewer frames);
+* baseline: every frame of the three files of a pair decoded by bare PyAV to RGB arrays (nothing
+  else; the floor any loader pays), with one decoder thread (``thread_count=1``, what the adapter
+  uses in DataLoader workers) and with PyAV's own threading defaults;
+* per_worker: ``PairDataset[i]`` in one process (what each DataLoader worker does), uint8,
+  float32 and bfloat16 output, one decoder thread, against the one-thread baseline (goals: uint8
+  >= 0.9x, float32 >= 0.6x);
+* decode_threads: the same in-process uint8 read with FFmpeg's frame + slice threads
+  (``decode_threads=0``) against the baseline with PyAV's defaults;
+* dataloader: a torch DataLoader over the dataset with 0 and 2 workers (its collate copies each
+  sample once more; with workers into shared memory), uint8 and float32;
+* a 25-frame window at the end of the clip, with the x264 default GOP (250) and a 30-frame GOP:
+  samples/s and the frames the decoder produced per sample (seeking starts at the keyframe
+  before the window, not at frame 0: a full decode is 3 x 121);
 * the share of a trainer step spent waiting for data, for an assumed step time
   (``--step-seconds``; the adapter cannot measure the trainer), and the workers needed to keep up.
 
@@ -94,7 +102,7 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
                          **encode(scene / f"clips/front/middle/{name}.mp4",
                                   synthetic_frames(2 + k, n, h, w), gop=gop)}
     doc = {"schema_version": 1, "scene_id": "bench", "dataset": "synthetic", "source": "bench",
-           "fps": 10.0, "width": w, "height": h,
+           "fps": 10.0, "width": w, "height": h, "codec": "libx264", "skipped": [],
            "cameras": {"front": {"intrinsics": [w * 0.8, w * 0.8, w / 2, h / 2]}},
            "fit": {"iteration": 30000, "train_psnr": 30.0, "train_ssim": 0.9},
            "clips": [{"camera": "front", "clip": "middle", "frame_start": 0, "num_frames": n,
@@ -108,8 +116,10 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
     return build
 
 
-def baseline(build: Path, repeats: int) -> float:
-    """samples/s decoding every frame of the three files of each pair (PyAV, RGB arrays)."""
+def baseline(build: Path, repeats: int, threads: int | None) -> float:
+    """samples/s decoding every frame of the three files of each pair (PyAV, RGB arrays).
+
+    threads: decoder threads (1 = one); None leaves PyAV's defaults."""
     import av
 
     from paradrive.data import PairDataset
@@ -122,14 +132,16 @@ def baseline(build: Path, repeats: int) -> float:
             row = ds.row(i)
             for role in ("source", "condition", "target"):
                 with av.open(str(build / row[f"{role}_uri"])) as c:
-                    frames = [f.to_ndarray(format="rgb24") for f in c.decode(c.streams.video[0])]
-                    np.stack(frames)
+                    stream = c.streams.video[0]
+                    if threads is not None:
+                        stream.codec_context.thread_count = threads
+                    np.stack([f.to_ndarray(format="rgb24") for f in c.decode(stream)])
             count += 1
     return count / (time.perf_counter() - t0)
 
 
 def adapter(build: Path, workers: int, repeats: int, **options) -> float:
-    import torch
+    """samples/s through a torch DataLoader (batch 1) with ``workers`` worker processes."""
     from torch.utils.data import DataLoader
 
     from paradrive.data import PairDataset
@@ -139,15 +151,13 @@ def adapter(build: Path, workers: int, repeats: int, **options) -> float:
     loader = DataLoader(ds, batch_size=1, num_workers=workers, sampler=order,
                         persistent_workers=False, prefetch_factor=2 if workers else None)
     t0 = time.perf_counter()
-    count = 0
-    for batch in loader:
-        assert batch["source"].dtype == torch.float32
-        count += 1
+    count = sum(1 for _ in loader)
     return count / (time.perf_counter() - t0)
 
 
-def in_process(build: Path, repeats: int, **options) -> float:
-    """samples/s of PairDataset[i] called directly (no DataLoader, no collate copy)."""
+def in_process(build: Path, repeats: int, **options) -> tuple[float, float]:
+    """samples/s of PairDataset[i] called directly (no DataLoader, no collate copy), and the
+    frames the decoder produced per sample."""
     from paradrive.data import PairDataset
 
     ds = PairDataset(build, **options)
@@ -155,7 +165,12 @@ def in_process(build: Path, repeats: int, **options) -> float:
     for _ in range(repeats):
         for i in range(len(ds)):
             ds[i]
-    return repeats * len(ds) / (time.perf_counter() - t0)
+    samples = repeats * len(ds)
+    return samples / (time.perf_counter() - t0), ds.frames_decoded / samples
+
+
+def ratio(speed: float, base: float) -> dict:
+    return {"samples_per_s": round(speed, 3), "ratio_to_baseline": round(speed / base, 3)}
 
 
 def main() -> None:
@@ -165,7 +180,7 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--width", type=int, default=832)
     ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--workers", default="0,2,4")
+    ap.add_argument("--workers", default="0,2")
     ap.add_argument("--step-seconds", type=float, default=3.0,
                     help="assumed trainer step time for one sample (a video diffusion model on "
                          "one GPU at 121x480x832; the adapter cannot measure it)")
@@ -175,6 +190,7 @@ def main() -> None:
     torch.set_num_threads(1)
     out: dict = {"pairs": args.pairs, "frames": args.frames,
                  "size": [args.height, args.width], "cpus": os.cpu_count(),
+                 "load_average": [round(v, 2) for v in os.getloadavg()],
                  "machine": platform.machine(), "python": platform.python_version()}
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -183,30 +199,38 @@ def main() -> None:
         short = make_build(Path(tmp) / "gop30", args.pairs, args.frames, args.height,
                            args.width, gop=30)
         out["setup_seconds"] = round(time.perf_counter() - t0, 1)
-        base = baseline(build, args.repeats)
-        out["baseline_samples_per_s"] = round(base, 3)
-        full = {}
-        for k in [int(x) for x in args.workers.split(",")]:
-            sps = adapter(build, k, args.repeats)
-            full[str(k)] = {"samples_per_s": round(sps, 3), "ratio_to_baseline": round(sps / base, 3)}
-        out["adapter_121_frames"] = full
-        out["in_process_getitem_samples_per_s"] = {
-            "float32": round(in_process(build, args.repeats), 3),
-            "bfloat16": round(in_process(build, args.repeats, dtype=torch.bfloat16), 3)}
-        window = {"num_frames": 25, "frame_offset": args.frames - 25}
-        out["window_25_frames_at_end"] = {
-            "x264_default_gop": round(adapter(build, 0, args.repeats, **window), 3),
-            "gop_30": round(adapter(short, 0, args.repeats, **window), 3),
-            "unit": "samples/s, 0 workers"}
-        t_sample = 1.0 / full["0"]["samples_per_s"]
+        base = baseline(build, args.repeats, threads=1)
+        base_threaded = baseline(build, args.repeats, threads=None)
+        out["baseline_samples_per_s"] = {"one_thread": round(base, 3),
+                                         "pyav_default_threads": round(base_threaded, 3)}
+        out["per_worker"] = {name: ratio(in_process(build, args.repeats, dtype=name)[0], base)
+                             for name in ("uint8", "float32", "bfloat16")}
+        out["per_worker"]["goals"] = {"uint8": 0.9, "float32": 0.6}
+        out["decode_threads"] = {
+            "uint8_decode_threads_0": ratio(in_process(build, args.repeats, dtype="uint8",
+                                                       decode_threads=0)[0], base_threaded)}
+        loaders: dict = {}
+        for name in ("uint8", "float32"):
+            for k in [int(x) for x in args.workers.split(",")]:
+                loaders[f"{name}_workers_{k}"] = ratio(adapter(build, k, args.repeats, dtype=name), base)
+        out["dataloader"] = loaders
+        window = {"num_frames": 25, "frame_offset": args.frames - 25, "dtype": "uint8"}
+        windows = {}
+        for label, b in (("x264_default_gop", build), ("gop_30", short)):
+            sps, decoded = in_process(b, args.repeats, **window)
+            windows[label] = {"samples_per_s": round(sps, 3),
+                              "frames_decoded_per_sample": round(decoded, 1),
+                              "frames_in_the_three_files": 3 * args.frames}
+        out["window_25_frames_at_end"] = windows
+        t_sample = 1.0 / out["per_worker"]["uint8"]["samples_per_s"]
         step = args.step_seconds
-        best = max(v["samples_per_s"] for v in full.values())
+        best = max(v["samples_per_s"] for k, v in loaders.items() if k.startswith("uint8"))
         out["trainer_step_estimate"] = {
             "assumed_step_seconds": step,
-            "data_seconds_per_sample_one_process": round(t_sample, 3),
+            "uint8_data_seconds_per_sample_one_process": round(t_sample, 3),
             "share_of_step_without_workers": round(t_sample / (t_sample + step), 3),
             "workers_to_hide_loading": math.ceil(t_sample / step),
-            "stall_share_with_best_loader": round(max(0.0, 1 / best - step) / max(1 / best, step), 3),
+            "stall_share_with_best_uint8_loader": round(max(0.0, 1 / best - step) / max(1 / best, step), 3),
         }
     print(json.dumps(out, indent=2))
 
