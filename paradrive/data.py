@@ -21,7 +21,8 @@ Frames are decoded with PyAV: the decoder seeks to the keyframe at or before the
 asked for and decodes forward, stopping after the last one, so a short window or a stride never
 decodes a whole video it does not need. swscale converts each frame to planar RGB (and resizes it)
 and each plane goes straight into the channels-first output: copied for uint8, converted and
-normalised in one pass for a float type, while the frame is still in cache.
+normalised in place for a float type while the plane is still in cache (no interleaved array, no
+second pass over the sample).
 """
 
 from __future__ import annotations

@@ -158,7 +158,8 @@ def each_frame(path: str | Path, indices: Sequence[int] | None, sink: Callable[[
     views (R, G, B) into the decoder's planar frame (FFmpeg ``gbrp``), valid only during the call:
     copy them straight into a channels-first buffer, no interleaved array is made. The planar
     conversion is exact at the stored size; resized (area filter) it scales each colour plane,
-    which differs from the interleaved path's values by a few levels at sharp edges.
+    which differs from the interleaved path's values at sharp edges (and is the nearer of the
+    two to an exact area average of the full-size RGB frame).
     """
     path = Path(path)
     wanted = None if indices is None else sorted(set(int(i) for i in indices))
