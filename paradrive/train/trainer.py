@@ -28,7 +28,7 @@ import torch
 import yaml
 from pydantic import ValidationError
 
-from paradrive.data import to_unit_range
+from paradrive.data import PairDataset, to_unit_range
 from paradrive.devices import resolve_device
 from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
 from paradrive.errors import ConfigError
@@ -135,8 +135,6 @@ def build_model(config: Mapping[str, Any], stage: int, encoder: VideoEncoder) ->
 def open_dataset(build_dir: str | Path, config: Mapping[str, Any]):
     """The build's pairs through the adapter (``paradrive.data``), at the config's clip shape, as
     uint8 frames: a quarter of float32's bytes through the DataLoader, normalised on the device."""
-    from paradrive.data import PairDataset
-
     d = config["data"]
     return PairDataset(build_dir, num_frames=d["num_frames"], frame_stride=d["frame_stride"],
                        output_size=(d["height"], d["width"]), dtype="uint8")
