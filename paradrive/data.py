@@ -297,7 +297,7 @@ class PairDataset(Dataset):
         f = len(frames)
         sample.update(**{
             "rel_pose": torch.from_numpy(np.ascontiguousarray(rel, dtype=np.float32)),
-            "identity_pose": torch.eye(4).expand(f, 4, 4).clone(),
+            "identity_pose": torch.eye(4, device="cpu").expand(f, 4, 4).clone(),
             "intrinsics": torch.from_numpy(adjust_intrinsics(row["intrinsics"], geo)),
             "offset_m": float(row["offset_m"]),
             "condition_iteration": int(row["condition_iteration"]),
