@@ -1,15 +1,23 @@
 """Throughput of the trainer's adapter (paradrive.data) on pairs of 3 x 121 frames at 480x832.
 
 Makes its own build: synthetic moving frames encoded with PyAV (H.264 yuv420p, as the clip stage
-writes them) behind a real clips.json and a real manifest, so it runs anywhere. Prints JSON:
+writes them) behind a real clips.json and a real manifest, so it runs anywhere. Prints JSON, every
+speed in samples/s (one sample = the source, condition and target videos of a pair) and, where it
+says so, as a ratio to a baseline measured in the same run:
 
-* baseline: samples/s reading every frame of the three files of a pair (plain PyAV decode to
-  RGB arrays, nothing else): the floor any loader pays;
-* adapter with 0, 2 and 4 DataLoader workers: samples/s of PairDataset (decode, crop/resize,
-  float tensors in [-1, 1], poses), and its ratio to the baseline;
-* PairDataset[i] called in-process (no DataLoader collate copy), float32 and bfloat16;
-* a 25-frame window late in the clip, with the x264 default GOP and with a 30-frame GOP (seeking
-  decodes from the keyframe before the window, so a shorter GOP decodes fewer frames);
+* baseline: every frame of the three files of a pair decoded by bare PyAV to RGB arrays (nothing
+  else; the floor any loader pays), with one decoder thread (``thread_count=1``, what the adapter
+  uses in DataLoader workers) and with PyAV's own threading defaults;
+* per_worker: ``PairDataset[i]`` in one process (what each DataLoader worker does), uint8,
+  float32 and bfloat16 output, one decoder thread, against the one-thread baseline (goals: uint8
+  >= 0.9x, float32 >= 0.6x);
+* decode_threads: the same in-process uint8 read with FFmpeg's frame + slice threads
+  (``decode_threads=0``) against the baseline with PyAV's defaults;
+* dataloader: a torch DataLoader over the dataset with 0 and 2 workers (its collate copies each
+  sample once more; with workers into shared memory), uint8 and float32;
+* a 25-frame window at the end of the clip, with the x264 default GOP (250) and a 30-frame GOP:
+  samples/s and the frames the decoder produced per sample (seeking starts at the keyframe
+  before the window, not at frame 0: a full decode is 3 x 121);
 * the share of a trainer step spent waiting for data, for an assumed step time
   (``--step-seconds``; the adapter cannot measure the trainer), and the workers needed to keep up.
 
@@ -19,6 +27,7 @@ Usage: python bench/bench_data.py [--pairs 4] [--frames 121] [--height 480] [--w
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
 import math
@@ -94,7 +103,7 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
                          **encode(scene / f"clips/front/middle/{name}.mp4",
                                   synthetic_frames(2 + k, n, h, w), gop=gop)}
     doc = {"schema_version": 1, "scene_id": "bench", "dataset": "synthetic", "source": "bench",
-           "fps": 10.0, "width": w, "height": h,
+           "fps": 10.0, "width": w, "height": h, "codec": "libx264", "skipped": [],
            "cameras": {"front": {"intrinsics": [w * 0.8, w * 0.8, w / 2, h / 2]}},
            "fit": {"iteration": 30000, "train_psnr": 30.0, "train_ssim": 0.9},
            "clips": [{"camera": "front", "clip": "middle", "frame_start": 0, "num_frames": n,
@@ -108,54 +117,83 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
     return build
 
 
-def baseline(build: Path, repeats: int) -> float:
-    """samples/s decoding every frame of the three files of each pair (PyAV, RGB arrays)."""
+def timed(samples: int, run) -> dict:
+    """Wall and CPU seconds per sample of ``run()`` (CPU: this process and its finished children,
+    the DataLoader workers), which handles ``samples`` samples; returns ``run``'s result too."""
+    before, t0 = os.times(), time.perf_counter()
+    result = run()
+    wall, after = time.perf_counter() - t0, os.times()
+    cpu = sum(getattr(after, k) - getattr(before, k)
+              for k in ("user", "system", "children_user", "children_system"))
+    return {"wall": wall / samples, "cpu": cpu / samples, "result": result}
+
+
+def baseline(build: Path, threads: int | None) -> dict:
+    """Every frame of the three files of each pair decoded to RGB arrays by bare PyAV.
+
+    threads: decoder threads (1 = one); None leaves PyAV's defaults."""
     import av
 
     from paradrive.data import PairDataset
 
     ds = PairDataset(build)
-    t0 = time.perf_counter()
-    count = 0
-    for _ in range(repeats):
-        for i in range(len(ds)):
-            row = ds.row(i)
+    rows = [ds.row(i) for i in range(len(ds))]
+
+    def run() -> None:
+        for row in rows:
             for role in ("source", "condition", "target"):
                 with av.open(str(build / row[f"{role}_uri"])) as c:
-                    frames = [f.to_ndarray(format="rgb24") for f in c.decode(c.streams.video[0])]
-                    np.stack(frames)
-            count += 1
-    return count / (time.perf_counter() - t0)
+                    stream = c.streams.video[0]
+                    if threads is not None:
+                        stream.codec_context.thread_count = threads
+                    np.stack([f.to_ndarray(format="rgb24") for f in c.decode(stream)])
+
+    return timed(len(rows), run)
 
 
-def adapter(build: Path, workers: int, repeats: int, **options) -> float:
-    import torch
+def loader(build: Path, workers: int, **options) -> dict:
+    """Through a torch DataLoader (batch 1) with ``workers`` worker processes."""
     from torch.utils.data import DataLoader
 
     from paradrive.data import PairDataset
 
     ds = PairDataset(build, **options)
-    order = list(range(len(ds))) * repeats
-    loader = DataLoader(ds, batch_size=1, num_workers=workers, sampler=order,
-                        persistent_workers=False, prefetch_factor=2 if workers else None)
-    t0 = time.perf_counter()
-    count = 0
-    for batch in loader:
-        assert batch["source"].dtype == torch.float32
-        count += 1
-    return count / (time.perf_counter() - t0)
+    batches = DataLoader(ds, batch_size=1, num_workers=workers, persistent_workers=False,
+                         prefetch_factor=2 if workers else None)
+    return timed(len(ds), lambda: sum(1 for _ in batches))
 
 
-def in_process(build: Path, repeats: int, **options) -> float:
-    """samples/s of PairDataset[i] called directly (no DataLoader, no collate copy)."""
+def in_process(build: Path, **options) -> dict:
+    """PairDataset[i] called directly (no DataLoader, no collate copy); ``result``: the frames
+    the decoder produced per sample."""
     from paradrive.data import PairDataset
 
     ds = PairDataset(build, **options)
-    t0 = time.perf_counter()
-    for _ in range(repeats):
+
+    def run() -> None:
         for i in range(len(ds)):
             ds[i]
-    return repeats * len(ds) / (time.perf_counter() - t0)
+
+    measured = timed(len(ds), run)
+    measured["result"] = ds.frames_decoded / len(ds)
+    return measured
+
+
+def best_of(rounds: int, cases: dict) -> dict:
+    """Each case measured ``rounds`` times, the rounds interleaved (a shared machine's load then
+    hits every case alike); the fastest wall and the least CPU per case."""
+    best: dict = {}
+    for _ in range(rounds):
+        for name, run in cases.items():
+            m = run()
+            b = best.setdefault(name, m)
+            b["wall"], b["cpu"] = min(b["wall"], m["wall"]), min(b["cpu"], m["cpu"])
+    return best
+
+
+def ratio(m: dict, base: dict) -> dict:
+    return {"samples_per_s": round(1 / m["wall"], 3), "ratio_to_baseline": round(base["wall"] / m["wall"], 3),
+            "cpu_seconds_per_sample": round(m["cpu"], 3), "cpu_ratio_to_baseline": round(base["cpu"] / m["cpu"], 3)}
 
 
 def main() -> None:
@@ -164,8 +202,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=121)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--width", type=int, default=832)
-    ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--workers", default="0,2,4")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds; the best of each case counts")
+    ap.add_argument("--workers", default="0,2")
     ap.add_argument("--step-seconds", type=float, default=3.0,
                     help="assumed trainer step time for one sample (a video diffusion model on "
                          "one GPU at 121x480x832; the adapter cannot measure it)")
@@ -174,7 +212,8 @@ def main() -> None:
 
     torch.set_num_threads(1)
     out: dict = {"pairs": args.pairs, "frames": args.frames,
-                 "size": [args.height, args.width], "cpus": os.cpu_count(),
+                 "size": [args.height, args.width], "cpus": os.cpu_count(), "rounds": args.rounds,
+                 "load_average_before": [round(v, 2) for v in os.getloadavg()],
                  "machine": platform.machine(), "python": platform.python_version()}
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -183,31 +222,44 @@ def main() -> None:
         short = make_build(Path(tmp) / "gop30", args.pairs, args.frames, args.height,
                            args.width, gop=30)
         out["setup_seconds"] = round(time.perf_counter() - t0, 1)
-        base = baseline(build, args.repeats)
-        out["baseline_samples_per_s"] = round(base, 3)
-        full = {}
-        for k in [int(x) for x in args.workers.split(",")]:
-            sps = adapter(build, k, args.repeats)
-            full[str(k)] = {"samples_per_s": round(sps, 3), "ratio_to_baseline": round(sps / base, 3)}
-        out["adapter_121_frames"] = full
-        out["in_process_getitem_samples_per_s"] = {
-            "float32": round(in_process(build, args.repeats), 3),
-            "bfloat16": round(in_process(build, args.repeats, dtype=torch.bfloat16), 3)}
-        window = {"num_frames": 25, "frame_offset": args.frames - 25}
-        out["window_25_frames_at_end"] = {
-            "x264_default_gop": round(adapter(build, 0, args.repeats, **window), 3),
-            "gop_30": round(adapter(short, 0, args.repeats, **window), 3),
-            "unit": "samples/s, 0 workers"}
-        t_sample = 1.0 / full["0"]["samples_per_s"]
-        step = args.step_seconds
-        best = max(v["samples_per_s"] for v in full.values())
-        out["trainer_step_estimate"] = {
-            "assumed_step_seconds": step,
-            "data_seconds_per_sample_one_process": round(t_sample, 3),
-            "share_of_step_without_workers": round(t_sample / (t_sample + step), 3),
-            "workers_to_hide_loading": math.ceil(t_sample / step),
-            "stall_share_with_best_loader": round(max(0.0, 1 / best - step) / max(1 / best, step), 3),
+        window = {"num_frames": 25, "frame_offset": args.frames - 25, "dtype": "uint8"}
+        cases = {
+            "baseline_one_thread": lambda: baseline(build, threads=1),
+            "baseline_pyav_default_threads": lambda: baseline(build, threads=None),
+            **{f"per_worker_{name}": functools.partial(in_process, build, dtype=name)
+               for name in ("uint8", "float32", "bfloat16")},
+            "uint8_decode_threads_0": lambda: in_process(build, dtype="uint8", decode_threads=0),
+            **{f"dataloader_{name}_workers_{k}": functools.partial(loader, build, k, dtype=name)
+               for name in ("uint8", "float32") for k in [int(x) for x in args.workers.split(",")]},
+            "window_x264_default_gop": lambda: in_process(build, **window),
+            "window_gop_30": lambda: in_process(short, **window),
         }
+        m = best_of(args.rounds, cases)
+        out["load_average_after"] = [round(v, 2) for v in os.getloadavg()]
+    base, base_threaded = m["baseline_one_thread"], m["baseline_pyav_default_threads"]
+    out["baseline"] = {name: {"samples_per_s": round(1 / b["wall"], 3), "cpu_seconds_per_sample": round(b["cpu"], 3)}
+                       for name, b in (("one_thread", base), ("pyav_default_threads", base_threaded))}
+    out["per_worker"] = {name: ratio(m[f"per_worker_{name}"], base) for name in ("uint8", "float32", "bfloat16")}
+    out["per_worker"]["goals"] = {"uint8": 0.9, "float32": 0.6}
+    out["decode_threads_0"] = {"uint8": ratio(m["uint8_decode_threads_0"], base_threaded),
+                               "baseline": "pyav_default_threads"}
+    out["dataloader"] = {name[len("dataloader_"):]: ratio(v, base) for name, v in m.items()
+                         if name.startswith("dataloader_")}
+    out["window_25_frames_at_end"] = {
+        name[len("window_"):]: {"samples_per_s": round(1 / m[name]["wall"], 3),
+                                "frames_decoded_per_sample": round(m[name]["result"], 1),
+                                "frames_in_the_three_files": 3 * args.frames}
+        for name in ("window_x264_default_gop", "window_gop_30")}
+    t_sample = m["per_worker_uint8"]["wall"]
+    step = args.step_seconds
+    best = min(v["wall"] for name, v in m.items() if name.startswith("dataloader_uint8"))
+    out["trainer_step_estimate"] = {
+        "assumed_step_seconds": step,
+        "uint8_data_seconds_per_sample_one_process": round(t_sample, 3),
+        "share_of_step_without_workers": round(t_sample / (t_sample + step), 3),
+        "workers_to_hide_loading": math.ceil(t_sample / step),
+        "stall_share_with_best_uint8_loader": round(max(0.0, best - step) / max(best, step), 3),
+    }
     print(json.dumps(out, indent=2))
 
 

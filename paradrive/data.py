@@ -6,7 +6,9 @@ manifest stage (``<manifests>/<build>/index.json`` + ``pairs-*.parquet`` + ``med
 
 One sample (DESIGN.md, "Dataset adapter")::
 
-    source, condition, target   float32 (F, 3, H, W) in [-1, 1] (no target in an inference row without one)
+    source, condition, target   float32 (F, 3, H, W) in [-1, 1] (no target in an inference row without one);
+                                with dtype="uint8": uint8 (F, 3, H, W) as stored, for the trainer to
+                                normalise on its device (``to_unit_range``)
     rel_pose                    float32 (F, 4, 4)  T_{target<-source} per frame
     identity_pose               float32 (F, 4, 4)  identity
     intrinsics                  float32 (4,)       fx, fy, cx, cy at the output resolution
@@ -17,7 +19,10 @@ One sample (DESIGN.md, "Dataset adapter")::
 
 Frames are decoded with PyAV: the decoder seeks to the keyframe at or before the first frame
 asked for and decodes forward, stopping after the last one, so a short window or a stride never
-decodes a whole video it does not need.
+decodes a whole video it does not need. swscale converts each frame to planar RGB (and resizes it)
+and each plane goes straight into the channels-first output: copied for uint8, converted and
+normalised in place for a float type while the plane is still in cache (no interleaved array, no
+second pass over the sample).
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from paradrive.io import sha256_file
 from paradrive.pairs import build_file, check_row_uris, read_index, shard_paths
 from paradrive.video import each_frame
 
-__all__ = ["PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera"]
+__all__ = ["PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera", "to_unit_range"]
 
 # Columns kept in memory for every row; the per-frame poses are read one row group at a time.
 _ROW_COLUMNS = ("pair_id", "dataset", "scene_id", "camera", "clip", "num_frames", "fps", "width",
@@ -47,6 +52,38 @@ _ROW_COLUMNS = ("pair_id", "dataset", "scene_id", "camera", "clip", "num_frames"
           "source_uri", "source_sha256", "condition_uri", "condition_sha256", "target_uri",
           "target_sha256")
 _POSE_COLUMNS = ("rel_pose", "target_c2w")
+
+
+_FRAME_DTYPES = {"uint8": torch.uint8, "float32": torch.float32, "float16": torch.float16,
+                 "bfloat16": torch.bfloat16}
+
+
+# --------------------------------------------------------------------------- frames
+
+def _unit_range_into(out: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+    """uint8 ``frames`` written into float ``out`` as x / 127.5 - 1: the division converts, the
+    subtraction is in place. Both steps are exact at 0 and 255 (a multiply by 1 / 127.5 with a
+    fused add would give 255 -> 1.0000001)."""
+    return torch.div(frames, 127.5, out=out).sub_(1.0)
+
+
+def to_unit_range(frames: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """uint8 frames (any shape, any device) as ``dtype`` in [-1, 1], on the frames' device.
+
+    What a trainer applies to ``dtype="uint8"`` samples after moving them to its device; the
+    adapter's float output is exactly this of its uint8 output.
+    """
+    if frames.dtype != torch.uint8:
+        raise TypeError(f"to_unit_range takes uint8 frames, got {frames.dtype}")
+    return _unit_range_into(torch.empty(frames.shape, dtype=dtype, device=frames.device), frames)
+
+
+def _frame_dtype(dtype: torch.dtype | str) -> torch.dtype:
+    resolved = _FRAME_DTYPES.get(dtype) if isinstance(dtype, str) else dtype
+    if resolved is None or resolved not in _FRAME_DTYPES.values():
+        raise ValueError(f"dtype must be one of {', '.join(_FRAME_DTYPES)} (or the torch dtype), "
+                         f"got {dtype!r}")
+    return resolved
 
 
 # --------------------------------------------------------------------------- geometry
@@ -111,16 +148,22 @@ class PairDataset(Dataset):
         prompt: the text every sample carries ('' as in the paper).
         verify_checksums: check each video's sha256 against the manifest the first time this
             process reads it (a mismatch raises, naming the file).
-        decode_threads: FFmpeg threads per video (1 suits DataLoader workers; 0 = FFmpeg picks).
-        dtype: float type of the frame tensors (float32; bfloat16 or float16 halve the memory of
-            a 3 x 121 x 480 x 832 sample, 1.7 GB in float32).
+        decode_threads: decoder threads per video (1 = one, suits DataLoader workers; n > 1 or
+            0 = FFmpeg's frame and slice threads, 0 letting FFmpeg pick how many).
+        dtype: type of the frame tensors: ``"uint8"`` (0..255 as stored, a quarter of float32's
+            bytes; the trainer normalises on its device with ``to_unit_range``), or a float type
+            in [-1, 1]: ``"float32"``, ``"bfloat16"``, ``"float16"`` (or the torch dtype). A
+            3 x 121 x 480 x 832 sample is 0.43 GB in uint8, 1.7 GB in float32.
+
+    ``frames_decoded`` counts the frames the decoder produced in this process (those before a
+    window included), so a caller can see what seeking saved.
     """
 
     def __init__(self, build: str | Path, *, num_frames: int | None = None, frame_stride: int = 1,
                  frame_offset: int = 0, output_size: tuple[int, int] | None = None,
                  resize: str = "crop", pose_format: str | None = None, prompt: str = "",
                  verify_checksums: bool = False, decode_threads: int = 1,
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype | str = torch.float32):
         self.build = Path(build)
         self.index = read_index(self.build)
         if frame_stride < 1 or frame_offset < 0 or (num_frames is not None and num_frames < 1):
@@ -132,9 +175,8 @@ class PairDataset(Dataset):
         self.output_size, self.resize = output_size, resize
         self.pose_format, self.prompt, self.verify_checksums = pose_format, prompt, verify_checksums
         self.decode_threads = decode_threads
-        if not dtype.is_floating_point:
-            raise ValueError(f"dtype must be a float type (frames are in [-1, 1]), got {dtype}")
-        self.dtype = dtype
+        self.dtype = _frame_dtype(dtype)
+        self.frames_decoded = 0
         self._shards = shard_paths(self.build, self.index)
         tables = []
         for path, entry in zip(self._shards, self.index.shards):
@@ -225,18 +267,22 @@ class PairDataset(Dataset):
             self._verified.add(uri)
         oh, ow = geo["size"]
         y0, x0 = geo["crop"]
-        out = torch.empty((len(frames), 3, oh, ow), dtype=self.dtype)
+        out = torch.empty((len(frames), 3, oh, ow), dtype=self.dtype, device="cpu")
         position = {f: k for k, f in enumerate(frames)}
+        floating = self.dtype.is_floating_point
 
-        def fill(idx: int, pixels: np.ndarray) -> None:
-            # One frame at a time, so the conversion stays in cache; transposing HWC -> CHW in
-            # uint8 first makes the float conversion a contiguous (vectorised) copy.
-            dst = out[position[idx]]
-            chw = np.ascontiguousarray(pixels[y0:y0 + oh, x0:x0 + ow].transpose(2, 0, 1))
-            dst.copy_(torch.from_numpy(chw))
-            dst.div_(127.5).sub_(1.0)
+        def fill(idx: int, planes: tuple[np.ndarray, ...]) -> None:
+            for channel, plane in zip(out[position[idx]], planes):
+                pixels = torch.from_numpy(plane[y0:y0 + oh, x0:x0 + ow])
+                if floating:
+                    _unit_range_into(channel, pixels)
+                else:
+                    channel.copy_(pixels)
 
-        each_frame(path, frames, fill, size=geo["resize"], threads=self.decode_threads)
+        stats: dict = {}
+        each_frame(path, frames, fill, size=geo["resize"], threads=self.decode_threads, stats=stats,
+                   planar=True)
+        self.frames_decoded += stats.get("decoded", 0)
         return out
 
     def __getitem__(self, i: int) -> dict:
@@ -251,7 +297,7 @@ class PairDataset(Dataset):
         f = len(frames)
         sample.update(**{
             "rel_pose": torch.from_numpy(np.ascontiguousarray(rel, dtype=np.float32)),
-            "identity_pose": torch.eye(4).expand(f, 4, 4).clone(),
+            "identity_pose": torch.eye(4, device="cpu").expand(f, 4, 4).clone(),
             "intrinsics": torch.from_numpy(adjust_intrinsics(row["intrinsics"], geo)),
             "offset_m": float(row["offset_m"]),
             "condition_iteration": int(row["condition_iteration"]),

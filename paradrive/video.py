@@ -129,8 +129,8 @@ def decode_frames(path: str | Path, indices: Sequence[int] | None = None, *,
     size: (height, width) to resize to while converting (swscale, area filter); None = as stored.
     seek: seek to the keyframe at or before the first index (False decodes from the start; the
     result is the same, only slower).
-    threads: decoder threads (1 = none, the right choice inside DataLoader workers; 0 = FFmpeg
-    picks).
+    threads: decoder threads (1 = one, the right choice inside DataLoader workers; otherwise
+    FFmpeg's frame and slice threading with that many, 0 = FFmpeg picks).
     stats: if given, ``stats["decoded"]`` is set to the number of frames the decoder produced.
     Raises ParaDriveError naming the file when it cannot be opened or is too short.
     """
@@ -147,19 +147,27 @@ def decode_frames(path: str | Path, indices: Sequence[int] | None = None, *,
     return np.stack([got[int(i)] for i in indices])
 
 
-def each_frame(path: str | Path, indices: Sequence[int] | None,
-               sink: Callable[[int, np.ndarray], None], *, size: tuple[int, int] | None = None,
-               seek: bool = True, threads: int = 1, stats: dict | None = None) -> None:
+def each_frame(path: str | Path, indices: Sequence[int] | None, sink: Callable[[int, Any], None], *,
+               size: tuple[int, int] | None = None, seek: bool = True, threads: int = 1,
+               stats: dict | None = None, planar: bool = False) -> None:
     """Decode the frames ``indices`` (None = all) of ``path`` and hand each to ``sink(index,
-    rgb_uint8_hwc)`` once, in frame order, without holding the whole clip. Arguments as in
-    ``decode_frames``."""
+    pixels)`` once, in frame order, without holding the whole clip. Arguments as in
+    ``decode_frames``.
+
+    pixels: a uint8 (H, W, 3) RGB array; with ``planar=True`` a tuple of three uint8 (H, W)
+    views (R, G, B) into the decoder's planar frame (FFmpeg ``gbrp``), valid only during the call:
+    copy them straight into a channels-first buffer, no interleaved array is made. The planar
+    conversion is exact at the stored size; resized (area filter) it scales each colour plane,
+    which differs from the interleaved path's values at sharp edges (and is the nearer of the
+    two to an exact area average of the full-size RGB frame).
+    """
     path = Path(path)
     wanted = None if indices is None else sorted(set(int(i) for i in indices))
     if wanted is not None and (not wanted or wanted[0] < 0):
         raise ValueError(f"frame indices must be non-negative and non-empty, got {indices!r}")
-    got = _FrameWalk(path, wanted, sink, size, stats).run(seek, threads)
+    got = _FrameWalk(path, wanted, sink, size, stats, planar).run(seek, threads)
     if got is None:  # no timestamps to place a sought frame, or the seek overshot: start over
-        got = _FrameWalk(path, wanted, sink, size, stats).run(False, threads)
+        got = _FrameWalk(path, wanted, sink, size, stats, planar).run(False, threads)
     if wanted is None and not got:
         raise ParaDriveError(f"{path}: video has no frames; re-run the clip stage")
     missing = [i for i in (wanted or ()) if i not in (got or ())]
@@ -171,13 +179,16 @@ def each_frame(path: str | Path, indices: Sequence[int] | None,
 class _FrameWalk:
     """One pass of the decoder over a video, handing the wanted frames to ``sink``."""
 
-    def __init__(self, path: Path, wanted: list[int] | None, sink: Callable[[int, np.ndarray], None],
-                 size: tuple[int, int] | None, stats: dict | None):
+    def __init__(self, path: Path, wanted: list[int] | None, sink: Callable[[int, Any], None],
+                 size: tuple[int, int] | None, stats: dict | None, planar: bool = False):
         self.path, self.wanted, self.sink, self.size, self.stats = path, wanted, sink, size, stats
+        self.planar = planar
         self.lookup = set(wanted or ())
         self.got: set[int] = set()
 
-    def convert(self, frame) -> np.ndarray:
+    def convert(self, frame) -> Any:
+        if self.planar:
+            return _rgb_planes(frame, self.size)
         if self.size is not None:
             frame = frame.reformat(width=self.size[1], height=self.size[0], format="rgb24",
                                    interpolation="AREA")
@@ -195,9 +206,9 @@ class _FrameWalk:
                                  f"corrupt, run `paradrive inspect --verify` on the build") from exc
         with container:
             stream = container.streams.video[0]
-            if threads != 1:
-                stream.thread_type = "AUTO"
-                stream.codec_context.thread_count = max(0, int(threads))
+            # 1: one thread; otherwise frame and slice threads (0: FFmpeg picks how many)
+            stream.thread_type = "SLICE" if threads == 1 else "AUTO"
+            stream.codec_context.thread_count = max(0, int(threads))
             try:
                 return self._decode(container, stream, seek)
             except av.error.FFmpegError as exc:
@@ -237,3 +248,14 @@ class _FrameWalk:
             self.sink(idx, self.convert(frame))
             self.got.add(idx)
         return len(self.got) == len(self.wanted)
+
+
+def _rgb_planes(frame, size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, G, B) uint8 (H, W) views of ``frame`` converted (and resized to ``size``) by swscale."""
+    if size is None:
+        planar = frame.reformat(format="gbrp")
+    else:
+        planar = frame.reformat(width=size[1], height=size[0], format="gbrp", interpolation="AREA")
+    g, b, r = (np.frombuffer(p, dtype=np.uint8).reshape(p.height, p.line_size)[:, :p.width]
+               for p in planar.planes)
+    return r, g, b

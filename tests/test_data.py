@@ -1,4 +1,5 @@
-"""The trainer's adapter: decoding, sample contents, ranks x workers, deterministic order, resume."""
+"""The trainer's adapter: decoding, sample contents and types, seeking, ranks x workers,
+deterministic order, resume."""
 
 from __future__ import annotations
 
@@ -14,8 +15,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from paradrive import geometry
-from paradrive.data import PairDataset, PairIterableDataset, output_geometry, recammaster_camera
-from paradrive.video import decode_frames
+from paradrive.data import (PairDataset, PairIterableDataset, output_geometry, recammaster_camera,
+                            to_unit_range)
+from paradrive.video import decode_frames, each_frame
 from paradrive.errors import ParaDriveError
 from paradrive.stages.manifest import build_manifest
 from paradrive.pairs import read_pairs
@@ -30,6 +32,17 @@ def build(tmp_path_factory):
     build_dir = tmp_path_factory.mktemp("manifests") / "b"
     build_manifest(build_dir, [scenes_entry(s) for s in scenes], stage_params("manifest", {"shard_rows": 40,
                                                                   "row_group_rows": 8}))
+    return build_dir
+
+
+@pytest.fixture(scope="module")
+def long_build(tmp_path_factory):
+    """One clip of 121 frames of 32x32 with a keyframe every 30: one target, condition and source."""
+    data = tmp_path_factory.mktemp("long")
+    scene = write_clip_scene(data / "data", "synthetic-long", clips=("front",), offsets=(2.0,),
+                             conditions=(100,), num_frames=121, width=32, height=32, gop=30)
+    build_dir = data / "b"
+    build_manifest(build_dir, [scenes_entry(scene)], stage_params("manifest", {}))
     return build_dir
 
 
@@ -85,6 +98,21 @@ def test_seeking_gives_the_same_frames_as_a_full_decode_and_decodes_fewer(long_v
     assert stats["decoded"] < 15
 
 
+@pytest.mark.parametrize("codec", ["ffv1", "libx264"])
+def test_planar_frames_are_the_interleaved_frames_channel_first(tmp_path, codec):
+    frames = [frame_pixels(7, i, 32, 24) for i in range(5)]
+    path = tmp_path / ("v.mkv" if codec == "ffv1" else "v.mp4")
+    write_video(path, frames, codec=codec)
+    interleaved = decode_frames(path)
+    if codec == "ffv1":
+        np.testing.assert_array_equal(interleaved, np.stack(frames))
+    planar = {}
+    each_frame(path, None, lambda i, planes: planar.setdefault(i, np.stack(planes)), planar=True)
+    assert sorted(planar) == list(range(5))
+    for i in range(5):
+        np.testing.assert_array_equal(planar[i], interleaved[i].transpose(2, 0, 1))
+
+
 def test_asking_past_the_end_names_the_file(long_video):
     path, _ = long_video
     with pytest.raises(ParaDriveError, match="long.mp4"):
@@ -119,6 +147,56 @@ def test_target_frames_are_the_video_frames_scaled_to_minus_one_one(build):
     np.testing.assert_allclose(s["rel_pose"].numpy(), row["rel_pose"][[1, 3, 5]], atol=1e-7)
 
 
+def test_uint8_samples_are_the_stored_frames_and_float_samples_their_normalisation(build):
+    window = {"num_frames": 3, "frame_stride": 2, "frame_offset": 1}
+    raw = PairDataset(build, dtype="uint8", **window)[17]
+    row = PairDataset(build).row(17)
+    for role in ("source", "condition", "target"):
+        video = decode_frames(build / row[f"{role}_uri"])[[1, 3, 5]]
+        assert raw[role].dtype == torch.uint8 and raw[role].shape == (3, 3, 48, 64)
+        assert torch.equal(raw[role], torch.from_numpy(video).permute(0, 3, 1, 2))
+    for dtype in (torch.float32, torch.bfloat16):
+        s = PairDataset(build, dtype=dtype, **window)[17]
+        for role in ("source", "condition", "target"):
+            assert s[role].dtype == dtype
+            assert torch.equal(s[role], to_unit_range(raw[role], dtype))
+        assert torch.equal(s["rel_pose"], raw["rel_pose"]) and s["pair_id"] == raw["pair_id"]
+
+
+def test_resized_and_cropped_uint8_and_float_samples_agree(build):
+    raw = PairDataset(build, dtype="uint8", output_size=(32, 32), num_frames=2)[3]
+    s = PairDataset(build, dtype="float32", output_size=(32, 32), num_frames=2)[3]
+    assert raw["target"].shape == (2, 3, 32, 32)
+    assert torch.equal(s["target"], to_unit_range(raw["target"]))
+    assert s["target"].min() >= -1 and s["target"].max() <= 1
+    # the area filter scales each colour plane: near a full decode scaled by torch, then cut
+    full = torch.from_numpy(decode_frames(build / PairDataset(build).row(3)["target_uri"])[:2])
+    scaled = torch.nn.functional.interpolate(full.permute(0, 3, 1, 2).float(), size=(32, 43), mode="area")
+    assert (raw["target"].float() - scaled[..., 5:37]).abs().mean() < 3.0
+
+
+def test_an_unknown_dtype_is_refused_with_the_choices(build):
+    with pytest.raises(ValueError, match="uint8, float32, float16, bfloat16"):
+        PairDataset(build, dtype="int16")
+    with pytest.raises(TypeError, match="uint8"):
+        to_unit_range(torch.zeros(2, dtype=torch.float32))
+
+
+@pytest.mark.parametrize("start", [0, 40, 61, 96])
+def test_a_window_decodes_from_the_keyframe_before_it_not_from_the_start(long_build, start):
+    ds = PairDataset(long_build, dtype="uint8", num_frames=25, frame_offset=start)
+    s = ds[0]
+    row = ds.row(0)
+    for role in ("source", "condition", "target"):
+        full = decode_frames(long_build / row[f"{role}_uri"], seek=False)
+        assert torch.equal(s[role], torch.from_numpy(full[start:start + 25]).permute(0, 3, 1, 2))
+    keyframe = start // 30 * 30  # the clip has a keyframe every 30 frames
+    # per video: from the keyframe to the window's end, plus what the decoder holds back
+    assert ds.frames_decoded <= 3 * (start + 25 - keyframe + 4)
+    if start >= 30:
+        assert ds.frames_decoded < 3 * (start + 25)  # a decode from frame 0 would need this many
+
+
 def test_a_window_beyond_the_clip_is_refused_with_the_fix(build):
     ds = PairDataset(build, num_frames=5, frame_stride=2)
     with pytest.raises(ValueError, match="clip has 8"):
@@ -139,13 +217,8 @@ def test_resize_and_centre_crop_adjust_the_intrinsics(build):
     np.testing.assert_allclose(stretched["intrinsics"].numpy(), [12.5, 25, 8, 12], rtol=1e-6)
 
 
-def test_recammaster_camera_is_target_relative_to_the_first_source_frame(tmp_path):
-    scene = write_clip_scene(tmp_path / "data", "synthetic-long", clips=("front",),
-                             offsets=(2.0,), conditions=(100,), num_frames=121, width=32,
-                             height=32, gop=30)
-    build = tmp_path / "b"
-    build_manifest(build, [scenes_entry(scene)], stage_params("manifest", {}))
-    ds = PairDataset(build, pose_format="recammaster", output_size=(16, 16))
+def test_recammaster_camera_is_target_relative_to_the_first_source_frame(long_build):
+    ds = PairDataset(long_build, pose_format="recammaster", output_size=(16, 16))
     s = ds[0]
     assert s["camera"].shape == (31, 12) and s["target"].shape == (121, 3, 16, 16)
     cam = s["camera"].numpy().reshape(31, 3, 4)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import struct
-import time
 
 import numpy as np
 import pytest
@@ -15,25 +14,42 @@ from paradrive.ingest import tfrecord as tfr
 from paradrive.ingest import waymo_proto as wp
 
 
+def _crc32c_bitwise(data: bytes) -> int:
+    """The CRC-32C definition, one bit at a time (reflected polynomial 0x82F63B78)."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
 def test_crc32c_matches_published_check_values():
-    assert tfr._crc32c_numpy(b"123456789") == 0xE3069283  # the CRC-32C check value
-    assert tfr._crc32c_numpy(bytes(32)) == 0x8A9136AA     # RFC 3720 B.4, 32 zero bytes
-    assert tfr._crc32c_numpy(bytes([0xFF] * 32)) == 0x62A8AB43
-    assert tfr._crc32c_numpy(bytes(range(32))) == 0x46DD794E
+    assert tfr.crc32c(b"123456789") == 0xE3069283  # the CRC-32C check value
+    assert tfr.crc32c(bytes(32)) == 0x8A9136AA     # RFC 3720 B.4, 32 zero bytes
+    assert tfr.crc32c(bytes([0xFF] * 32)) == 0x62A8AB43
+    assert tfr.crc32c(bytes(range(32))) == 0x46DD794E
 
 
-@pytest.mark.parametrize("n", [0, 1, 3, 4095, 4096, 4099, 65536 + 7, 300_001])
-def test_vectorised_crc32c_equals_bytewise_reference(n):
+@pytest.mark.parametrize("n", [0, 1, 3, 4095, 4099, 20_011])
+def test_crc32c_equals_the_bitwise_definition(n):
     data = np.random.default_rng(n).integers(0, 256, n, dtype=np.uint8).tobytes()
-    reference = tfr._crc_update_py(0xFFFFFFFF, data) ^ 0xFFFFFFFF
-    assert tfr._crc32c_numpy(data) == reference
+    assert tfr.crc32c(data) == _crc32c_bitwise(data)
 
 
-def test_crc32c_is_fast_enough_for_segments():
-    data = np.random.default_rng(0).integers(0, 256, 16 << 20, dtype=np.uint8).tobytes()
-    t0 = time.perf_counter()
-    tfr.crc32c(data)
-    assert time.perf_counter() - t0 < 2.0  # ~0.15 s here; a 200 MB segment checks in ~2 s
+def test_crc32c_takes_any_bytes_like_object():
+    data = b"waymo segment record"
+    expected = _crc32c_bitwise(data)
+    assert tfr.crc32c(bytearray(data)) == expected
+    assert tfr.crc32c(memoryview(data)) == expected
+    assert tfr.crc32c(memoryview(b"xx" + data)[2:]) == expected
+
+
+def test_crc32c_runs_in_the_compiled_library():
+    import google_crc32c
+
+    # the pure-Python fallback of google-crc32c would take minutes per segment
+    assert google_crc32c.implementation == "c"
 
 
 def test_masked_crc_follows_tfrecord_definition():

@@ -9,12 +9,16 @@ import pytest
 import torch
 import yaml
 
+from conftest import stage_params
 from paradrive.errors import ConfigError
+from paradrive.stages.manifest import build_manifest
 
 from paradrive.train import (PatchAutoencoder, Trainer, VideoDiT, ModelConfig, euler_sample,
                              flow_matching_loss, interpolate, is_stage2_parameter, load_config,
                              load_for_sampling, sample_video, write_video)
-from paradrive.train.trainer import CONFIG_DIR, collate, parse_set, trainable_mask
+from paradrive.data import to_unit_range
+from paradrive.train.trainer import CONFIG_DIR, collate, open_dataset, parse_set, trainable_mask
+from test_manifest import scenes_entry, write_clip_scene
 
 FRAMES, HEIGHT, WIDTH = 4, 32, 48
 
@@ -228,6 +232,48 @@ def test_stage2_loss_falls_and_only_new_modules_train(tmp_path):
     assert all(not torch.equal(before[n], after[n]) for n in trained), \
         [n for n in trained if torch.equal(before[n], after[n])]
     assert trainer.evaluate(batch) < 0.95 * start  # the condition rendering lowers the loss further
+
+
+def test_uint8_batches_are_normalised_by_the_trainer_like_float_ones(tmp_path):
+    data = PairTensors(2)
+    trainer = Trainer(tiny_config(), 1, tmp_path / "run", data)
+    batch = collate([data[0], data[1]])
+    videos = ("source", "condition", "target")
+    as_bytes = {**batch, **{k: ((batch[k] + 1) * 127.5).round().to(torch.uint8) for k in videos}}
+    as_float = {**batch, **{k: to_unit_range(as_bytes[k]) for k in videos}}
+    z_bytes, z_float = trainer.latents(as_bytes), trainer.latents(as_float)
+    assert z_bytes.keys() == z_float.keys()
+    assert all(torch.equal(z_bytes[k], z_float[k]) for k in z_float)
+    assert trainer.evaluate(as_bytes) == trainer.evaluate(as_float)
+    # a uint8 batch read as if it were already in [-1, 1] would encode to other latents
+    assert not torch.equal(trainer.encoder.encode(as_bytes["target"].float()), z_float["target"])
+
+
+def test_uint8_batches_are_normalised_on_the_trainers_device(tmp_path):
+    from simulated_device import DEVICE, simulated_device, to_cpu
+
+    data = PairTensors(2)
+    batch = collate([data[0], data[1]])
+    as_bytes = {**batch, "target": ((batch["target"] + 1) * 127.5).round().to(torch.uint8)}
+    on_cpu = Trainer(tiny_config(), 1, tmp_path / "cpu", data).latents(as_bytes)["target"]
+    with simulated_device():
+        trainer = Trainer({**tiny_config(), "device": str(DEVICE)}, 1, tmp_path / "dev", data)
+        on_device = trainer.latents(as_bytes)["target"]  # bytes moved, normalised on the device
+        assert on_device.device == DEVICE
+        assert torch.equal(to_cpu(on_device), on_cpu)
+
+
+def test_the_trainer_reads_a_build_as_uint8_and_trains_on_it(tmp_path):
+    scene = write_clip_scene(tmp_path / "data", "synthetic-t", clips=("front",), offsets=(1.0, -1.0),
+                             conditions=(100,), num_frames=FRAMES, width=WIDTH, height=HEIGHT)
+    build_manifest(tmp_path / "b", [scenes_entry(scene)], stage_params("manifest", {}))
+    cfg = tiny_config()
+    cfg["data"]["num_workers"] = 0
+    dataset = open_dataset(tmp_path / "b", cfg)
+    sample = dataset[0]
+    assert sample["target"].dtype == torch.uint8 and sample["target"].shape == (FRAMES, 3, HEIGHT, WIDTH)
+    losses = Trainer(cfg, 1, tmp_path / "run", dataset).train(2)
+    assert len(losses) == 2 and all(loss == loss and loss < 10 for loss in losses)
 
 
 def test_stage2_without_stage1_weights_is_refused(tmp_path):

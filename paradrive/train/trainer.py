@@ -28,6 +28,7 @@ import torch
 import yaml
 from pydantic import ValidationError
 
+from paradrive.data import PairDataset, to_unit_range
 from paradrive.devices import resolve_device
 from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
 from paradrive.errors import ConfigError
@@ -132,12 +133,19 @@ def build_model(config: Mapping[str, Any], stage: int, encoder: VideoEncoder) ->
 
 
 def open_dataset(build_dir: str | Path, config: Mapping[str, Any]):
-    """The build's pairs through the adapter (``paradrive.data``), at the config's clip shape."""
-    from paradrive.data import PairDataset
-
+    """The build's pairs through the adapter (``paradrive.data``), at the config's clip shape, as
+    uint8 frames: a quarter of float32's bytes through the DataLoader, normalised on the device."""
     d = config["data"]
     return PairDataset(build_dir, num_frames=d["num_frames"], frame_stride=d["frame_stride"],
-                       output_size=(d["height"], d["width"]))
+                       output_size=(d["height"], d["width"]), dtype="uint8")
+
+
+def frames_on(frames: torch.Tensor, device: torch.device | str) -> torch.Tensor:
+    """A batch's frames on ``device`` in [-1, 1]: uint8 frames (the adapter's ``dtype="uint8"``)
+    travel as bytes and are normalised there; float frames are moved as they are."""
+    if frames.dtype == torch.uint8:
+        return to_unit_range(frames.to(device))
+    return frames.to(device)
 
 
 def _matches(name: str, modules: Sequence[str]) -> bool:
@@ -323,9 +331,9 @@ class Trainer:
         frames = batch["target"].shape[1]
         groups = self.encoder.frame_groups(frames)
         with torch.no_grad():
-            out = {k: self.encoder.encode(batch[k].to(self.device)) for k in ("target", "source")}
+            out = {k: self.encoder.encode(frames_on(batch[k], self.device)) for k in ("target", "source")}
             if self.stage == 2:
-                out["condition"] = self.encoder.encode(batch["condition"].to(self.device))
+                out["condition"] = self.encoder.encode(frames_on(batch["condition"], self.device))
         out["rel_pose"] = latent_poses(batch["rel_pose"].to(self.device), groups)
         out["identity_pose"] = latent_poses(batch["identity_pose"].to(self.device), groups)
         return out
@@ -455,10 +463,10 @@ def sample_video(model: VideoDiT, encoder: VideoEncoder, sample: Mapping[str, An
     device = next(model.parameters()).device
     batch = collate([dict(sample)])
     groups = encoder.frame_groups(batch["source"].shape[1])
-    x_s = encoder.encode(batch["source"].to(device))
+    x_s = encoder.encode(frames_on(batch["source"], device))
     rel = latent_poses(batch["rel_pose"].to(device), groups)
     ident = latent_poses(batch["identity_pose"].to(device), groups)
-    cond = encoder.encode(batch["condition"].to(device)) if model.config.rendering else None
+    cond = encoder.encode(frames_on(batch["condition"], device)) if model.config.rendering else None
     noise = torch.randn(x_s.shape, generator=torch.Generator().manual_seed(seed)).to(device)
     z = euler_sample(lambda x, t: model(x, t, x_s, rel, ident, cond), noise, steps, shift)
     return encoder.decode(z)[0].clamp(-1, 1).cpu()
