@@ -90,6 +90,7 @@ class Shape:
     frames: int
     cameras: dict[str, tuple[int, int]]
     known: str        # "ingested", "uri" or "typical <dataset> log"
+    gaussians: float | None = None   # of every checkpoint, when a fit with these parameters ran
 
 
 @dataclass
@@ -150,8 +151,9 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
         "compute:clip": len(cams) * len(windows) * streams * render["clip_frames"] * out_mp,
         "bytes:images": stored_mp, "bytes:masks": stored_mp,
         "bytes:lidar": float(shape.frames) if ingest["lidar"] else 0.0,
-        # an upper bound: under-fitted checkpoints near the initial points, the last at the cap
-        "bytes:gs": float(fit["init_points"] * (len(checkpoints) - 1) + fit["max_gaussians"]),
+        # before a fit, an upper bound: under-fitted checkpoints near the initial points, the last at the cap
+        "bytes:gs": shape.gaussians if shape.gaussians is not None
+        else float(fit["init_points"] * (len(checkpoints) - 1) + fit["max_gaussians"]),
         "bytes:renders": len(cams) * len(frames_needed(windows)) * streams * out_mp,
         "bytes:clips": len(cams) * len(windows) * streams * render["clip_frames"] * out_mp,
         "pairs": float(len(cams) * len(windows) * len(render["offsets_m"])
@@ -163,9 +165,9 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
     """The scene's frames and cameras: from its scene.json when ingested, else its URI."""
     parsed = parse_uri(uri)
     if data_dir is not None:
-        scene_json = SceneLayout.of(data_dir, parsed.scene_id).scene_json
-        if scene_json.is_file():
-            return _ingested_shape(json.loads(scene_json.read_text()))
+        layout = SceneLayout.of(data_dir, parsed.scene_id)
+        if layout.scene_json.is_file():
+            return _ingested_shape(layout, config.params["fit"])
     params = config.typed("ingest")
     if parsed.kind == "synthetic":
         from paradrive.ingest.synthetic import street_from_uri
@@ -180,9 +182,18 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
                  f"typical {parsed.kind} log")
 
 
-def _ingested_shape(doc: dict) -> Shape:
+def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
+    """An ingested scene's shape; its Gaussians too when its fit ran with ``fit_params`` (None:
+    whatever it ran with)."""
+    from paradrive.stages.records import FitRecord
+
+    doc = json.loads(layout.scene_json.read_text())
     cams = {name: (int(c["width"]), int(c["height"])) for name, c in doc["cameras"].items()}
-    return Shape(len(doc["frames"]), cams, "ingested")
+    shape = Shape(len(doc["frames"]), cams, "ingested")
+    marker = read_marker(layout.root, "fit")
+    if marker and layout.fit_json.is_file() and fit_params in (None, marker.get("params")):
+        shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
+    return shape
 
 
 def default_rates(rates_doc: dict) -> dict[str, Rate]:
@@ -224,12 +235,9 @@ def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, fl
     if markers["ingest"] is None or not layout.scene_json.is_file():
         return []
     params = {s: {**config.params[s], **((m or {}).get("params") or {})} for s, m in markers.items()}
-    u = units(params, _ingested_shape(json.loads(layout.scene_json.read_text())))
-    gpu = "cpu"
-    if layout.fit_json.is_file():
-        fit = FitRecord.load(layout.fit_json, layout.scene_id)
-        gpu = "gpu" if fit.device.startswith("cuda") else "cpu"
-        u["bytes:gs"] = float(sum(c.num_gaussians for c in fit.checkpoints))
+    u = units(params, _ingested_shape(layout, None))
+    fitted = layout.fit_json.is_file() and FitRecord.load(layout.fit_json).device.startswith("cuda")
+    gpu = "gpu" if fitted else "cpu"
     specs = config.registry().specs
     out = []
     for stage, marker in markers.items():
