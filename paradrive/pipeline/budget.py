@@ -325,19 +325,21 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="Print the plan as JSON."),
     ) -> None:
         """Project pairs, media and intermediate bytes and CPU / GPU hours of a build, before it runs."""
-        from paradrive.cli import collect_scene_uris, fail, out
         from paradrive.pipeline import StageRegistry, parse_overrides
         from paradrive.pipeline.build import default_selection
+        from paradrive.pipeline.scenes import expand_scene_inputs
 
         try:
             config = StageRegistry().resolve(profile, parse_overrides(set_))
-            uris = default_selection(config, collect_scene_uris(scene, scenes)).uris
+            given = list(scene) + (expand_scene_inputs(scenes) if scenes else [])
+            uris = default_selection(config, given).uris
             if not uris:
-                fail("no scenes: give --scene or --scenes")
+                raise ConfigError("no scenes to plan: give --scene or --scenes")
             plan = plan_build(config, uris, data if data.is_dir() else None)
         except (ConfigError, ParaDriveError, ValueError) as exc:
-            fail(str(exc))
+            Console(stderr=True).print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(2) from exc
         if as_json:
             print(json.dumps(plan.as_json(), indent=2))
         else:
-            print_plan(plan, config, data, out)
+            print_plan(plan, config, data, Console())
