@@ -127,15 +127,21 @@ def test_keeping_again_keeps_what_is_rendered_from_then_on(let_go):
 
 # --------------------------------------------------------------------------- the stand-in stages
 
-def test_changed_fit_parameter_ingests_again_when_ingest_let_go(tmp_path):
-    """The stand-in stages (milliseconds each) with a retention switch on ingest's images."""
+def stand_in_stages(folder: Path, stage: str, switch: str, glob: str) -> Path:
+    """The stand-in stages (milliseconds each), ``stage`` with a retention switch set off."""
     import pipeline_stages
 
-    folder = tmp_path / "stages"
     pipeline_stages.write_stages(folder)
-    spec = folder / "ingest.yaml"
-    spec.write_text(spec.read_text().replace("params:\n", "retention:\n  keep_images: [\"images/*\"]\n"
-                                             "params:\n  keep_images: {default: false, doc: \"x\"}\n"))
+    spec = folder / f"{stage}.yaml"
+    spec.write_text(spec.read_text().replace("params:\n", f"retention:\n  {switch}: [\"{glob}\"]\n"
+                                             f"params:\n  {switch}: {{default: false, doc: \"x\"}}\n"))
+    return folder
+
+
+def test_changed_fit_parameter_ingests_again_when_ingest_let_go(tmp_path):
+    import pipeline_stages
+
+    folder = stand_in_stages(tmp_path / "stages", "ingest", "keep_images", "images/*")
     data = tmp_path / "data"
 
     def run(overrides=None):
@@ -153,13 +159,7 @@ def test_changed_fit_parameter_ingests_again_when_ingest_let_go(tmp_path):
 
 def test_url_root_lets_go_the_remote_files(tmp_path):
     """On a URL data root the files go from the remote folder, and a re-run still skips."""
-    import pipeline_stages
-
-    folder = tmp_path / "stages"
-    pipeline_stages.write_stages(folder)
-    spec = folder / "render.yaml"
-    spec.write_text(spec.read_text().replace("params:\n", "retention:\n  keep_renders: [\"renders/*m.txt\"]\n"
-                                             "params:\n  keep_renders: {default: false, doc: \"x\"}\n"))
+    folder = stand_in_stages(tmp_path / "stages", "render", "keep_renders", "renders/*m.txt")
     url = f"memory://retention-{uuid.uuid4().hex[:8]}/data"
     root = DataRoot.of(url, cache_dir=str(tmp_path / "cache"))
     fs, base = root.filesystem()
