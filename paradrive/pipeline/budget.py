@@ -145,17 +145,17 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
     out_mp = render["width"] * render["height"] / MB
     cams = [c for c in render["cameras"] if c in shape.cameras] or list(render["cameras"])
     checkpoints = sorted(fit["checkpoints"])
+    rendered_mp = len(cams) * len(frames_needed(windows)) * streams * out_mp
+    encoded_mp = len(cams) * len(windows) * streams * render["clip_frames"] * out_mp
     return {
         "compute:ingest": stored_mp, "compute:fit": float(checkpoints[-1]),
-        "compute:render": len(cams) * len(frames_needed(windows)) * streams * out_mp,
-        "compute:clip": len(cams) * len(windows) * streams * render["clip_frames"] * out_mp,
+        "compute:render": rendered_mp, "compute:clip": encoded_mp,
         "bytes:images": stored_mp, "bytes:masks": stored_mp,
         "bytes:lidar": float(shape.frames) if ingest["lidar"] else 0.0,
         # before a fit, an upper bound: under-fitted checkpoints near the initial points, the last at the cap
         "bytes:gs": shape.gaussians if shape.gaussians is not None
         else float(fit["init_points"] * (len(checkpoints) - 1) + fit["max_gaussians"]),
-        "bytes:renders": len(cams) * len(frames_needed(windows)) * streams * out_mp,
-        "bytes:clips": len(cams) * len(windows) * streams * render["clip_frames"] * out_mp,
+        "bytes:renders": rendered_mp, "bytes:clips": encoded_mp,
         "pairs": float(len(cams) * len(windows) * len(render["offsets_m"])
                        * len(render["condition_checkpoints"])),
     }
@@ -176,9 +176,10 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
         frames = min(street.frames, params.max_frames or street.frames)
         return Shape(frames, {c: (street.width, street.height) for c in street.cameras}, "uri")
     typical = logs[parsed.kind]
-    names = params.camera_sets.get(parsed.kind) if params.cameras == "auto" else params.cameras
+    names = (params.camera_sets.get(parsed.kind) or typical["cameras"]) if params.cameras == "auto" \
+        else params.cameras or typical["cameras"]
     frames = min(typical["frames"], params.max_frames or typical["frames"])
-    return Shape(frames, {c: (typical["width"], typical["height"]) for c in names or ["front"]},
+    return Shape(frames, {c: (typical["width"], typical["height"]) for c in names},
                  f"typical {parsed.kind} log")
 
 
