@@ -179,15 +179,15 @@ def why_stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Pat
 def _stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path, marker: dict | None,
            fp: str, upstream: dict[str, dict], size_of: Callable[[str], int | None],
            exists: Callable[[str], bool] | None) -> str:
-    spec = config.registry().specs[stage]
+    specs = config.registry().specs
     reason = stale_reason(marker, fp, upstream, size_of,
-                          lambda: outputs_present(scene_dir, spec, config.params[stage], exists))
+                          lambda: outputs_present(scene_dir, specs[stage], config.params[stage], exists))
     if reason or marker is None or not marker.get("dropped"):
         return reason
     dropped = marker["dropped"]
     for user, run in dropped["after"].items():
         why = "it is no longer a stage"
-        if user in config.registry().specs:
+        if user in specs:
             why = why_stale(config, user, scene_uri, scene_dir, size_of, exists)
         if not why and (read_marker(scene_dir, user) or {}).get("run") != run:
             why = "it ran again since"
