@@ -134,7 +134,19 @@ def build(
         fail(str(exc))
     ledger.end_run(report.exit_code)
     _print_report(report, ledger)
+    _print_footprint(root, report)
     raise typer.Exit(report.exit_code)
+
+
+def _print_footprint(root, report) -> None:
+    """Each scene's bytes by folder (images, lidar, gs, renders, clips, ...) after the build."""
+    from paradrive.pipeline.budget import footprint_table, scene_footprint
+
+    scene_ids = list(report.scenes())
+    try:
+        out.print(footprint_table({sid: scene_footprint(root, sid) for sid in scene_ids}))
+    except OSError as exc:  # a URL data root that cannot be listed now: the build itself is done
+        console.print(f"footprint not shown: {exc}")
 
 
 def select_scenes(config, uris: list[str], split: str | None, exclude_split: list[str]):
@@ -300,6 +312,7 @@ COMMAND_MODULES = [
     ("paradrive.inspection", "inspect"),
     ("paradrive.evaluation", "eval"),
     ("paradrive.pipeline.status", "status"),
+    ("paradrive.pipeline.budget", "plan"),
     ("paradrive.train.cli", "train"),
 ]
 

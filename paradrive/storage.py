@@ -300,6 +300,17 @@ class SceneMirror:
         self.record.pop(rel, None)
 
     @_remote_call
+    def remove(self, rels: list[str]) -> None:
+        """Delete remote files (outputs a retention policy let go) and forget them."""
+        there = [rel for rel in rels if rel in self.listing]
+        if there:
+            self.fs.rm([f"{self.remote}/{rel}" for rel in there])
+        for rel in rels:
+            self.listing.pop(rel, None)
+            self.record.pop(rel, None)
+        self._save_record()
+
+    @_remote_call
     def push(self, before: dict[str, tuple[int, int]], last: list[str]) -> tuple[int, int]:
         """Upload what changed since ``before``, delete what was removed, then ``last`` (the
         marker). Returns (uploaded, deleted)."""

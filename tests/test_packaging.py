@@ -62,7 +62,7 @@ def test_the_wheel_carries_stage_definitions_profiles_and_splits(wheel):
         assert f"paradrive/_stages/{stage}.yaml" in names
         assert f"paradrive/stages/{stage}.py" in names
     assert {"paradrive/_stages/profiles/smoke.yaml", "paradrive/_stages/train/default.yaml",
-            "paradrive/_splits/paper-eval.txt"} <= names
+            "paradrive/_stages/budget/rates.yaml", "paradrive/_splits/paper-eval.txt"} <= names
 
 
 @pytest.mark.slow

@@ -9,6 +9,14 @@ were not redone since, and every recorded output is there with its size; otherwi
 again, and so does every stage after it. (A marker from before ``outputs`` were recorded counts
 as up to date while its declared outputs exist.) The whole decision and run happen under the
 scene's lock (:mod:`paradrive.pipeline.locks`), so concurrent builds never write a scene at once.
+
+Retention: a stage's ``retention`` switches (``StageSpec.retention``, e.g. ``render.keep_frames``)
+let some of its outputs go once every stage that needs it has used them (that stage done or
+skipped). The marker then moves those files from ``outputs`` to ``dropped.files`` and records
+the run of each stage that used them (``dropped.after``); the stage stays up to date while those
+stages are, and runs again, before them, as soon as one of them has to (a changed parameter, a
+damaged output). A stage asked to run on outputs that were let go, without the stage that makes
+them, fails naming it.
 """
 
 from __future__ import annotations
@@ -156,6 +164,88 @@ def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
     return f"declared output {missing[0]} is missing" if missing else ""
 
 
+def why_stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path,
+              size_of: Callable[[str], int | None],
+              exists: Callable[[str], bool] | None = None) -> str:
+    """Why (scene, stage) must run ('' when it is up to date), outputs let go included."""
+    try:
+        fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
+    except ConfigError as exc:
+        return str(exc)
+    return _stale(config, stage, scene_uri, scene_dir, read_marker(scene_dir, stage), fp, upstream,
+                  size_of, exists)
+
+
+def _stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path, marker: dict | None,
+           fp: str, upstream: dict[str, dict], size_of: Callable[[str], int | None],
+           exists: Callable[[str], bool] | None) -> str:
+    specs = config.registry().specs
+    reason = stale_reason(marker, fp, upstream, size_of,
+                          lambda: outputs_present(scene_dir, specs[stage], config.params[stage], exists))
+    if reason or marker is None or not marker.get("dropped"):
+        return reason
+    dropped = marker["dropped"]
+    for user, run in dropped["after"].items():
+        why = "it is no longer a stage"
+        if user in specs:
+            why = why_stale(config, user, scene_uri, scene_dir, size_of, exists)
+        if not why and (read_marker(scene_dir, user) or {}).get("run") != run:
+            why = "it ran again since"
+        if why:
+            return (f"{len(dropped['files'])} output(s) were let go by its retention policy and "
+                    f"'{user}' needs them again ({why})")
+    return ""
+
+
+def release_outputs(config: ResolvedConfig, stage: str, scene_dir: Path,
+                    mirror: SceneMirror | None, log: logging.Logger) -> None:
+    """After ``stage`` is done or up to date: let go the outputs of the stages it needs whose
+    retention switches are off, once every stage needing them has used this run of them. The
+    marker says so first, then the files go (a crash between leaves files, never a lie)."""
+    specs = config.registry().specs
+    for need in specs[stage].needs:
+        patterns = specs[need].released(config.params[need])
+        marker = read_marker(scene_dir, need)
+        if not patterns or marker is None or "outputs" not in marker:
+            continue
+        users = {name: read_marker(scene_dir, name) for name, spec in specs.items()
+                 if need in spec.needs and spec.scope == "scene"}
+        if any((m or {}).get("upstream_runs", {}).get(need) != marker.get("run")
+               for m in users.values()):
+            continue  # a stage needing them has not used this run's outputs yet
+        files = {rel: info for rel, info in marker["outputs"].items() if matches(rel, patterns)}
+        if not files:
+            continue
+        before = dict(marker.get("dropped", {}).get("files", {}))
+        marker["outputs"] = {rel: info for rel, info in marker["outputs"].items() if rel not in files}
+        marker["dropped"] = {"files": {**before, **files},
+                             "after": {name: m["run"] for name, m in users.items() if m}}
+        try:
+            write_json(marker_path(scene_dir, need), marker)
+            if mirror:
+                mirror.push(mirror.snapshot(), last=[marker_path(Path(), need).as_posix()])
+                mirror.remove(sorted(files))
+            remove_files(scene_dir, sorted(files))
+        except OSError as exc:  # the stage itself is done; the files stay until a later run
+            log.warning("%s: could not let go the outputs of %s: %s", stage, need, exc)
+            continue
+        log.info("%s: %d file(s) of %s let go (%.1f MB; retention: %s)", stage, len(files), need,
+                 sum(i["bytes"] for i in files.values()) / 1e6,
+                 ", ".join(k for k in specs[need].retention if config.params[need][k] is False))
+
+
+def remove_files(folder: Path, rels: list[str]) -> None:
+    """Delete files under ``folder`` and the folders they leave empty."""
+    parents: set[Path] = set()
+    for rel in rels:
+        (folder / rel).unlink(missing_ok=True)
+        parents.update((folder / rel).parents)
+    for parent in sorted(parents, key=lambda p: len(p.parts), reverse=True):
+        if parent != folder and folder in parent.parents:
+            with contextlib.suppress(OSError):  # not empty: other files still live there
+                parent.rmdir()
+
+
 def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
     """``<data>/scenes/<scene_id>``; an id that is not a plain file name is refused."""
     return SceneLayout.of(data_dir, scene_id).root
@@ -177,13 +267,21 @@ def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str, scene_
         upstream[need] = marker
         inputs[need] = marker["fingerprint"]
     extra = scene_uri if spec.needs == [] else ""
-    return fingerprint(stage, config.params[stage], inputs, extra), upstream
+    return fingerprint(stage, spec.fingerprinted(config.params[stage]), inputs, extra), upstream
 
 
 def check_inputs(scene_id: str, stage: str, upstream: dict[str, dict],
                  size_of: Callable[[str], int | None]) -> None:
-    """Refuse to run on damaged inputs, naming the stage a plain re-run redoes first."""
+    """Refuse to run on damaged inputs or inputs a retention policy let go, naming the stage a
+    plain re-run redoes first."""
     for need, marker in upstream.items():
+        dropped = sorted(marker.get("dropped", {}).get("files", {}))
+        if dropped:
+            raise SceneError(f"{stage} needs the outputs of {need}, and {len(dropped)} of them "
+                             f"({dropped[0]}, ...) were let go by {need}'s retention policy",
+                             scene_id=scene_id,
+                             fix=f"re-run with '{need}' in --stages (a plain re-run makes them "
+                                 f"again, then runs {stage})")
         damaged = list(damaged_outputs(marker, size_of).values())
         if damaged:
             raise SceneError(f"{stage} needs the outputs of {need}, and {damaged[0]}",
@@ -317,11 +415,12 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             marker = read_marker(scene_dir, stage)
             size_of = (lambda rel: mirror.listing.get(rel, {}).get("size")) if mirror \
                 else local_size(scene_dir)
-            reason = "--force" if force else stale_reason(
-                marker, fp, upstream, size_of,
-                lambda: outputs_present(scene_dir, spec, params, mirror.exists if mirror else None))
+            reason = "--force" if force else _stale(
+                config, stage, scene_uri, scene_dir, marker, fp, upstream, size_of,
+                mirror.exists if mirror else None)
             if not reason:
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
+                release_outputs(config, stage, scene_dir, mirror, log)
                 return StageResult(scene_id, stage, "skipped", fingerprint=fp,
                                    summary=(marker or {}).get("summary", {}))
             log.info("%s: to run: %s", stage, reason)
@@ -366,6 +465,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                 uploaded, deleted = mirror.push(before, last=[marker_rel])
                 log.info("%s: %d file(s) uploaded to %s, %d removed there", stage, uploaded,
                          root.scene_location(scene_id), deleted)
+            release_outputs(config, stage, scene_dir, mirror, log)
             log.info("%s: done in %.1f s", stage, seconds)
             return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
                                peak_rss_mb=peak_rss_mb(), summary=summary)

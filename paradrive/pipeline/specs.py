@@ -9,6 +9,8 @@ A stage file::
     resources: {cpu: 2, gpu: 1, memory_gb: 16}
     outputs: ["gs/ckpt_{checkpoints:06d}.ply", "gs/fit.json"]
     reads: ["scene.json", "images"]         # optional: what a URL data root must bring to the worker
+    retention:                              # optional: a boolean parameter -> the outputs it keeps
+      keep_frames: ["renders/*/*/*"]        # false: let them go once every stage needing this one is done
     params:
       checkpoints: {default: [100, 500, 1000, 30000], doc: "paper §3: ..."}
       cameras: {default: auto, types: [str, list], doc: "..."}   # types: when one type is not enough
@@ -34,7 +36,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from paradrive.errors import ConfigError
 from paradrive.stages.base import StageParams
@@ -67,6 +69,9 @@ class StageSpec(BaseModel):
     outputs: list[str] = []
     reads: list[str] | None = None   # scene files it reads (globs); None = the whole scene folder
     params: dict[str, Param] = {}
+    # retention: a boolean parameter -> the outputs (globs) it keeps; when false they are deleted
+    # once every stage that needs this one has used them (paradrive.pipeline.runner)
+    retention: dict[str, list[str]] = {}
     file: str = ""
 
     @field_validator("entry")
@@ -76,8 +81,26 @@ class StageSpec(BaseModel):
             raise ValueError(f"entry must read 'module:function', got {value!r}")
         return value
 
+    @model_validator(mode="after")
+    def _retention_params(self) -> StageSpec:
+        for key in self.retention:
+            if not isinstance(self.params.get(key, Param(doc="-")).default, bool):
+                raise ValueError(f"retention names '{key}', which must be a parameter with a "
+                                 f"boolean default (true keeps the files)")
+        return self
+
     def defaults(self) -> dict[str, Any]:
         return {k: p.default for k, p in self.params.items()}
+
+    def fingerprinted(self, params: dict[str, Any]) -> dict[str, Any]:
+        """The parameters that decide what the stage writes: all but the retention switches,
+        which only decide how long the files stay."""
+        return {k: v for k, v in params.items() if k not in self.retention}
+
+    def released(self, params: dict[str, Any]) -> list[str]:
+        """The outputs (globs) whose retention switch is off in ``params``."""
+        return [glob for key, globs in self.retention.items() if params.get(key) is False
+                for glob in globs]
 
 
 class Profile(BaseModel):

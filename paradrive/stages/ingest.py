@@ -49,6 +49,7 @@ class Params(StageParams):
     synthetic_height: int
     synthetic_curvature: float
     moving_threshold_m: float | None
+    keep_lidar: bool
 
 
 def params_of(values: Mapping[str, Any] | None = None) -> Params:

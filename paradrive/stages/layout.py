@@ -30,6 +30,9 @@ MARKER_DIR = ".paradrive"
 SCENES_DIR = "scenes"
 LOGS_DIR = "logs"
 LOCKS_DIR = "locks"
+# a scene's top folders and the stage that writes each (a scene's footprint is counted by them)
+SCENE_FOLDERS = {"images": "ingest", "lidar": "ingest", "masks": "ingest", "gs": "fit",
+                 "renders": "render", "clips": "clip"}
 
 
 def checked_scene_id(scene_id: str) -> str:

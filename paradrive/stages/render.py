@@ -78,6 +78,7 @@ class Params(StageParams):
     device: str
     backend: str
     threads: int
+    keep_frames: bool
 
     def streams(self) -> list[StreamPlan]:
         return plan_streams(self.condition_checkpoints, self.source_checkpoint, self.offsets_m)

@@ -1,0 +1,346 @@
+"""A disk and compute budget: what scenes hold now (footprint) and what a build will cost (plan).
+
+``scene_footprint`` sums a scene folder's bytes by its top folders (``images``, ``lidar``,
+``masks``, ``gs``, ``renders``, ``clips``; the rest is ``other``); ``paradrive build`` prints it
+per scene at the end.
+
+``plan_build`` projects, before anything runs, a scene list's pairs, media bytes (the clips),
+intermediate bytes (everything else, at their peak and after the retention switches) and the
+hours of each stage. It counts each stage's work in units (stored megapixels for ingest,
+iterations for the fit, rendered and encoded megapixels for render and clip) and multiplies by
+rates: measured on the finished scenes of the data root (the seconds in each stage's marker,
+the bytes of its recorded outputs) when there are any, else the documented defaults of
+``stages/budget/rates.yaml``. A scene already ingested gives its own frames and cameras; one
+not yet ingested is read from its URI (synthetic) or takes the dataset's typical log
+(``rates.yaml``: ``logs``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import typer
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.pipeline.runner import read_marker
+from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.stages.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
+from paradrive.storage import DataRoot, file_stats
+from paradrive.streams import clip_windows, frames_needed, plan_streams
+from paradrive.uri import parse_uri
+
+OTHER = "other"
+MB = 1e6
+STAGE_OWNS = {stage: [f for f, owner in SCENE_FOLDERS.items() if owner == stage]
+              for stage in dict.fromkeys(SCENE_FOLDERS.values())}
+
+
+# --------------------------------------------------------------------------- footprint
+
+def scene_footprint(root: DataRoot | str | Path, scene_id: str) -> dict[str, int]:
+    """Bytes of one scene folder by top folder (:data:`SCENE_FOLDERS`, then ``other``); a URL
+    data root is listed remotely."""
+    root = DataRoot.of(root)
+    mirror = root.mirror(scene_id)
+    if mirror is not None:
+        sizes = {rel: int(info.get("size") or 0) for rel, info in mirror.refresh().items()}
+    else:
+        sizes = {rel: stat[0] for rel, stat in file_stats(SceneLayout.of(root.local, scene_id).root).items()}
+    return by_folder(sizes)
+
+
+def by_folder(sizes: dict[str, int]) -> dict[str, int]:
+    """Relative path -> bytes, summed by top folder."""
+    out = {name: 0 for name in [*SCENE_FOLDERS, OTHER]}
+    for rel, size in sizes.items():
+        top = rel.split("/", 1)[0] if "/" in rel else OTHER
+        out[top if top in SCENE_FOLDERS else OTHER] += size
+    return out
+
+
+def footprint_table(footprints: dict[str, dict[str, int]], max_rows: int = 20) -> Table:
+    """Scenes by top folder in MB, with a total row (the largest ``max_rows`` scenes shown)."""
+    columns = [*SCENE_FOLDERS, OTHER]
+    table = Table(title="footprint (MB)", title_justify="left")
+    table.add_column("scene")
+    for name in [*columns, "total"]:
+        table.add_column(name, justify="right")
+    ranked = sorted(footprints.items(), key=lambda kv: -sum(kv[1].values()))
+    for sid, sizes in ranked[:max_rows]:
+        table.add_row(sid, *[f"{sizes[c] / MB:.1f}" for c in columns], f"{sum(sizes.values()) / MB:.1f}")
+    if len(footprints) > 1:
+        totals = {c: sum(f[c] for f in footprints.values()) for c in columns}
+        table.add_row(f"all {len(footprints)} scenes", *[f"{totals[c] / MB:.1f}" for c in columns],
+                      f"{sum(totals.values()) / MB:.1f}", style="bold")
+    return table
+
+
+# --------------------------------------------------------------------------- the plan
+
+@dataclass
+class Shape:
+    """What a scene's costs scale with: its frames and its cameras' stored sizes."""
+
+    frames: int
+    cameras: dict[str, tuple[int, int]]
+    known: str        # "ingested", "uri" or "typical <dataset> log"
+    gaussians: float | None = None   # of every checkpoint, when a fit with these parameters ran
+
+
+@dataclass
+class Rate:
+    value: float       # seconds (compute) or bytes (storage) per unit
+    unit: str
+    source: str
+    device: str = ""   # compute: where the seconds were spent (cpu or gpu)
+
+
+@dataclass
+class Plan:
+    scenes: int = 0
+    pairs: int = 0
+    bytes: dict[str, float] = field(default_factory=dict)      # by top folder
+    kept: dict[str, float] = field(default_factory=dict)       # after the retention switches
+    seconds: dict[str, float] = field(default_factory=dict)    # by stage
+    rates: dict[str, Rate] = field(default_factory=dict)       # "compute:<stage>", "bytes:<folder>"
+    shapes: dict[str, int] = field(default_factory=dict)       # how the scenes' shapes were known
+
+    def hours(self, device: str) -> float:
+        return sum(s for stage, s in self.seconds.items()
+                   if self.rates[f"compute:{stage}"].device == device) / 3600.0
+
+    def as_json(self) -> dict[str, Any]:
+        media = self.bytes.get("clips", 0.0)
+        return {"scenes": self.scenes, "pairs": self.pairs, "media_bytes": round(media),
+                "intermediate_bytes": round(sum(self.bytes.values()) - media),
+                "intermediate_bytes_kept": round(sum(self.kept.values()) - media),
+                "bytes": {k: round(v) for k, v in self.bytes.items()},
+                "bytes_kept": {k: round(v) for k, v in self.kept.items()},
+                "seconds": {k: round(v, 1) for k, v in self.seconds.items()},
+                "cpu_hours": round(self.hours("cpu"), 3), "gpu_hours": round(self.hours("gpu"), 3),
+                "rates": {k: vars(r) for k, r in self.rates.items()}, "shapes": self.shapes}
+
+
+def load_rates(config: ResolvedConfig) -> dict[str, Any]:
+    path = Path(config.stages_dir) / "budget" / "rates.yaml"
+    try:
+        return yaml.safe_load(path.read_text())
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path} is missing: the plan's default rates live there") from exc
+
+
+def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
+    """Work per stage and size per folder of one scene with these stage parameters."""
+    ingest, fit, render = params["ingest"], params["fit"], params["render"]
+    stored_mp = shape.frames * sum(w * h for w, h in shape.cameras.values()) / MB
+    windows, _ = clip_windows(shape.frames, render["clip_frames"], render["clips"])
+    streams = len(plan_streams(render["condition_checkpoints"], render["source_checkpoint"],
+                               render["offsets_m"]))
+    out_mp = render["width"] * render["height"] / MB
+    cams = [c for c in render["cameras"] if c in shape.cameras] or list(render["cameras"])
+    checkpoints = sorted(fit["checkpoints"])
+    rendered_mp = len(cams) * len(frames_needed(windows)) * streams * out_mp
+    encoded_mp = len(cams) * len(windows) * streams * render["clip_frames"] * out_mp
+    return {
+        "compute:ingest": stored_mp, "compute:fit": float(checkpoints[-1]),
+        "compute:render": rendered_mp, "compute:clip": encoded_mp,
+        "bytes:images": stored_mp, "bytes:masks": stored_mp,
+        "bytes:lidar": float(shape.frames) if ingest["lidar"] else 0.0,
+        # before a fit, an upper bound: under-fitted checkpoints near the initial points, the last at the cap
+        "bytes:gs": shape.gaussians if shape.gaussians is not None
+        else float(fit["init_points"] * (len(checkpoints) - 1) + fit["max_gaussians"]),
+        "bytes:renders": rendered_mp, "bytes:clips": encoded_mp,
+        "pairs": float(len(cams) * len(windows) * len(render["offsets_m"])
+                       * len(render["condition_checkpoints"])),
+    }
+
+
+def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict) -> Shape:
+    """The scene's frames and cameras: from its scene.json when ingested, else its URI."""
+    parsed = parse_uri(uri)
+    if data_dir is not None:
+        layout = SceneLayout.of(data_dir, parsed.scene_id)
+        if layout.scene_json.is_file():
+            return _ingested_shape(layout, config.params["fit"])
+    params = config.typed("ingest")
+    if parsed.kind == "synthetic":
+        from paradrive.ingest.synthetic import street_from_uri
+
+        street = street_from_uri(parsed, params)
+        frames = min(street.frames, params.max_frames or street.frames)
+        return Shape(frames, {c: (street.width, street.height) for c in street.cameras}, "uri")
+    typical = logs[parsed.kind]
+    names = (params.camera_sets.get(parsed.kind) or typical["cameras"]) if params.cameras == "auto" \
+        else params.cameras or typical["cameras"]
+    frames = min(typical["frames"], params.max_frames or typical["frames"])
+    return Shape(frames, {c: (typical["width"], typical["height"]) for c in names},
+                 f"typical {parsed.kind} log")
+
+
+def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
+    """An ingested scene's shape; its Gaussians too when its fit ran with ``fit_params`` (None:
+    whatever it ran with)."""
+    from paradrive.stages.records import FitRecord
+
+    doc = json.loads(layout.scene_json.read_text())
+    cams = {name: (int(c["width"]), int(c["height"])) for name, c in doc["cameras"].items()}
+    shape = Shape(len(doc["frames"]), cams, "ingested")
+    marker = read_marker(layout.root, "fit")
+    if marker and layout.fit_json.is_file() and fit_params in (None, marker.get("params")):
+        shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
+    return shape
+
+
+def default_rates(rates_doc: dict) -> dict[str, Rate]:
+    out = {f"compute:{stage}": Rate(r["seconds"], r["unit"], r["source"], r["device"])
+           for stage, r in rates_doc["compute"].items()}
+    out.update({f"bytes:{folder}": Rate(r["bytes"], r["unit"], r["source"])
+                for folder, r in rates_doc["bytes"].items()})
+    return out
+
+
+def measured_rates(data_dir: Path, defaults: dict[str, Rate], config: ResolvedConfig) -> dict[str, Rate]:
+    """The defaults, replaced where the finished scenes of ``data_dir`` measure a rate: each stage
+    marker's seconds, and the bytes of its outputs (those let go included), over the work its
+    recorded parameters make. Where scenes ran a stage on different devices, the device most of
+    them used gives the rate."""
+    totals: dict[tuple[str, str], list[float]] = {}   # (rate, device) -> [amount, work, scenes]
+    folder = Path(data_dir) / SCENES_DIR
+    for scene_dir in sorted(folder.iterdir()) if folder.is_dir() else []:
+        for key, device, amount, work in _samples(scene_dir, config):
+            total = totals.setdefault((key, device), [0.0, 0.0, 0])
+            total[0] += amount
+            total[1] += work
+            total[2] += 1
+    out = dict(defaults)
+    for key, default in defaults.items():
+        groups = [(device, t) for (k, device), t in totals.items() if k == key and t[1] > 0]
+        if groups:
+            device, (amount, work, scenes) = max(groups, key=lambda g: g[1][2])
+            out[key] = Rate(amount / work, default.unit, f"measured on {int(scenes)} scene(s)", device)
+    return out
+
+
+def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, float, float]]:
+    """(rate, device, seconds or bytes, work) of each stage one scene finished."""
+    from paradrive.stages.records import FitRecord
+
+    markers = {s: read_marker(scene_dir, s) for s in STAGE_OWNS}
+    layout = SceneLayout(scene_dir)
+    if markers["ingest"] is None or not layout.scene_json.is_file():
+        return []
+    params = {s: {**config.params[s], **((m or {}).get("params") or {})} for s, m in markers.items()}
+    u = units(params, _ingested_shape(layout, None))
+    fitted = layout.fit_json.is_file() and FitRecord.load(layout.fit_json).device.startswith("cuda")
+    gpu = "gpu" if fitted else "cpu"
+    specs = config.registry().specs
+    out = []
+    for stage, marker in markers.items():
+        if marker is None or "outputs" not in marker:
+            continue
+        device = gpu if specs[stage].resources.gpu > 0 else "cpu"
+        out.append((f"compute:{stage}", device, float(marker.get("seconds", 0.0)), u[f"compute:{stage}"]))
+        files = {**marker["outputs"], **marker.get("dropped", {}).get("files", {})}
+        sizes = by_folder({rel: int(info["bytes"]) for rel, info in files.items()})
+        out += [(f"bytes:{name}", "", float(sizes[name]), u[f"bytes:{name}"])
+                for name in STAGE_OWNS[stage] if sizes[name] and u[f"bytes:{name}"]]
+    return out
+
+
+def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -> Plan:
+    """Project the pairs, bytes and hours of building ``uris`` with ``config``."""
+    rates_doc = load_rates(config)
+    rates = default_rates(rates_doc)
+    if data_dir is not None:
+        rates = measured_rates(Path(data_dir), rates, config)
+    plan = Plan(rates=rates)
+    released = {name for stage, spec in config.registry().specs.items()
+                for glob in spec.released(config.params[stage]) for name in [glob.split("/", 1)[0]]}
+    for uri in dict.fromkeys(uris):
+        shape = shape_of(config, uri, data_dir, rates_doc["logs"])
+        plan.shapes[shape.known] = plan.shapes.get(shape.known, 0) + 1
+        u = units(config.params, shape)
+        plan.scenes += 1
+        plan.pairs += int(u["pairs"])
+        for key, rate in rates.items():
+            kind, name = key.split(":", 1)
+            value = u[key] * rate.value
+            target = plan.seconds if kind == "compute" else plan.bytes
+            target[name] = target.get(name, 0.0) + value
+            if kind == "bytes":
+                plan.kept[name] = plan.kept.get(name, 0.0) + (0.0 if name in released else value)
+    return plan
+
+
+# --------------------------------------------------------------------------- CLI
+
+def _size(value: float) -> str:
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if value >= scale:
+            return f"{value / scale:.2f} {unit}"
+    return f"{value / 1e3:.1f} kB"
+
+
+def print_plan(plan: Plan, config: ResolvedConfig, data_dir: Path, console: Console) -> None:
+    summary = plan.as_json()
+    known = ", ".join(f"{n} {how}" for how, n in sorted(plan.shapes.items()))
+    console.print(f"plan: {plan.scenes} scene(s) ({known}), profile {config.profile}; rates measured "
+                  f"on the finished scenes of {data_dir} where there are any, else stages/budget/rates.yaml")
+    console.print(f"pairs         {plan.pairs:,}")
+    console.print(f"media         {_size(summary['media_bytes'])} (the clips)")
+    console.print(f"intermediate  {_size(summary['intermediate_bytes'])} at most, "
+                  f"{_size(summary['intermediate_bytes_kept'])} kept after retention")
+    console.print(f"compute       {summary['cpu_hours']:.2f} CPU-hours, "
+                  f"{summary['gpu_hours']:.2f} GPU-hours")
+    table = Table(title="rates", title_justify="left")
+    for name in ("what", "total", "kept", "rate", "per", "source"):
+        table.add_column(name, overflow="fold", justify="right" if name in ("total", "kept", "rate") else "left")
+    for key, rate in plan.rates.items():
+        kind, name = key.split(":", 1)
+        if kind == "compute":
+            table.add_row(f"{name} ({rate.device}-hours)", f"{plan.seconds[name] / 3600:.3f}", "",
+                          f"{rate.value:.4g} s", rate.unit, rate.source)
+        else:
+            table.add_row(name, _size(plan.bytes[name]), _size(plan.kept[name]),
+                          f"{rate.value:.4g} B", rate.unit, rate.source)
+    console.print(table)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("plan")
+    def plan_cmd(
+        scene: list[str] = typer.Option([], "--scene", help="Scene URI. Repeatable."),
+        scenes: list[str] = typer.Option([], "--scenes", help="A scene list file, a folder of logs, or "
+                                                              "URIs (as for build). Repeatable."),
+        profile: str | None = typer.Option(None, "--profile", "-p", help="Profile (stages/profiles/"
+                                                                         "NAME.yaml); default: the paper's."),
+        set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
+        data: Path = typer.Option(Path("data"), "--data", help="Data folder: its finished scenes give "
+                                                               "measured rates, its ingested scenes their frames."),
+        as_json: bool = typer.Option(False, "--json", help="Print the plan as JSON."),
+    ) -> None:
+        """Project pairs, media and intermediate bytes and CPU / GPU hours of a build, before it runs."""
+        from paradrive.pipeline import StageRegistry, parse_overrides
+        from paradrive.pipeline.build import default_selection
+        from paradrive.pipeline.scenes import expand_scene_inputs
+
+        try:
+            config = StageRegistry().resolve(profile, parse_overrides(set_))
+            given = list(scene) + (expand_scene_inputs(scenes) if scenes else [])
+            uris = default_selection(config, given).uris
+            if not uris:
+                raise ConfigError("no scenes to plan: give --scene or --scenes")
+            plan = plan_build(config, uris, data if data.is_dir() else None)
+        except (ConfigError, ParaDriveError, ValueError) as exc:
+            Console(stderr=True).print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(2) from exc
+        if as_json:
+            print(json.dumps(plan.as_json(), indent=2))
+        else:
+            print_plan(plan, config, data, Console())
