@@ -159,10 +159,11 @@ def run_render(ctx) -> dict:
     fit = _digest(*[p.read_text() for p in ckpts])
     offsets = ctx.params["offsets_m"]
     files = {}
-    for d in offsets:
+    for i, d in enumerate(offsets):
         rel = f"renders/{d:+.0f}m.txt"
         write_text(ctx.scene_dir / rel, _digest(fit, d) + "\n")
         files[f"{d:+.1f}"] = rel
+        ctx.progress(i + 1, len(offsets))
     write_json(ctx.scene_dir / "renders" / "renders.json", {"offsets_m": offsets, "files": files})
     return {"renders": len(offsets)}
 
