@@ -219,6 +219,7 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import PathCollection
 
     scene = scene_paths(build_dir, scene_id, data_dir)
     window = plan_window(scene.positions()[:, :2])
@@ -240,13 +241,14 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
         legend = fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6),
                             fontsize=8, frameon=False)
         for handle in legend.legend_handles:  # LiDAR's dots, big enough to see in the legend
-            if hasattr(handle, "set_sizes"):
+            if isinstance(handle, PathCollection):
                 handle.set_sizes([12.0])
         margins = [0.5, 0.2, 0.3, 0.3]     # inches; grown below to what the labels need
         for _ in range(2):
             _layout(fig, ax, legend, aspect, margins)
             fig.canvas.draw()
             plot, whole = ax.get_window_extent(), ax.get_tightbbox()
+            assert whole is not None  # the axes is drawn
             need = [plot.x0 - whole.x0, whole.x1 - plot.x1, whole.y1 - plot.y1, plot.y0 - whole.y0]
             margins = [max(m, n / DPI + 0.1) for m, n in zip(margins, need)]
         height = fig.bbox.height
