@@ -96,6 +96,28 @@ def test_render_logs_frames_and_clip_logs_streams(smoke_build):
                          clips[-1]), clips[-1]
 
 
+def test_the_fits_progress_figures_leave_its_checkpoints_unchanged(tiny_scene, tmp_path):
+    from paradrive.gs.fit import fit_scene
+    from test_gs_fit import TINY_FIT, _copy_scene, fit_params
+
+    params = fit_params("smoke", **TINY_FIT)
+    quiet, watched = _copy_scene(tiny_scene, tmp_path / "quiet"), _copy_scene(tiny_scene, tmp_path / "watched")
+    fit_scene(quiet, params)
+    seen: list[dict] = []
+
+    def every_figure(done, total, **fields):  # computes the PSNR at every call, not only per line
+        seen.append({k: v() if callable(v) else float(v) for k, v in fields.items()})
+
+    fit_scene(watched, params, progress=every_figure)
+    assert len(seen) == 2 and all(set(f) == {"loss", "psnr", "gaussians"} for f in seen)
+    for it in params.checkpoints:
+        name = f"ckpt_{it:06d}.ply"
+        assert (quiet / "gs" / name).read_bytes() == (watched / "gs" / name).read_bytes(), name
+    final = json.loads((watched / "gs" / "fit.json").read_text())["checkpoints"][-1]
+    assert seen[-1]["psnr"] == pytest.approx(final["psnr"], abs=1e-9)
+    assert seen[-1]["gaussians"] == final["num_gaussians"]
+
+
 # --------------------------------------------------------------------------- when lines are written
 
 def test_a_long_stage_logs_every_tenth_and_at_least_every_interval():
@@ -169,3 +191,23 @@ def test_stage_counts_follow_a_build_with_a_failed_scene(stage_config, tmp_path)
     ends = [(s.scene_id, s.done, s.total) for s in snaps if s.stage == "render" and s.done == s.total]
     assert ends == [("synthetic-street-s1", 2, 2), ("synthetic-street-s3", 2, 2)]
     assert "render: frame 2/2 (100%)" in DataLayout(tmp_path / "data").log("synthetic-street-s3").read_text()
+
+
+def test_the_build_command_shows_per_stage_counts_on_a_terminal(tmp_path, monkeypatch):
+    import io
+
+    from rich.console import Console
+    from typer.testing import CliRunner
+
+    import paradrive.cli as cli
+    import pipeline_stages
+
+    monkeypatch.setenv("PARADRIVE_STAGES", str(pipeline_stages.write_stages(tmp_path / "stages")))
+    screen = io.StringIO()
+    monkeypatch.setattr(cli, "console", Console(file=screen, force_terminal=True, width=200))
+    args = ["build", "--scene", "synthetic:street?seed=1", "--scene", "synthetic:street?seed=2",
+            "--data", str(tmp_path / "data"), "--manifests", str(tmp_path / "manifests")]
+    result = CliRunner().invoke(cli.app, args)
+    assert result.exit_code == 0, result.output
+    shown = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", screen.getvalue())
+    assert "2 done | " in shown and "ingest 2/2, fit 2/2, render 2/2, clip 2/2" in shown
