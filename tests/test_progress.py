@@ -135,6 +135,17 @@ def test_a_long_stage_logs_every_tenth_and_at_least_every_interval():
     assert snaps[500].rate == pytest.approx(1.0) and snaps[500].eta_s == pytest.approx(499.0)
 
 
+def test_the_rate_and_eta_follow_a_stage_that_slows_down():
+    def calls(progress, clock):
+        for step in range(1, 1001):   # 10 units a second for 500 units, then 1 a second
+            clock.now += 0.1 if step <= 500 else 1.0
+            progress(step, 1000)
+
+    _, snaps = _lines_of(calls)
+    assert snaps[499].rate == pytest.approx(10.0, rel=0.02)
+    assert snaps[-2].rate == pytest.approx(1.0, rel=0.02) and snaps[-2].eta_s == pytest.approx(1.0, rel=0.02)
+
+
 def test_a_short_stage_still_logs_each_tenth_and_its_end():
     def calls(progress, clock):
         for step in range(10, 301, 10):

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from logging import Logger
@@ -24,6 +24,7 @@ from typing import Any
 
 LOG_EVERY_S = 30.0   # a progress line in the scene's log at least this often while a stage runs
 LOG_STEPS = 10       # and one at every tenth of the stage
+RATE_WINDOW_S = 60.0  # the rate (and so the ETA) is measured over about the last minute
 
 FIELD_ORDER = ("loss", "psnr", "gaussians")   # shown first, in this order; others after
 UNITS = {"fit": ("iteration", "it"), "render": ("frame", "frames"), "clip": ("stream", "streams")}
@@ -49,8 +50,9 @@ def _format_field(name: str, value: Any) -> str:
 
 @dataclass
 class Snapshot:
-    """Where one (scene, stage) stands: ``done`` of ``total`` units, the rate since this run of
-    the stage began (units per second), the ETA and the stage's own figures (loss, PSNR, ...)."""
+    """Where one (scene, stage) stands: ``done`` of ``total`` units, the rate over about the last
+    :data:`RATE_WINDOW_S` seconds (units per second; a fit slows as it densifies), the ETA and the
+    stage's own figures (loss, PSNR, ...)."""
 
     scene_id: str
     stage: str
@@ -93,7 +95,7 @@ class StageProgress:
                  steps: int = LOG_STEPS, clock: Callable[[], float] = time.monotonic):
         self.scene_id, self.stage, self.log, self.sink = scene_id, stage, log, sink
         self.every_s, self.steps, self.clock = every_s, max(int(steps), 1), clock
-        self.start: tuple[float, int] | None = None    # (time, done) of the first call
+        self.samples: deque[tuple[float, int]] = deque()   # (time, done), the last minute's
         self.logged_at: float | None = None
         self.logged_step = -1
         self.last: dict[str, Any] = {}                 # the function fields' last values
@@ -101,8 +103,10 @@ class StageProgress:
 
     def __call__(self, done: int, total: int, **fields: Any) -> None:
         now = self.clock()
-        if self.start is None:
-            self.start = (now, done)
+        if not self.samples or now - self.samples[-1][0] >= 0.5:
+            self.samples.append((now, done))
+        while len(self.samples) > 2 and now - self.samples[1][0] >= RATE_WINDOW_S:
+            self.samples.popleft()
         step = done * self.steps // total if total > 0 else self.steps
         due = (self.logged_at is None or done >= total or step > self.logged_step
                or now - self.logged_at >= self.every_s)
@@ -125,7 +129,7 @@ class StageProgress:
             self.sink(snap)
 
     def snapshot(self, done: int, total: int, now: float, fields: dict[str, Any]) -> Snapshot:
-        t0, done0 = self.start if self.start is not None else (now, done)
+        t0, done0 = self.samples[0] if self.samples else (now, done)
         rate = (done - done0) / (now - t0) if now > t0 and done > done0 else None
         eta = (total - done) / rate if rate else (0.0 if done >= total else None)
         return Snapshot(self.scene_id, self.stage, int(done), int(total), rate, eta, dict(fields))
