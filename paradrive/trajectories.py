@@ -37,7 +37,8 @@ __all__ = ["ScenePaths", "scene_paths", "trajectories_picture", "rig_picture", "
 MAX_ASPECT = 4.0       # the plan is at most this many times wider than high
 MARGIN = 0.05          # of the paths' larger span, on every side of the plan ...
 MIN_MARGIN_M = 2.0     # ... and at least this much
-PLAN_WIDTH_IN = 12.0   # the plan's figure width; its height follows the data
+PLAN_WIDTH_IN = 12.0   # the plan's figure width; its height follows the data ...
+PLAN_HEIGHT_IN = 10.0  # ... up to this plot height (a window taller than wide narrows the figure)
 DPI = 100
 ACTOR_COLOURS = {"vehicle": (0.95, 0.55, 0.0), "pedestrian": (0.1, 0.6, 0.2),
                  "cyclist": (0.55, 0.2, 0.7), "other": (0.4, 0.4, 0.4)}
@@ -204,11 +205,13 @@ def _layout(fig, ax, legend, aspect: float, margins: list[float]) -> None:
     below the bottom one) and size the figure so the plot has the window's ``aspect``."""
     left, right, top, bottom = margins
     legend_in = legend.get_window_extent().height / DPI + 0.1
-    width = PLAN_WIDTH_IN - left - right
+    fig_w = fig.get_figwidth()
+    width = min(fig_w - left - right, PLAN_HEIGHT_IN * aspect)
     height = width / aspect
     fig_h = top + height + bottom + legend_in
     fig.set_figheight(fig_h)
-    ax.set_position([left / PLAN_WIDTH_IN, (bottom + legend_in) / fig_h, width / PLAN_WIDTH_IN, height / fig_h])
+    x = left + 0.5 * (fig_w - left - right - width)
+    ax.set_position([x / fig_w, (bottom + legend_in) / fig_h, width / fig_w, height / fig_h])
     legend.set_bbox_to_anchor((0.5, 0.05 / fig_h), transform=fig.transFigure)
 
 
@@ -225,7 +228,8 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
     window = plan_window(scene.positions()[:, :2])
     (x0, x1), (y0, y1) = window
     aspect = (x1 - x0) / (y1 - y0)
-    fig = plt.figure(figsize=(PLAN_WIDTH_IN, PLAN_WIDTH_IN / aspect), dpi=DPI)
+    fig_w = max(min(PLAN_WIDTH_IN, PLAN_HEIGHT_IN * aspect + 0.8), 6.0)
+    fig = plt.figure(figsize=(fig_w, fig_w / aspect), dpi=DPI)
     try:
         ax = fig.add_axes((0.1, 0.1, 0.8, 0.8))
         _draw_plan(ax, scene, window)
@@ -238,7 +242,7 @@ def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: st
         ax.set_title(f"{scene.scene_id}: camera paths from above (scene world; + offset = left)",
                      fontsize=10)
         handles, labels = ax.get_legend_handles_labels()
-        legend = fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6),
+        legend = fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6 if fig_w > 10 else 3),
                             fontsize=8, frameon=False)
         for handle in legend.legend_handles:  # LiDAR's dots, big enough to see in the legend
             if isinstance(handle, PathCollection):

@@ -4,7 +4,8 @@
 entries are the functions below. Every output is a pure function of the scene URI and the
 parameters, so two builds of the same scenes give byte-identical files. Every call appends
 ``<event> <stage> <scene_id> <pid>`` to ``<data>/calls.log`` (O_APPEND, safe across processes),
-so a test can count what ran.
+so a test can count what ran. The render stage reports its progress (``ctx.progress``) once per
+offset.
 
 A scene URI may ask for trouble: ``?fail=<stage>`` makes that stage raise a SceneError;
 so does a file ``<data>/broken-<scene_id>-<stage>`` (a fault a
