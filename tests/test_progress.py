@@ -13,7 +13,7 @@ from paradrive.pipeline import run_build
 from paradrive.pipeline.progress import StageCounts, StageProgress
 from paradrive.stages.layout import DataLayout
 
-FIT_LINE = re.compile(r"fit: iteration (\d+)/(\d+) \((\d+)%\), loss ([\d.]+), PSNR ([\d.]+) dB, "
+FIT_LINE = re.compile(r"fit: iteration (\d+)/(\d+) \((\d+)%\), loss ([\d.]+), PSNR ([\d.]+) dB(?: \(at \d+\))?, "
                       r"([\d,]+) Gaussians, ([\d.]+|\?) it/s, ETA (\d+:\d\d:\d\d|\?)$")
 
 
@@ -177,6 +177,28 @@ def test_a_costly_figure_is_computed_only_when_a_line_is_written_and_loss_is_ave
     assert snaps[14].fields["psnr"] == pytest.approx(21.0)
     assert "loss 15.5000, PSNR 22.00 dB, 1,234 Gaussians" in lines[2]
     assert lines[-1].startswith("fit: iteration 100/100 (100%), loss 95.5000, PSNR 30.00 dB")
+
+
+def test_a_costly_figure_keeps_within_its_share_of_the_time():
+    computed: list[int] = []
+
+    def calls(progress, clock):
+        for step in range(1, 101):
+            clock.now += 1.0
+
+            def psnr(step=step):  # two seconds a time
+                computed.append(step)
+                clock.now += 2.0
+                return 20.0
+
+            progress(step, 100, psnr=psnr)
+
+    lines, _ = _lines_of(calls, every_s=1e9)
+    assert len(lines) == 11 and all("PSNR 20.00 dB" in line for line in lines)
+    assert "iteration 30/100 (30%), PSNR 20.00 dB (at 1)," in lines[3]
+    assert "iteration 40/100 (40%), PSNR 20.00 dB," in lines[4]
+    # 2 s a time at 5 % of the time: once in 40 s at most, and for the last line
+    assert computed == [1, 40, 80, 100]
 
 
 # --------------------------------------------------------------------------- per-stage counts

@@ -6,7 +6,10 @@ A scene stage gets a :class:`StageProgress` as ``ctx.progress`` and calls it as 
 the scene's log at least every :data:`LOG_EVERY_S` seconds and at every tenth of the stage
 (:data:`LOG_STEPS`; a short stage logs too), and hands every update to a sink (the console of
 ``paradrive build``) when there is one. A field may be given as a function of no arguments: it is
-called only when a line is written (the fit's PSNR costs a render of its evaluation views).
+called only when a line is written (the fit's PSNR costs a render of its evaluation views), and
+only as often as keeps it within :data:`FIGURE_BUDGET` of the time (always for the last line);
+the lines between repeat its last value, saying at which step it was computed
+(``PSNR 20.28 dB (at 90)``).
 
 :class:`StageCounts` turns the executor's start / result events into per-stage counts (running,
 done, skipped, failed), the same for a local and a Ray build.
@@ -25,6 +28,7 @@ from typing import Any
 LOG_EVERY_S = 30.0   # a progress line in the scene's log at least this often while a stage runs
 LOG_STEPS = 10       # and one at every tenth of the stage
 RATE_WINDOW_S = 60.0  # the rate (and so the ETA) is measured over about the last minute
+FIGURE_BUDGET = 0.05  # a costly figure (the fit's PSNR) takes at most this share of the stage's time
 
 FIELD_ORDER = ("loss", "psnr", "gaussians")   # shown first, in this order; others after
 UNITS = {"fit": ("iteration", "it"), "render": ("frame", "frames"), "clip": ("stream", "streams")}
@@ -61,13 +65,16 @@ class Snapshot:
     rate: float | None = None
     eta_s: float | None = None
     fields: dict[str, Any] = field(default_factory=dict)
+    computed_at: dict[str, int] = field(default_factory=dict)   # figures repeated from an earlier step
 
     def figures(self) -> str:
         """The stage's figures, rate and ETA: ``loss 0.0831, PSNR 21.34 dB, 7,012 Gaussians,
         14.2 it/s, ETA 0:00:13``."""
         unit = UNITS.get(self.stage, ("step", "steps"))[1]
         names = sorted(self.fields, key=lambda k: FIELD_ORDER.index(k) if k in FIELD_ORDER else len(FIELD_ORDER))
-        parts = [_format_field(k, self.fields[k]) for k in names if self.fields[k] is not None]
+        parts = [_format_field(k, self.fields[k])
+                 + (f" (at {self.computed_at[k]})" if k in self.computed_at else "")
+                 for k in names if self.fields[k] is not None]
         parts.append(f"{self.rate:.1f} {unit}/s" if self.rate is not None else f"? {unit}/s")
         parts.append(f"ETA {format_duration(self.eta_s)}")
         return ", ".join(parts)
@@ -98,7 +105,9 @@ class StageProgress:
         self.samples: deque[tuple[float, int]] = deque()   # (time, done), the last minute's
         self.logged_at: float | None = None
         self.logged_step = -1
-        self.last: dict[str, Any] = {}                 # the function fields' last values
+        self.last: dict[str, Any] = {}                 # the function fields' last values ...
+        self.cost: dict[str, tuple[float, float]] = {}  # ... when they were computed, in how long
+        self.at: dict[str, int] = {}                   # ... and at which step
         self.losses: list[float] = []                  # losses since the last line (their mean is shown)
 
     def __call__(self, done: int, total: int, **fields: Any) -> None:
@@ -117,16 +126,25 @@ class StageProgress:
             fields["loss"] = sum(self.losses) / len(self.losses) if self.losses else None
         for name, value in fields.items():
             if callable(value):
-                if due:
+                if due and (done >= total or self._affordable(name, now)):
+                    started = self.clock()
                     self.last[name] = float(value())
+                    self.cost[name], self.at[name] = (now, self.clock() - started), done
                 fields[name] = self.last.get(name)
         snap = self.snapshot(done, total, now, fields)
+        snap.computed_at = {k: at for k, at in self.at.items() if at != done and k in fields}
         if due:
             self.logged_at, self.logged_step, self.losses = now, step, []
             if self.log is not None:
                 self.log.info("%s", snap.line())
         if self.sink is not None:
             self.sink(snap)
+
+    def _affordable(self, name: str, now: float) -> bool:
+        if name not in self.cost:
+            return True
+        at, seconds = self.cost[name]
+        return now - at >= seconds / FIGURE_BUDGET
 
     def snapshot(self, done: int, total: int, now: float, fields: dict[str, Any]) -> Snapshot:
         t0, done0 = self.samples[0] if self.samples else (now, done)
