@@ -9,7 +9,8 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn,
+                           TimeRemainingColumn)
 from rich.table import Table
 
 from paradrive import __version__
@@ -180,16 +181,22 @@ def _open_ledger(manifests: Path, build_name: str):
 def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name, force, ledger,
                        *, build_uris=None, replace=True, lock_timeout=DEFAULT_LOCK_TIMEOUT_S,
                        selection=None):
-    """Run the build with a progress bar over scenes (done / failed, ETA) and the ledger updated."""
+    """Run the build with the ledger updated and, on a terminal, a live display: a bar over
+    scenes (done / failed, ETA) with the per-stage counts, and a bar per running stage with its
+    figures (the fit's loss, PSNR, Gaussians, it/s, ETA; render's frames; clip's streams)."""
     from paradrive.pipeline.build import run_build, split_stages
+    from paradrive.pipeline.progress import StageCounts
     from paradrive.uri import parse_uri
 
     scene_stages, build_stages = split_stages(config, stage_list)
     last_stage = scene_stages[-1] if scene_stages else None
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                         TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
+                        TextColumn("{task.fields[figures]}"),
                         console=console, transient=False, disable=not console.is_terminal)
     counts = {"done": 0, "failed": 0}
+    stages = StageCounts(scene_stages, len(uris))
+    running: dict[tuple[str, str], TaskID] = {}
     ids = {uri: parse_uri(uri).scene_id for uri in uris}
 
     def describe(activity: str) -> str:
@@ -197,11 +204,23 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
         return f"{counts['done']} done{failed} | {activity}"
 
     def on_start(scene: str, stage: str) -> None:
-        progress.update(task, description=describe(f"{stage} {ids.get(scene, scene)}"))
+        stages.start(scene, stage)
+        progress.update(task, description=describe(f"{stage} {ids.get(scene, scene)}"),
+                        figures=stages.line())
         ledger.start(scene, stage)
+
+    def on_progress(snap) -> None:
+        key = (snap.scene_id, snap.stage)
+        if key not in running:
+            running[key] = progress.add_task(f"  {snap.stage} {snap.scene_id}", total=snap.total,
+                                             figures="")
+        progress.update(running[key], completed=snap.done, total=snap.total, figures=snap.figures())
 
     def on_result(result) -> None:
         ledger.record(result)
+        stages.result(result)
+        if (result.scene_id, result.stage) in running:
+            progress.remove_task(running.pop((result.scene_id, result.stage)))
         is_scene = not result.scene_id.startswith("build:")
         if is_scene and result.status == "failed":
             counts["failed"] += 1
@@ -209,7 +228,8 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
         elif is_scene and result.stage == last_stage and result.status in ("done", "skipped"):
             counts["done"] += 1
             progress.advance(task)
-        progress.update(task, description=describe(f"{result.stage} {result.scene_id} {result.status}"))
+        progress.update(task, description=describe(f"{result.stage} {result.scene_id} {result.status}"),
+                        figures=stages.line())
         style = {"done": "green", "skipped": "dim", "failed": "red", "blocked": "yellow"}[result.status]
         console.print(f"[{style}]{result.status:>7}[/] {result.stage:<8} {result.scene_id}"
                       + (f" — {result.error}" if result.error else f" ({result.seconds:.1f} s)"))
@@ -218,11 +238,13 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
     ledger.begin_run(getattr(runner, "name", ""), len(uris))
     ledger.set_data_root(str(data))
     with progress:
-        task = progress.add_task(describe("starting"), total=len(uris) if scene_stages else None)
+        task = progress.add_task(describe("starting"), total=len(uris) if scene_stages else None,
+                                 figures=stages.line())
         return run_build(config, uris, data, stages=stage_list, executor=runner,
                          manifests_dir=manifests, build=build_name, force=force,
                          build_scene_uris=build_uris, selection=selection,
-                         on_start=on_start, on_result=on_result, lock_timeout=lock_timeout)
+                         on_start=on_start, on_result=on_result, lock_timeout=lock_timeout,
+                         on_progress=on_progress if console.is_terminal else None)
 
 
 def _print_report(report, ledger=None, max_rows: int = 20) -> None:

@@ -2,8 +2,9 @@
 
 Counts by dataset / scene / camera / clip / offset / checkpoint, per-scene quality, checksum
 verification of the shards and every referenced video (``--verify``), a machine-readable summary
-(``--json``) and pictures (``--sheet out.png``: a contact sheet of a few pairs, and
-``out_trajectories.png``: the recorded and shifted trajectories seen from above).
+(``--json``) and pictures (``--sheet out.png``: a contact sheet of a few pairs, ``out_trajectories.png``: the recorded
+and shifted trajectories seen from above, and ``out_rig.png``: the rig and its shifted cameras
+in 3D; :mod:`paradrive.trajectories`).
 """
 
 from __future__ import annotations
@@ -13,18 +14,16 @@ import os
 from collections import Counter, defaultdict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, sha256_file
 from paradrive.pairs import build_file, read_index, read_pairs, shard_paths
-from paradrive.stages.layout import SceneLayout
-from paradrive.stages.records import IndexRecord
 from paradrive.streams import format_offset
+from paradrive.trajectories import rig_picture, trajectories_picture
 
-__all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "register"]
+__all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "rig_picture", "register"]
 
 _SUMMARY_COLUMNS = ["pair_id", "dataset", "scene_id", "camera", "clip", "offset_m",
                     "condition_iteration", "source_iteration", "condition_psnr",
@@ -239,121 +238,6 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
     return out
 
 
-def trajectories_picture(build_dir: str | Path, out: str | Path, *, scene_id: str | None = None,
-                         data_dir: str | Path | None = None, size: int = 900) -> Path:
-    """Top-down PNG of one scene: recorded (black) and shifted (coloured by offset) camera paths.
-
-    Positions come from the manifest (``target_c2w`` and ``target_c2w @ rel_pose``). LiDAR points
-    are drawn underneath when the scene folder is reachable (``data_dir/scenes/<id>`` or the
-    folder index.json records).
-    """
-    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-    if not os.environ.get("DISPLAY"):
-        # No X server: render with OSMesa (installed by the setup) instead of failing over from X.
-        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkOSOpenGLRenderWindow")
-    import pyvista as pv
-
-    build_dir, out = Path(build_dir), Path(out)
-    index = read_index(build_dir)
-    table = read_pairs(build_dir, ["scene_id", "camera", "clip", "offset_m", "condition_iteration",
-                                   "rel_pose", "target_c2w"])
-    sids = table.column("scene_id").to_pylist()
-    scene_id = scene_id or sids[0]
-    rows = [r for r in table.filter(np.array([s == scene_id for s in sids])).to_pylist()]
-    if not rows:
-        raise ParaDriveError(f"{build_dir}: no pairs of scene {scene_id}")
-    first_it = min(r["condition_iteration"] for r in rows)
-    rows = [r for r in rows if r["condition_iteration"] == first_it]
-    pv.OFF_SCREEN = True
-    plotter: Any = pv.Plotter(off_screen=True, window_size=[size, size])
-    plotter.set_background("white")
-    points = _lidar_points(index, scene_id, data_dir)
-    if points is not None:
-        plotter.add_points(points, color=(0.6, 0.6, 0.6), point_size=2, render_points_as_spheres=False,
-                           label=f"LiDAR ({len(points)} points)")
-    _draw_actor_tracks(plotter, _scene_folders(index, scene_id, data_dir))
-    offsets = sorted({r["offset_m"] for r in rows})
-    span = max(1e-6, max(abs(d) for d in offsets))
-    drawn_offsets = set()
-    recorded_labelled = False
-    for r in sorted(rows, key=lambda r: (r["clip"], r["offset_m"])):
-        c2w = np.asarray(r["target_c2w"], np.float64).reshape(-1, 4, 4)
-        rel = np.asarray(r["rel_pose"], np.float64).reshape(-1, 4, 4)
-        rec = c2w[:, :3, 3]
-        src = (c2w @ rel)[:, :3, 3]
-        if len(rec) >= 2:
-            plotter.add_mesh(pv.lines_from_points(rec), color="black", line_width=5,
-                             label=None if recorded_labelled else "recorded (target, condition)")
-            recorded_labelled = True
-        d = r["offset_m"]
-        a = abs(d) / span  # left (+) blue, right (-) red, darker further out
-        color = (0.55 - 0.45 * a, 0.65 - 0.45 * a, 1.0) if d > 0 else (1.0, 0.6 - 0.45 * a, 0.55 - 0.45 * a)
-        if len(src) >= 2:
-            plotter.add_mesh(pv.lines_from_points(src), color=color, line_width=3,
-                             label=None if d in drawn_offsets else f"source {format_offset(d)}")
-            drawn_offsets.add(d)
-        plotter.add_points(rec[:1], color="black", point_size=10, render_points_as_spheres=True)
-    plotter.add_legend(bcolor="white", size=(0.3, 0.35), loc="upper right")
-    plotter.add_text(f"{scene_id}: camera paths from above (world x right, y up; + offset = left)",
-                     font_size=10, color="black", position="upper_left")
-    plotter.view_xy()
-    plotter.enable_parallel_projection()
-    plotter.show_grid(color="gray", xtitle="x (m)", ytitle="y (m)", ztitle="z (m)",
-                      show_zaxis=False)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
-    plotter.screenshot(str(tmp))
-    plotter.close()
-    os.replace(tmp, out)
-    return out
-
-
-def _scene_folders(index: IndexRecord, scene_id: str, data_dir) -> list[SceneLayout]:
-    """Where the scene's folder may be: ``data_dir/scenes/<id>``, then what index.json records."""
-    candidates = []
-    if data_dir is not None:
-        candidates.append(SceneLayout.of(data_dir, scene_id))
-    for s in index.scenes:
-        if s.scene_id == scene_id and s.scene_dir:
-            candidates.append(SceneLayout(Path(s.scene_dir)))
-    return candidates
-
-
-ACTOR_COLOURS = {"vehicle": (0.95, 0.55, 0.0), "pedestrian": (0.1, 0.6, 0.2),
-                 "cyclist": (0.55, 0.2, 0.7), "other": (0.4, 0.4, 0.4)}
-
-
-def _draw_actor_tracks(plotter, folders: list[SceneLayout]) -> None:
-    """The actors' box centres over time (scene.json), coloured by class, beside the ego path."""
-    import pyvista as pv
-
-    from paradrive.actors import read_tracks
-
-    tracks = next((t for t in (read_tracks(f.root) for f in folders) if t), [])
-    labelled: set[str] = set()
-    for cls, centres in tracks:
-        label = None if cls in labelled else f"{cls} tracks"
-        labelled.add(cls)
-        if np.ptp(centres, axis=0).max() > 1e-3:
-            plotter.add_mesh(pv.lines_from_points(centres), color=ACTOR_COLOURS[cls], line_width=2,
-                             label=label)
-        else:  # a parked car: one dot
-            plotter.add_points(centres[:1], color=ACTOR_COLOURS[cls], point_size=6, label=label)
-
-
-def _lidar_points(index: IndexRecord, scene_id: str, data_dir, max_points: int = 60_000):
-    for layout in _scene_folders(index, scene_id, data_dir):
-        folder = layout.lidar_dir
-        files = sorted(folder.glob("*.npy")) if folder.is_dir() else []
-        if files:
-            files = files[:: max(1, len(files) // 20)]
-            pts = np.concatenate([np.load(f).astype(np.float32).reshape(-1, 3) for f in files])
-            if len(pts) > max_points:
-                pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
-            return pts
-    return None
-
-
 # --------------------------------------------------------------------------- CLI
 
 def _print_tables(summary: dict, console) -> None:
@@ -412,7 +296,7 @@ def register(app) -> None:
         build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
         verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing, corrupt or unsafe (leading out of the build) one."),
         as_json: bool = typer.Option(False, "--json", help="Print a machine-readable summary instead of tables."),
-        sheet: Path | None = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and <name>_trajectories.png next to it)."),
+        sheet: Path | None = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and next to it <name>_trajectories.png, the camera paths from above, and <name>_rig.png, the rig and its shifted cameras in 3D)."),
         pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),
         data: Path | None = typer.Option(None, "--data", help="Data folder to find the scene's LiDAR in (default: the scene folders index.json records)."),
     ) -> None:
@@ -442,6 +326,8 @@ def register(app) -> None:
                 summary["sheet"] = str(contact_sheet(build, sheet, pairs=pairs))
                 traj = sheet.with_name(f"{sheet.stem}_trajectories.png")
                 summary["trajectories"] = str(trajectories_picture(build, traj, data_dir=data))
+                rig = sheet.with_name(f"{sheet.stem}_rig.png")
+                summary["rig"] = str(rig_picture(build, rig, data_dir=data))
             except ParaDriveError as exc:
                 err.print(f"[bold red]error:[/] {exc}")
                 code = code or 1
@@ -449,7 +335,7 @@ def register(app) -> None:
             typer.echo(json.dumps(summary, indent=2))
         else:
             _print_tables(summary, out)
-            for key in ("sheet", "trajectories"):
+            for key in ("sheet", "trajectories", "rig"):
                 if key in summary:
                     out.print(f"wrote {summary[key]}")
         raise typer.Exit(code)

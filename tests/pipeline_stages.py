@@ -4,7 +4,8 @@
 entries are the functions below. Every output is a pure function of the scene URI and the
 parameters, so two builds of the same scenes give byte-identical files. Every call appends
 ``<event> <stage> <scene_id> <pid>`` to ``<data>/calls.log`` (O_APPEND, safe across processes),
-so a test can count what ran.
+so a test can count what ran. The render stage reports its progress (``ctx.progress``) once per
+offset.
 
 A scene URI may ask for trouble: ``?fail=<stage>`` makes that stage raise a SceneError;
 so does a file ``<data>/broken-<scene_id>-<stage>`` (a fault a
@@ -159,10 +160,11 @@ def run_render(ctx) -> dict:
     fit = _digest(*[p.read_text() for p in ckpts])
     offsets = ctx.params["offsets_m"]
     files = {}
-    for d in offsets:
+    for i, d in enumerate(offsets):
         rel = f"renders/{d:+.0f}m.txt"
         write_text(ctx.scene_dir / rel, _digest(fit, d) + "\n")
         files[f"{d:+.1f}"] = rel
+        ctx.progress(i + 1, len(offsets))
     write_json(ctx.scene_dir / "renders" / "renders.json", {"offsets_m": offsets, "files": files})
     return {"renders": len(offsets)}
 

@@ -105,22 +105,75 @@ def test_not_a_build_is_a_usage_error(tmp_path):
     assert result.exit_code == 2 and "index.json is missing" in result.output.replace("\n", "")
 
 
-def test_sheet_and_trajectory_pictures(build, tmp_path):
+def _rgb(path):
     from PIL import Image
 
+    return np.asarray(Image.open(path).convert("RGB")).astype(int)
+
+
+def test_sheet_and_trajectory_pictures(build, tmp_path):
     out = tmp_path / "sheet.png"
     result = invoke(build, "--sheet", out, "--pairs", "3")
     assert result.exit_code == 0, result.output
-    sheet = np.asarray(Image.open(out).convert("RGB"))
+    sheet = _rgb(out)
     assert sheet.shape[0] > 3 * 3 * 40 and sheet.shape[1] > 3 * 150
     assert sheet.std() > 20  # thumbnails, not a blank page
-    traj = tmp_path / "sheet_trajectories.png"
-    picture = np.asarray(Image.open(traj).convert("RGB")).astype(int)
-    assert picture.shape[:2] == (900, 900)
+    picture = _rgb(tmp_path / "sheet_trajectories.png")
     # The shifted paths are drawn in colour (blue left, red right), the recorded one in black.
-    coloured = (np.abs(picture[..., 0] - picture[..., 2]) > 80).sum()
-    assert coloured > 500
+    assert (np.abs(picture[..., 0] - picture[..., 2]) > 80).sum() > 500
+    assert (tmp_path / "sheet_rig.png").is_file() and "sheet_rig.png" in result.output
     assert not [p for p in os.listdir(tmp_path) if ".tmp-" in p]
+
+
+def test_the_plan_is_framed_on_the_paths_with_the_legend_outside_and_nothing_cut(build, tmp_path):
+    from PIL import Image
+
+    from paradrive.inspection import trajectories_picture
+
+    out = trajectories_picture(build, tmp_path / "plan.png", scene_id="synthetic-a")
+    picture = _rgb(out)
+    h, w = picture.shape[:2]
+    info = Image.open(out).info
+    left, top, right, bottom = json.loads(info["plot_box"])
+    l2, t2, r2, b2 = json.loads(info["legend_box"])
+    # The plot fills most of the picture; the legend lies outside it, inside the picture.
+    assert right - left > 0.85 * w and bottom - top > 0.6 * h
+    assert t2 >= bottom and 0 <= l2 < r2 <= w and b2 <= h
+    # Nothing touches the picture's edge: no label or tick is cut.
+    edge = np.concatenate([picture[:2].reshape(-1, 3), picture[-2:].reshape(-1, 3),
+                           picture[:, :2].reshape(-1, 3), picture[:, -2:].reshape(-1, 3)])
+    assert (edge >= 250).all()
+    # The paths (black, blue, red pixels inside the frame of the plot) span most of it both ways.
+    plot = picture[top + 3:bottom - 3, left + 3:right - 3]
+    black = plot.max(axis=-1) < 40
+    blue = plot[..., 2] - plot[..., 0] > 80
+    rows, cols = np.nonzero(black | blue | (plot[..., 0] - plot[..., 2] > 80))
+    assert np.ptp(cols) > 0.8 * plot.shape[1] and np.ptp(rows) > 0.6 * plot.shape[0]
+    # Equal aspect: a metre is as many pixels across (the +1..+4 m paths) as along (the clips
+    # of the fixture start 8 m apart: 8 frames at 1 m a frame).
+    blue_rows = np.unique(np.nonzero(blue)[0])
+    lanes = np.split(blue_rows, np.nonzero(np.diff(blue_rows) > 3)[0] + 1)
+    assert len(lanes) == 4
+    across = float(np.mean(np.diff([np.mean(lane) for lane in lanes])))
+    black_cols = np.unique(np.nonzero(black)[1])
+    starts = black_cols[np.r_[0, np.nonzero(np.diff(black_cols) > 3)[0] + 1]]
+    assert len(starts) == 3
+    along = float(np.mean(np.diff(starts))) / 8.0
+    assert across > 20 and along == pytest.approx(across, rel=0.05)
+
+
+def test_the_rig_picture_shows_left_shifted_cameras_left_of_the_recorded_one(build, tmp_path):
+    from paradrive.inspection import rig_picture
+
+    picture = _rgb(rig_picture(build, tmp_path / "rig.png", scene_id="synthetic-a"))
+    assert picture.shape[:2] == (700, 1200)
+    lower = picture[picture.shape[0] // 3:]   # below the title and the legend
+    blue = np.nonzero((lower[..., 2] - lower[..., 0] > 80) & (lower[..., 1] < 200))[1]
+    red = np.nonzero((lower[..., 0] - lower[..., 2] > 80) & (lower[..., 1] < 200))[1]
+    black = np.nonzero(lower.max(axis=-1) < 40)[1]
+    assert len(blue) > 500 and len(red) > 500 and len(black) > 100
+    # Seen from behind the rig, a shift to the left (+) lies left of the recorded camera.
+    assert blue.mean() < black.mean() < red.mean()
 
 
 def test_trajectory_picture_draws_actor_tracks_beside_the_camera_paths(build, tmp_path):

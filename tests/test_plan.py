@@ -12,7 +12,7 @@ from paradrive.pipeline import StageRegistry
 from paradrive.pipeline.budget import plan_build, scene_footprint
 from paradrive.pipeline.runner import read_marker
 
-WAYMO = ["waymo:/logs/segment-{}_with_camera_labels.tfrecord".format(n) for n in ("1", "2")]
+WAYMO = [f"waymo:/logs/segment-{n}_with_camera_labels.tfrecord" for n in ("1", "2")]
 PAIRS_PER_SCENE = 72   # DESIGN.md: 3 clips x 8 offsets x 3 under-fitted checkpoints, one camera
 
 

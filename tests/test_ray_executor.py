@@ -138,6 +138,37 @@ def test_ray_build_equals_local_build(ray_cluster, stage_config, tmp_path):
     assert sorted(w.split("'")[1] for w in ray_executor.warnings) == ["fit", "render"]
 
 
+def test_progress_of_tasks_on_the_workers_reaches_the_driver_and_the_scene_logs(
+        ray_cluster, stage_config, tmp_path):
+    from paradrive.pipeline.progress import StageCounts
+    from paradrive.stages.layout import DataLayout
+
+    snaps, order = [], []
+    counts = StageCounts(["ingest", "fit", "render", "clip"], len(SCENES))
+
+    def on_result(result):
+        counts.result(result)
+        order.append(("result", result.scene_id, result.stage))
+
+    def on_progress(snap):
+        snaps.append(snap)
+        order.append(("progress", snap.scene_id, snap.stage))
+
+    report = run_build(stage_config(), SCENES, tmp_path / "data", executor=RayExecutor(),
+                       manifests_dir=tmp_path / "manifests", build="b", on_start=counts.start,
+                       on_result=on_result, on_progress=on_progress)
+    assert report.exit_code == 0
+    ids = [f"synthetic-street-s{s}" for s in (1, 2, 3)]
+    # The stand-in render reports a step per offset on its worker; each one's last step reaches
+    # the driver before the task's result does.
+    assert sorted((s.scene_id, s.stage, s.done, s.total) for s in snaps if s.done == s.total) == \
+        [(sid, "render", 2, 2) for sid in ids]
+    for sid in ids:
+        assert order.index(("progress", sid, "render")) < order.index(("result", sid, "render"))
+        assert "render: frame 2/2 (100%)" in DataLayout(tmp_path / "data").log(sid).read_text()
+    assert counts.line() == "ingest 3/3, fit 3/3, render 3/3, clip 3/3"
+
+
 def test_stages_of_a_scene_run_in_order_and_scenes_in_parallel(ray_cluster, stage_config, tmp_path):
     report, streamed, _ = build_with(RayExecutor(max_in_flight=3), stage_config(), tmp_path, ledger=False)
     order = {}

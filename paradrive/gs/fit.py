@@ -354,7 +354,7 @@ def _eval_indices(n_views: int, n_eval: int) -> list[int]:
 
 def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
               log: logging.Logger | None = None,
-              progress: Callable[[int, int], None] | None = None,
+              progress: Callable[..., None] | None = None,
               stop_after: int | None = None, moving_threshold_m: float | None = None) -> FitRecord:
     """Fit the scene folder ``scene`` with the fit stage's parameters ``p``; returns fit.json.
 
@@ -382,13 +382,15 @@ def _fit(run: _Fit, progress, stop_after) -> FitRecord:
         if stop_after is not None and run.step >= stop_after:
             run.save_state()
             return run.record(False)
-        run.iterate()
+        loss = run.iterate()
         if run.step in p.checkpoints:
             run.checkpoint()
         elif run.step % max(p.state_interval, 1) == 0:
             run.save_state()
         if progress is not None and (run.step % 10 == 0 or run.step == total):
-            progress(run.step, total)
+            progress(run.step, total, loss=loss, gaussians=run.params["means"].shape[0],
+                     psnr=lambda: evaluate(run.model(), run.views, run.eval_idx, p.sh_degree, run.device,
+                                           run.backend)["psnr"])
     record = run.record(True)
     if not p.keep_state:
         layout.fit_state.unlink(missing_ok=True)
@@ -498,8 +500,9 @@ class _Fit:
     def cpu_seconds(self) -> float:
         return self.cpu0 + time.process_time() - self.c_start
 
-    def iterate(self) -> None:
-        """One training step: render a view, take the loss, step the optimizers, densify."""
+    def iterate(self) -> torch.Tensor:
+        """One training step: render a view, take the loss, step the optimizers, densify; returns
+        the step's loss (detached)."""
         p, step = self.p, self.step
         if self.cursor >= len(self.order):
             self.order, self.cursor = torch.randperm(len(self.views), generator=self.gen), 0
@@ -517,6 +520,7 @@ class _Fit:
         for key, count in changed.items():
             self.densify[key] = self.densify.get(key, 0) + count
         self.step += 1
+        return loss.detach()
 
     def _loss(self, vi: int, deg: int) -> tuple[torch.Tensor, dict]:
         p, view, device = self.p, self.views[vi], self.device

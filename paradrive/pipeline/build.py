@@ -19,6 +19,7 @@ from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
 from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions
+from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
     load_entry, local_size, marker_path, read_marker, scene_dir_for, summary_of, typed_params,
@@ -195,13 +196,15 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
               selection: Selection | None = None,
               on_start: Callable[[str, str], None] | None = None,
               on_result: Callable[[StageResult], None] | None = None,
-              lock_timeout: float = DEFAULT_LOCK_TIMEOUT_S) -> BuildReport:
+              lock_timeout: float = DEFAULT_LOCK_TIMEOUT_S,
+              on_progress: ProgressSink | None = None) -> BuildReport:
     """Scene stages of ``scene_uris`` through ``executor``, then the build stages (manifest).
 
     The build stages read every scene of ``build_scene_uris`` (default: ``scene_uris``) that
     finished their needs, so a run over a subset (``--retry-failed``) still publishes the whole
     build. ``on_start(scene_uri or 'build:<name>', stage)`` and ``on_result(StageResult)`` are
-    called on this process as tasks start and finish, whatever the executor. A scene another
+    called on this process as tasks start and finish, whatever the executor, and
+    ``on_progress(Snapshot)`` as a running scene stage advances. A scene another
     build holds is waited for up to ``lock_timeout`` seconds (:mod:`paradrive.pipeline.locks`).
 
     ``selection`` is what a caller already decided about splits (``paradrive build`` prints it);
@@ -233,7 +236,8 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
         tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
         report.results.extend(executor.run(config, tasks, data_dir, force=force,
                                            on_start=on_start, on_result=on_result,
-                                           locks=LockOptions(build, lock_timeout)))
+                                           locks=LockOptions(build, lock_timeout),
+                                           on_progress=on_progress))
     for stage in build_stages:
         if on_start:
             on_start(f"build:{build}", stage)

@@ -12,7 +12,8 @@ stage handed out again after its worker died gets another ``on_start`` (the ledg
 attempts from them). ``data_dir`` is a :class:`~paradrive.storage.DataRoot`: a folder every
 worker sees, or a URL each worker copies scenes from and back. ``locks`` (the build's name and
 how long to wait for a scene another build holds) goes to every
-:func:`~paradrive.pipeline.runner.run_scene_stage`.
+:func:`~paradrive.pipeline.runner.run_scene_stage`. ``on_progress(Snapshot)`` is called on the
+driver as a running stage advances (:mod:`paradrive.pipeline.progress`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Protocol
 from collections.abc import Callable
 
 from paradrive.pipeline.locks import LockOptions
+from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.storage import DataRoot
@@ -42,7 +44,8 @@ class Executor(Protocol):
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None,
-            locks: LockOptions | None = None) -> list[StageResult]:
+            locks: LockOptions | None = None,
+            on_progress: ProgressSink | None = None) -> list[StageResult]:
         ...
 
 
@@ -58,7 +61,8 @@ class LocalExecutor:
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None,
-            locks: LockOptions | None = None) -> list[StageResult]:
+            locks: LockOptions | None = None,
+            on_progress: ProgressSink | None = None) -> list[StageResult]:
         results: list[StageResult] = []
         for task in tasks:
             failed: StageResult | None = None
@@ -69,7 +73,7 @@ class LocalExecutor:
                     if on_start:
                         on_start(task.scene_uri, stage)
                     result = run_scene_stage(config, stage, task.scene_uri, data_dir, force=force,
-                                             locks=locks)
+                                             locks=locks, on_progress=on_progress)
                     if result.status == "failed":
                         failed = result
                 results.append(result)

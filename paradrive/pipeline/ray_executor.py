@@ -25,6 +25,13 @@ a new ``on_start``, so the ledger's attempts count every try (stages write atomi
 idempotent, so a retry starts clean); after that the stage is recorded failed with Ray's reason,
 and a re-run of the build finishes only what is missing.
 
+Progress. With ``on_progress``, each task's progress (``paradrive.pipeline.progress``) is sent
+by its worker to a small actor (:class:`ProgressBoard`, no CPU) at most every
+:data:`RELAY_EVERY_S` seconds, its last step always; the driver takes the latest ones while it
+waits for results and hands them to ``on_progress``, so the console shows the fit's iteration,
+loss and PSNR of every running task across the cluster, beside the per-stage counts that
+``on_start`` / ``on_result`` give. Every task also writes its progress to its scene's log.
+
 Outputs go to the data root: a folder every node sees at the same path (a shared file system),
 or an fsspec URL (``s3://…``) each worker copies a scene from and back (``paradrive.storage``).
 Workers must import the same ``paradrive`` as the driver: installed on every node, or, for a
@@ -47,6 +54,7 @@ from paradrive.pipeline.executors import (
     ResultCallback, SceneTask, StartCallback, blocked_result,
 )
 from paradrive.pipeline.locks import LockOptions
+from paradrive.pipeline.progress import ProgressSink, Snapshot
 from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.pipeline.specs import ResolvedConfig, Resources
 from paradrive.storage import DataRoot
@@ -56,6 +64,7 @@ log = logging.getLogger("paradrive.ray")
 
 GPU_POLICIES = ("auto", "require", "cpu")
 GIB = 1024 ** 3
+RELAY_EVERY_S = 1.0   # a worker sends a running task's progress to the driver at most this often
 
 
 @dataclass(frozen=True)
@@ -113,11 +122,49 @@ def task_resources(stage: str, declared: Resources, capacity: Capacity,
 
 
 def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
-              force: bool, locks: LockOptions | None = None) -> tuple[StageResult, dict]:
-    """The body of one Ray task (runs on a worker)."""
+              force: bool, locks: LockOptions | None = None,
+              board: Any = None) -> tuple[StageResult, dict]:
+    """The body of one Ray task (runs on a worker); its progress goes to ``board``."""
     started = time.time()
-    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force, locks=locks)
+    relay = _Relay(board) if board is not None else None
+    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force, locks=locks,
+                             on_progress=relay)
     return result, {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
+
+
+class ProgressBoard:
+    """A Ray actor holding the latest progress :class:`~paradrive.pipeline.progress.Snapshot`
+    of every running task; the driver takes them while it waits for results."""
+
+    def __init__(self) -> None:
+        self.latest: dict[tuple[str, str], Snapshot] = {}
+
+    def put(self, snap: Snapshot) -> None:
+        self.latest[(snap.scene_id, snap.stage)] = snap
+
+    def take(self) -> list[Snapshot]:
+        snaps, self.latest = list(self.latest.values()), {}
+        return snaps
+
+
+class _Relay:
+    """A task's progress sink on a worker: to the board at most every ``every_s`` seconds, the
+    stage's last step always (and waited for, so the driver has it before the result)."""
+
+    def __init__(self, board: Any, every_s: float = RELAY_EVERY_S):
+        self.board, self.every_s, self.sent = board, every_s, float("-inf")
+
+    def __call__(self, snap: Snapshot) -> None:
+        now = time.monotonic()
+        if snap.done >= snap.total:
+            import ray
+
+            ray.get(self.board.put.remote(snap))
+        elif now - self.sent >= self.every_s:
+            self.board.put.remote(snap)
+        else:
+            return
+        self.sent = now
 
 
 def _checkout_root() -> str:
@@ -197,31 +244,37 @@ class RayExecutor:
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None,
-            locks: LockOptions | None = None) -> list[StageResult]:
+            locks: LockOptions | None = None,
+            on_progress: ProgressSink | None = None) -> list[StageResult]:
         if not tasks:
             return []
         ray, started_here = self._connect()
         try:
             return self._run(ray, config, tasks, DataRoot.of(data_dir), force, on_start, on_result,
-                             locks)
+                             locks, on_progress)
         finally:
             if started_here:
                 ray.shutdown()
 
     def _run(self, ray, config, tasks, data_dir, force, on_start, on_result,
-             locks) -> list[StageResult]:
+             locks, on_progress=None) -> list[StageResult]:
         capacity = Capacity.of_nodes(ray.nodes())
         all_stages = sorted({s for t in tasks for s in t.stages})
         total = ray.cluster_resources()  # the whole cluster: enough queued to keep every node busy
         window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
+        board = ray.remote(num_cpus=0)(ProgressBoard).remote() if on_progress else None
         dispatch = _Dispatch(self, ray, self.plan(config, all_stages, capacity), ray.put(config),
-                             (data_dir, force, locks), on_start, on_result)
+                             (data_dir, force, locks, board), on_start, on_result)
         queue = deque(t for t in tasks if t.stages)
         try:
             while queue or dispatch.in_flight:
                 while queue and len(dispatch.in_flight) < window:
                     dispatch.submit(queue.popleft(), 0)
-                ready, _ = ray.wait(list(dispatch.in_flight), num_returns=1)
+                ready, _ = ray.wait(list(dispatch.in_flight), num_returns=1,
+                                    timeout=RELAY_EVERY_S if board else None)
+                if board is not None and on_progress is not None:
+                    for snap in ray.get(board.take.remote()):
+                        on_progress(snap)
                 for ref in ready:
                     dispatch.collect(ref)
         except BaseException:

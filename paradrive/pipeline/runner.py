@@ -42,6 +42,7 @@ import paradrive
 from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
 from paradrive.io import remove_stale_temporaries, write_json
 from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
+from paradrive.pipeline.progress import ProgressSink, StageProgress
 from paradrive.metrics import peak_rss_mb
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
 from paradrive.stages.base import StageContext
@@ -353,13 +354,15 @@ def scene_logger(scene_id: str, log_file: Path | None = None,
 
 def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                     data_dir: str | Path | DataRoot, *, force: bool = False,
-                    progress: Callable[[int, int], None] | None = None,
+                    on_progress: ProgressSink | None = None,
                     locks: LockOptions | None = None) -> StageResult:
     """Run (or skip) one stage of one scene. Never raises for bad input: the result says failed.
 
     ``data_dir`` is a folder or a :class:`~paradrive.storage.DataRoot` (a URL root runs the
     stage on this node's copy of the scene and uploads the result, marker last). The scene's
-    lock is held throughout; ``locks`` names the build and how long to wait for it.
+    lock is held throughout; ``locks`` names the build and how long to wait for it. The stage's
+    progress goes to the scene's log and, as it happens, to ``on_progress``
+    (:mod:`paradrive.pipeline.progress`).
     """
     root = DataRoot.of(data_dir)
     try:
@@ -376,23 +379,23 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                                error=f"scene {scene_id}: {stage}: cannot lock "
                                      f"{root.scene_location(scene_id)}: {type(exc).__name__}: "
                                      f"{exc}; check the data root and re-run")
-        result = _run_locked(config, stage, scene_uri, scene_id, root, force, progress)
+        result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress)
         result.took_over = held.took_over
         return result
 
 
 def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str, root: DataRoot,
-                force: bool, progress: Callable[[int, int], None] | None) -> StageResult:
+                force: bool, on_progress: ProgressSink | None) -> StageResult:
     mirror = root.mirror(scene_id)
     if mirror is None:
-        return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, progress)
+        return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, on_progress)
     try:
         mirror.pull_log()
         mirror.sync([f"{MARKER_DIR}/*.json"])  # the remote markers are the truth
     except OSError as exc:  # StorageError: names the URL and the fix
         return StageResult(scene_id, stage, "failed", error=f"scene {scene_id}: {stage}: {exc}")
     try:
-        result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force, progress)
+        result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force, on_progress)
     finally:
         with contextlib.suppress(OSError):
             mirror.push_log()
@@ -403,7 +406,7 @@ def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: st
 
 def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str,
                      root: DataRoot, mirror: SceneMirror | None, force: bool,
-                     progress: Callable[[int, int], None] | None) -> StageResult:
+                     on_progress: ProgressSink | None) -> StageResult:
     data_dir = root.local
     spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
@@ -443,9 +446,8 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             log.info("%s: started (fingerprint %s)", stage, fp)
             ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
                                layout=SceneLayout(scene_dir), data_dir=data_dir,
-                               params=typed_params(spec, params), log=log, upstream=upstream)
-            if progress is not None:
-                ctx.progress = progress
+                               params=typed_params(spec, params), log=log, upstream=upstream,
+                               progress=StageProgress(scene_id, stage, log, on_progress))
             summary = summary_of(func(ctx))
             missing = outputs_present(scene_dir, spec, params)
             if missing:

@@ -48,7 +48,8 @@ class StageParams(BaseModel):
 P = TypeVar("P", bound=StageParams)
 
 
-def _no_progress(done: int, total: int) -> None:
+def _no_progress(done: int, total: int, **fields: Any) -> None:
+    """``progress(done, total, **figures)``: see :mod:`paradrive.pipeline.progress`."""
     return None
 
 
@@ -63,7 +64,7 @@ class StageContext(Generic[P]):
     data_dir: Path
     params: P
     log: logging.Logger
-    progress: Callable[[int, int], None] = _no_progress
+    progress: Callable[..., None] = _no_progress
     upstream: dict[str, dict] = field(default_factory=dict)  # markers of the stages it needs
     hashes: dict[str, str] = field(default_factory=dict)  # sha256 of outputs the stage computed
 
