@@ -7,7 +7,7 @@ samples, 3.1K sample_data and as many ego_pose rows, 1.4K sample_annotation rows
 instances, which gives the real totals: 34K samples, 2.6M sample_data / ego_pose, 1.17M
 annotations), with one scene's images and LiDAR sweeps on disk (one JPEG and one sweep linked
 under every file name). Each measurement runs in a fresh process, which reports its wall time
-and peak memory (``ru_maxrss``):
+and peak memory (``VmHWM``):
 
 - ``build``: the index from scratch (``open_tables`` on a version without one);
 - ``lookup``: a scene's rows through the index (open it, walk the sample and sensor chains,
@@ -245,6 +245,11 @@ def tables_at(root: Path, scale: float, scene: int) -> dict:
 # --------------------------------------------------------------------------- measured in a child
 
 def _peak_mb() -> float:
+    """This process's peak resident memory (VmHWM: unlike ru_maxrss it does not carry the
+    parent's size over the fork before exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return round(int(line.split()[1]) / 1024, 1)
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
 
@@ -326,7 +331,9 @@ def run_child(mode: str, root: Path, scenes: list[int], frames: int = 0) -> dict
            "--scenes", ",".join(map(str, scenes)), "--ingest-frames", str(frames)]
     done = subprocess.run(cmd, check=True, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    print(json.dumps({mode: result}), file=sys.stderr, flush=True)  # progress of a long run
+    return result
 
 
 def main() -> None:
