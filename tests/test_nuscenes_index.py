@@ -220,3 +220,12 @@ def test_a_token_on_two_rows_is_named_by_both_readers(dataroot, tmp_path):
         open_tables(root / VERSION, "s")
     with pytest.raises(SceneError, match=twice):
         JsonTables.load(root / VERSION, "s")
+
+
+def test_a_damaged_index_is_built_again(dataroot, tmp_path):
+    root = _copy(dataroot, tmp_path)
+    index = root / VERSION / INDEX_DIR / INDEX_NAME
+    index.parent.mkdir()
+    index.write_bytes(b"not a database, e.g. a copy cut short")
+    tables = open_tables(root / VERSION, "s")
+    assert tables.built_here and tables.rows("scene")

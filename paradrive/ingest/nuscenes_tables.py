@@ -182,11 +182,11 @@ def index_path(folder: Path) -> Path | None:
 class IndexedTables:
     """The rows of one version's tables looked up in its SQLite index."""
 
-    def __init__(self, path: Path, meta: dict[str, str]):
+    def __init__(self, path: Path, db: sqlite3.Connection, meta: dict[str, str]):
         self.path = path
         self.meta = meta
         self.built_here = False
-        self._db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro&immutable=1", uri=True)
+        self._db = db
         self._tables = set(json.loads(meta["tables"]))
         self._cache: dict[tuple[str, str], dict | None] = {}
 
@@ -195,15 +195,16 @@ class IndexedTables:
         """The index at ``path`` if it is there, complete and made from tables of ``stats``."""
         if not path.is_file():
             return None
+        # read-only and immutable: the file is never changed in place, only replaced by a rename
+        db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro&immutable=1", uri=True)
         try:
-            db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro&immutable=1", uri=True)
-            with contextlib.closing(db):
-                meta = dict(db.execute("SELECT key, value FROM meta").fetchall())
+            meta = dict(db.execute("SELECT key, value FROM meta").fetchall())
         except sqlite3.DatabaseError:
-            return None  # not an index of ours (or damaged): build it again
+            meta = {}  # not an index of ours (or damaged): build it again
         if meta.get("format") != FORMAT or json.loads(meta.get("tables", "null")) != stats:
+            db.close()
             return None
-        return cls(path, meta)
+        return cls(path, db, meta)
 
     def close(self) -> None:
         self._db.close()
