@@ -1,10 +1,12 @@
 """``nuscenes:<dataroot>?version=v1.0-mini#scene-0061``: a nuScenes v1.0 scene, read from its JSON tables.
 
 Tables (``<dataroot>/<version>/<table>.json``): scene, sample, sample_data, ego_pose,
-calibrated_sensor, sensor (log when present). A camera's frames are its full sample_data chain
-(keyframes and sweeps, ~12 Hz), followed by ``next`` from the sample_data of the scene's first
-sample while it stays in the scene. The first camera asked for is the frame clock; the other
-cameras take their image nearest in time. Each image has its own ego pose, so::
+calibrated_sensor, sensor (log when present), looked up through a one-time index of the
+version's tables so that a scene reads only its own rows (:mod:`.nuscenes_tables`).
+A camera's frames are its full sample_data chain (keyframes and sweeps, ~12 Hz), followed by
+``next`` from the sample_data of the scene's first sample while it stays in the scene. The
+first camera asked for is the frame clock; the other cameras take their image nearest in time.
+Each image has its own ego pose, so::
 
     c2w = inv(ego_0) · ego_pose(image) · calibrated_sensor(camera)
 
@@ -22,7 +24,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -35,14 +36,13 @@ from paradrive.ingest.common import (
     check_increasing, check_size, checked_pose, decode_jpeg, fps_from, save_points,
     store_image, transform_points,
 )
+from paradrive.ingest.nuscenes_tables import Tables, open_tables
 from paradrive.scene import Camera, Frame, FrameCamera, Scene
 from paradrive.uri import SceneURI
 
 if TYPE_CHECKING:
     from paradrive.stages.ingest import Params as IngestParams
 
-REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
-OPTIONAL_TABLES = ("log", "category", "instance", "sample_annotation")
 CHANNEL_TO_CAMERA = {"CAM_FRONT": "front", "CAM_FRONT_LEFT": "front_left",
                      "CAM_FRONT_RIGHT": "front_right", "CAM_BACK": "back",
                      "CAM_BACK_LEFT": "back_left", "CAM_BACK_RIGHT": "back_right"}
@@ -61,29 +61,8 @@ def find_version(root: Path, uri: SceneURI, scene_id: str) -> str:
                      fix="add ?version=v1.0-trainval (or v1.0-mini) to the scene URI")
 
 
-def load_tables(folder: Path, scene_id: str) -> dict[str, dict[str, dict]]:
-    """Each table as {token: row}."""
-    tables = {}
-    for name in REQUIRED_TABLES + OPTIONAL_TABLES:
-        path = folder / f"{name}.json"
-        if not path.is_file():
-            if name in OPTIONAL_TABLES:
-                continue
-            raise SceneError(f"table {name}.json is missing", scene_id=scene_id, path=path,
-                             fix="point the URI at the nuScenes dataroot and version whose "
-                                 "tables are complete (re-extract the metadata archive)")
-        try:
-            rows = json.loads(path.read_text())
-            tables[name] = {row["token"]: row for row in rows}
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise SceneError(f"table {name}.json is malformed ({type(exc).__name__}: {exc})",
-                             scene_id=scene_id, path=path,
-                             fix="re-extract the nuScenes metadata archive") from exc
-    return tables
-
-
-def _get(tables, table: str, token: str, *, scene_id: str, where, referrer: str) -> dict:
-    row = tables[table].get(token)
+def _get(tables: Tables, table: str, token: str, *, scene_id: str, where, referrer: str) -> dict:
+    row = tables.get(table, token)
     if row is None:
         raise SceneError(f"{referrer} refers to {table} {token!r}, which is not in {table}.json",
                          scene_id=scene_id, path=where, fix="the tables are inconsistent; "
@@ -109,8 +88,8 @@ def _pose(row: dict, *, scene_id: str, where, what: str) -> np.ndarray:
     return checked_pose(pose, scene_id=scene_id, where=where, what=what)
 
 
-def find_scene(tables, uri: SceneURI, scene_id: str, where) -> dict:
-    scenes = list(tables["scene"].values())
+def find_scene(tables: Tables, uri: SceneURI, scene_id: str, where) -> dict:
+    scenes = tables.rows("scene")
     if uri.scene:
         hits = [s for s in scenes if s.get("name") == uri.scene or s["token"] == uri.scene]
         if not hits:
@@ -151,10 +130,10 @@ def instance_kind(tables, instance: str) -> tuple[str, bool] | None:
     """(class, rigid) of an instance by its category; None for static categories.
 
     KeyError (its message naming the table and field) when the class cannot be told."""
-    row = tables.get("instance", {}).get(instance)
+    row = tables.get("instance", instance)
     if row is None:
         raise KeyError(f"instance {instance!r} is not in instance.json")
-    category = tables.get("category", {}).get(row.get("category_token"))
+    category = tables.get("category", str(row.get("category_token")))
     if category is None:
         raise KeyError(f"category_token {row.get('category_token')!r} is not in category.json")
     try:
@@ -207,33 +186,34 @@ def instance_actor(tables, instance: str, rows: list[dict], sample_time: dict[st
 def annotation_actors(tables, samples: list[str], stamps: list[int], world_from_global, *,
                       scene_id: str, meta: Path) -> list[act.Actor]:
     """The actors of the scene's instances, at the frames of ``stamps`` (us)."""
-    sample_time = {tok: int(tables["sample"][tok]["timestamp"]) for tok in samples}
+    sample_time = {tok: int(_get(tables, "sample", tok, scene_id=scene_id, where=meta / "sample.json",
+                                 referrer="the scene's sample chain")["timestamp"]) for tok in samples}
     by_instance: dict[str, list[dict]] = {}
-    for row in tables.get("sample_annotation", {}).values():
+    for row in tables.annotations_of(samples):  # every row of each instance seen in the scene
         by_instance.setdefault(row.get("instance_token"), []).append(row)
     where = meta / "sample_annotation.json"
     found = [instance_actor(tables, inst, rows, sample_time, stamps, world_from_global,
                             scene_id=scene_id, where=where)
-             for inst, rows in by_instance.items()
-             if any(r.get("sample_token") in sample_time for r in rows)]
+             for inst, rows in by_instance.items()]
     return act.keep_valid([a for a in found if a is not None], range(len(stamps)),
                           scene_id=scene_id, where=where)
 
 
-def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
+def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str,
+         tables: Tables | None = None) -> Scene:
+    """The scene of ``uri``, its rows read from ``tables`` (default: through the version's
+    table index, see :mod:`paradrive.ingest.nuscenes_tables`)."""
     root = Path(uri.path).expanduser()
     if not root.is_dir():
         raise SceneError("nuScenes dataroot does not exist", scene_id=scene_id, path=root,
                          fix="check the path in the scene URI")
-    return _Reader(uri, root, out_dir, params, scene_id).scene()
+    return _Reader(uri, root, out_dir, params, scene_id, tables).scene()
 
 
-def _first_sample_data(tables: dict, first_sample: str, scene_id: str, where: Path) -> dict[str, dict]:
+def _first_sample_data(tables: Tables, first_sample: str, scene_id: str, where: Path) -> dict[str, dict]:
     """The first sample's sample_data per channel: a keyframe if there is one, else the earliest."""
     firsts: dict[str, dict] = {}
-    for sd in tables["sample_data"].values():
-        if sd["sample_token"] != first_sample:
-            continue
+    for sd in tables.sample_data_of(first_sample):
         ch = channel_of(tables, sd, scene_id=scene_id, where=where)
         old = firsts.get(ch)
         if old is None or (sd.get("is_key_frame") and not old.get("is_key_frame")) or (
@@ -245,11 +225,12 @@ def _first_sample_data(tables: dict, first_sample: str, scene_id: str, where: Pa
 class _Reader:
     """One scene of a nuScenes dataroot read into a canonical scene, step by step."""
 
-    def __init__(self, uri: SceneURI, root: Path, out_dir: Path, params: IngestParams, scene_id: str):
+    def __init__(self, uri: SceneURI, root: Path, out_dir: Path, params: IngestParams, scene_id: str,
+                 tables: Tables | None = None):
         self.uri, self.root, self.out_dir, self.params, self.scene_id = uri, root, out_dir, params, scene_id
         self.version = find_version(root, uri, scene_id)
         self.meta = meta = root / self.version
-        self.tables = load_tables(meta, scene_id)
+        self.tables = tables if tables is not None else open_tables(meta, scene_id)
         self.scene_row = find_scene(self.tables, uri, scene_id, meta / "scene.json")
         self.samples = self.sample_chain()
         self.where_sd = meta / "sample_data.json"
@@ -321,7 +302,7 @@ class _Reader:
         if self.params.lidar and "LIDAR_TOP" in self.firsts:
             self.lidar()
         row = self.scene_row
-        log = self.tables.get("log", {}).get(str(row.get("log_token")), {})
+        log = self.tables.get("log", str(row.get("log_token"))) or {}
         return Scene(scene_id=self.scene_id, dataset="nuscenes", source=self.uri.text,
                      fps=fps_from(self.stamps, FPS), cameras=cameras, frames=frames,
                      actors=annotation_actors(self.tables, self.samples, self.stamps, self.world,
