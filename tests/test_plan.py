@@ -33,10 +33,13 @@ def test_paper_logs_take_the_documented_rates_and_the_papers_gpu_budget():
         assert one.as_json()[key] > 0 and abs(plan.as_json()[key] - 2 * one.as_json()[key]) <= 1
 
 
-def test_a_finished_scene_is_projected_at_what_it_took(smoke_scene):
+def test_a_finished_scene_is_projected_at_what_it_took(smoke_scene, tmp_path):
     """Rates measured on the data root's finished scene reproduce that scene's own seconds and bytes."""
-    data = smoke_scene["data_dir"]
+    import shutil
+
+    data = tmp_path / "data"   # that scene alone: other tests add scenes to the shared data root
     scene_dir = data / "scenes" / "synthetic-demo-s7"
+    shutil.copytree(smoke_scene["data_dir"] / "scenes" / "synthetic-demo-s7", scene_dir)
     config = StageRegistry().resolve("smoke")
     plan = plan_build(config, ["synthetic:demo?seed=7"], data)
     assert plan.shapes == {"ingested": 1}

@@ -209,7 +209,7 @@ def _biggest_moving_car(scene, frames: list[int], c2w: np.ndarray, K: np.ndarray
 
 
 def test_a_shifted_frame_shows_each_moving_car_where_it_was_at_that_time(smoke_scene):
-    scene_dir = next((smoke_scene["data_dir"] / "scenes").iterdir())
+    scene_dir = smoke_scene["data_dir"] / "scenes" / "synthetic-demo-s7"
     scene, layout = load_scene(scene_dir), SceneLayout(scene_dir)
     record = FitRecord.load(layout.fit_json)
     assert record.dynamic, "the smoke street has moving traffic: the fit is a scene graph"
@@ -247,7 +247,7 @@ def test_graph_fit_beats_the_static_fit_on_moving_actor_pixels(smoke_scene, tmp_
 
     from paradrive.evaluation import evaluate_scene
 
-    scene_dir = next((smoke_scene["data_dir"] / "scenes").iterdir())
+    scene_dir = smoke_scene["data_dir"] / "scenes" / "synthetic-demo-s7"
     unrendered = shutil.ignore_patterns("renders", "clips", "eval")
     graph_dir = Path(shutil.copytree(scene_dir, tmp_path / "graph", ignore=unrendered))
     static_dir = Path(shutil.copytree(scene_dir, tmp_path / "static", ignore=unrendered))
@@ -269,7 +269,7 @@ def test_a_deleted_actor_checkpoint_is_healed_by_a_plain_rerun(smoke_scene, copy
     from conftest import _build
 
     root = copy_tree(smoke_scene["root"], "healed")
-    scene_dir = next((root / "data" / "scenes").iterdir())
+    scene_dir = root / "data" / "scenes" / "synthetic-demo-s7"
     layout = SceneLayout(scene_dir)
     record = FitRecord.load(layout.fit_json)
     lost = layout.actor_checkpoint(record.iterations, record.actors[0].file)
