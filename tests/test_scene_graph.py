@@ -195,17 +195,22 @@ def test_killed_graph_fit_resumes_to_byte_identical_node_checkpoints(graph_fit, 
 
 # --------------------------------------------------------------------------- the smoke street
 
-def _biggest_moving_car(scene, frames: list[int], c2w: np.ndarray, K: np.ndarray, w: int, h: int):
-    best = (0, None, None)
-    for actor in (a for a in scene.actors if a.rigid and is_moving(a, MOVING_M)):
-        for pos in frames:
-            pose = actor.pose_at(scene.frames[pos].index)
-            if pose is None:
-                continue
-            area = int(box_footprint(pose, actor.size, c2w[pos], K, w, h).sum())
-            if area > best[0]:
-                best = (area, actor, pos)
+def _biggest_view(actor, scene, c2w: np.ndarray, K: np.ndarray, w: int, h: int) -> tuple[int, int]:
+    """(pixels, frame position) of the frame where ``actor``'s box covers most of the view."""
+    best = (0, -1)
+    for pos, frame in enumerate(scene.frames):
+        pose = actor.pose_at(frame.index)
+        if pose is not None:
+            best = max(best, (int(box_footprint(pose, actor.size, c2w[pos], K, w, h).sum()), pos))
     return best
+
+
+def _node_alone(model: FittedModel, k: int) -> FittedModel:
+    poses = model.poses
+    return FittedModel({key: v[model.node == k] for key, v in model.params.items()},
+                       torch.zeros(int((model.node == k).sum()), dtype=torch.int64),
+                       NodePoses([poses.ids[k]], poses.box2world[:, k:k + 1], poses.present[:, k:k + 1],
+                                 poses.quats[:, k:k + 1]))
 
 
 def test_a_shifted_frame_shows_each_moving_car_where_it_was_at_that_time(smoke_scene):
@@ -217,27 +222,34 @@ def test_a_shifted_frame_shows_each_moving_car_where_it_was_at_that_time(smoke_s
     cam = scene.cameras["front"]
     K, w, h = cam.K(), cam.width, cam.height
     shifted = geometry.lateral_shift(scene.c2w("front"), scene.ego2world(), 2.0)
-    area, car, pos = _biggest_moving_car(scene, list(range(len(scene.frames))), shifted, K, w, h)
-    assert car is not None and area > 200, "a moving car is in view of the shifted camera"
-    k = [n.id for n in record.actors].index(car.id)
-    only_car = FittedModel({key: v[model.node == k] for key, v in model.params.items()},
-                           torch.zeros(int((model.node == k).sum()), dtype=torch.int64),
-                           NodePoses([car.id], model.poses.box2world[:, k:k + 1],
-                                     model.poses.present[:, k:k + 1], model.poses.quats[:, k:k + 1]))
+    ids = [n.id for n in record.actors]
+    checked = 0
+    for car in (a for a in scene.actors if a.rigid and is_moving(a, MOVING_M)):
+        area, pos = _biggest_view(car, scene, shifted, K, w, h)
+        if area < 50:        # never more than a few pixels in view of the shifted camera
+            continue
+        k = ids.index(car.id)
+        alone = _node_alone(model, k)
 
-    def footprint(at: int) -> np.ndarray:
-        alpha = next(render_views(only_car, shifted[pos][None], K, w, h, frames=[at]))["alpha"][0]
-        return alpha > 0.5
+        def footprint(at: int, alone=alone, pos=pos) -> np.ndarray:
+            view = next(render_views(alone, shifted[pos][None], K, w, h, frames=[at]))
+            return view["alpha"][0] > 0.5
 
-    truth = box_footprint(car.pose_at(scene.frames[pos].index), car.size, shifted[pos], K, w, h)
-    drawn = footprint(pos)
-    iou = (drawn & truth).sum() / max((drawn | truth).sum(), 1)
-    assert iou > 0.5, f"the rendered car covers its true box: IoU {iou:.2f}"
-    # the same car drawn where it was at another moment does not match: the test can fail
-    others = [f for f in range(len(scene.frames)) if bool(model.poses.present[f, k]) and abs(f - pos) >= 8]
-    if others:
-        wrong = footprint(others[0])
-        assert (wrong & truth).sum() / max((wrong | truth).sum(), 1) < iou - 0.2
+        truth = box_footprint(car.pose_at(scene.frames[pos].index), car.size, shifted[pos], K, w, h)
+        drawn = footprint(pos)
+        # the car's silhouette lies in its box (precision) and fills much of it (recall)
+        inside, filled = (drawn & truth).sum() / max(drawn.sum(), 1), (drawn & truth).sum() / truth.sum()
+        assert inside > 0.7 and filled > 0.35, (car.id, pos, inside, filled)
+        # the same car drawn where it was at another moment does not match: the test can fail
+        here = model.poses.box2world[pos, k, :3, 3]
+        moved = {f: float((model.poses.box2world[f, k, :3, 3] - here).norm())
+                 for f in range(len(scene.frames)) if bool(model.poses.present[f, k])}
+        away = max(moved, key=moved.__getitem__)
+        if moved[away] > car.size[0]:
+            wrong = footprint(away)
+            assert (wrong & truth).sum() / max(wrong.sum(), 1) < 0.5, car.id
+        checked += 1
+    assert checked >= 2, "moving cars in view of the shifted camera"
 
 
 def test_graph_fit_beats_the_static_fit_on_moving_actor_pixels(smoke_scene, tmp_path):
