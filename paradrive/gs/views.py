@@ -70,11 +70,19 @@ def render_views(model, c2w: np.ndarray, K: np.ndarray, width: int, height: int,
     viewmats = torch.from_numpy(geometry.invert(c2w)).float().to(dev)
     Kt = torch.as_tensor(np.asarray(K), dtype=torch.float32).to(dev)
     centre = None if sky is None else torch.as_tensor(sky.centre, dtype=torch.float32, device=dev)
+    placed: tuple | None = None   # (frame, Gaussians, their solid part): a static model's once
     with torch.no_grad():
         for batch in _passes(len(viewmats), frames if fitted.dynamic else None, batch_frames):
-            p = fitted.at(frames[batch.start] if fitted.dynamic and frames is not None else None)
+            frame = frames[batch.start] if fitted.dynamic and frames is not None else None
+            if placed is None or placed[0] != frame:
+                p = fitted.at(frame)
+                solid = None
+                if depth and centre is not None and sky is not None:
+                    keep = (p["means"] - centre).norm(dim=1) <= sky.radius
+                    solid = {k: v[keep] for k, v in p.items()}
+                placed = (frame, p, solid)
             Ks = Kt.expand(batch.stop - batch.start, 3, 3).contiguous()
-            yield _render_pass(p, viewmats[batch], Ks, int(width), int(height), depth, centre, sky,
+            yield _render_pass(placed[1], placed[2], viewmats[batch], Ks, int(width), int(height), depth,
                                backend)
 
 
@@ -93,17 +101,13 @@ def _passes(n: int, frames: Sequence[int] | None, batch_frames: int) -> Iterator
         start = stop
 
 
-def _render_pass(p, vm, Ks, width: int, height: int, depth: bool, centre, sky: SkyDome | None,
-                 backend: str) -> dict:
+def _render_pass(p, solid, vm, Ks, width: int, height: int, depth: bool, backend: str) -> dict:
+    """One rasterizer pass of Gaussians ``p`` (and, for depth without the sky, ``solid``)."""
     import torch
 
     from paradrive.gs.model import render_gaussians, sh_degree_of
 
     deg = sh_degree_of(p)
-    solid = None
-    if depth and sky is not None:
-        keep = (p["means"] - centre).norm(dim=1) <= sky.radius
-        solid = {k: v[keep] for k, v in p.items()}
     one_pass = depth and solid is None
     out, alpha, _ = render_gaussians(p, vm, Ks, width, height, sh_degree=deg,
                                      render_mode="RGB+ED" if one_pass else "RGB", backend=backend)
