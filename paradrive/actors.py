@@ -232,6 +232,12 @@ def is_moving(actor: Actor, threshold_m: float) -> bool:
     return bool(len(c) and np.linalg.norm(c - c[0], axis=1).max() > threshold_m)
 
 
+def moving_actors(actors: Iterable[Actor], threshold_m: float | None) -> list[Actor]:
+    """The actors that move farther than ``threshold_m`` (the ingest's ``moving_threshold_m``);
+    none when it is None (the scene was ingested without dynamic masks)."""
+    return [] if threshold_m is None else [a for a in actors if is_moving(a, threshold_m)]
+
+
 def read_tracks(scene_dir: Path) -> list[tuple[str, np.ndarray]]:
     """(class, box centres (T, 3)) of each actor of ``scene_dir/scene.json``; [] without one."""
     import json

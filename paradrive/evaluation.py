@@ -124,10 +124,9 @@ def depth_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
 
 def moving_actors(scene, ingested: dict) -> list:
     """The scene's actors that count as moving with the ingest's ``moving_threshold_m``."""
-    from paradrive.actors import is_moving
+    from paradrive.actors import moving_actors as moving
 
-    threshold = ingested.get("moving_threshold_m")
-    return [] if threshold is None else [a for a in scene.actors if is_moving(a, threshold)]
+    return moving(scene.actors, ingested.get("moving_threshold_m"))
 
 
 def _subsample(frames: list[int], max_frames: int | None) -> list[int]:

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from paradrive.actors import Actor, dynamic_mask, is_moving
+from paradrive.actors import Actor, dynamic_mask, moving_actors
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import SceneError
 from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries
@@ -131,9 +131,7 @@ class Graph:
 
     @classmethod
     def of(cls, scene, p: FitParams, moving_threshold_m: float | None) -> Graph:
-        if p.dynamic == "off" or moving_threshold_m is None:
-            return cls()
-        moving = [a for a in scene.actors if is_moving(a, moving_threshold_m)]
+        moving = [] if p.dynamic == "off" else moving_actors(scene.actors, moving_threshold_m)
         return cls(nodes=[a for a in moving if a.rigid or p.nonrigid == "rigid"], carved=moving)
 
     @property

@@ -309,25 +309,15 @@ def actor_points_init(actor: Actor, local: np.ndarray, views: Sequence[View], *,
 
 def _actor_colours(actor: Actor, pts: torch.Tensor, views: Sequence[View],
                    max_views: int = 24) -> torch.Tensor:
-    from .init import project
+    """Colours of box-frame points from the ``max_views`` views nearest the box among those
+    whose frame the actor is tracked in, nearest first."""
+    from .init import colours_from_views
 
-    rgb = torch.full((len(pts), 3), 0.5)
-    todo = torch.ones(len(pts), dtype=torch.bool)
     seen = []
     for view in views:
         pose = actor.pose_at(view.frame_index) if view.frame_index is not None else None
         if pose is not None:
             seen.append((float(np.linalg.norm(view.c2w[:3, 3].numpy() - pose[:3, 3])), view, pose))
-    for _, view, pose in sorted(seen, key=lambda s: s[0])[:max_views]:
-        if not todo.any():
-            break
-        idx = torch.nonzero(todo).squeeze(1)
-        R = torch.from_numpy(pose[:3, :3]).float()
-        world = pts[idx] @ R.T + torch.from_numpy(pose[:3, 3]).float()
-        uv, _, ok = project(world, view)
-        idx, uv = idx[ok], uv[ok]
-        x = uv[:, 0].long().clamp(0, view.width - 1)
-        y = uv[:, 1].long().clamp(0, view.height - 1)
-        rgb[idx] = view.image[y, x].float() / 255.0
-        todo[idx] = False
-    return rgb
+    nearest = sorted(seen, key=lambda s: s[0])[:max_views]
+    return colours_from_views(pts, [v for _, v, _ in nearest], default=0.5, skip_sky=False,
+                              poses=[pose for _, _, pose in nearest])

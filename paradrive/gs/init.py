@@ -83,17 +83,26 @@ def project(points: torch.Tensor, view: View) -> tuple[torch.Tensor, torch.Tenso
 
 
 def colours_from_views(points: torch.Tensor, views: Sequence[View], default: float = 0.5,
-                       skip_sky: bool = True) -> torch.Tensor:
+                       skip_sky: bool = True,
+                       poses: Sequence[np.ndarray] | None = None) -> torch.Tensor:
     """Colour (N, 3) of each point from the first view (in the given order) that sees it
-    (nearest pixel; occlusion ignored). Points no view sees get ``default`` grey."""
+    (nearest pixel; occlusion ignored). Points no view sees get ``default`` grey.
+
+    poses: None (``points`` in the world), or per view the (4, 4) pose that takes ``points``
+    into the world at that view's moment (an actor's box2world for points in its box frame).
+    """
     n = points.shape[0]
     rgb = torch.full((n, 3), float(default))
     todo = torch.ones(n, dtype=torch.bool)
-    for view in views:
+    for i, view in enumerate(views):
         if not todo.any():
             break
         idx = torch.nonzero(todo).squeeze(1)
-        uv, _, ok = project(points[idx], view)
+        world = points[idx]
+        if poses is not None:
+            pose = torch.from_numpy(np.asarray(poses[i])).float()
+            world = world @ pose[:3, :3].T + pose[:3, 3]
+        uv, _, ok = project(world, view)
         if not ok.any():
             continue
         idx, uv = idx[ok], uv[ok]

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from paradrive.actors import dynamic_mask, is_moving
+from paradrive.actors import dynamic_mask, moving_actors
 from paradrive.io import temporary_name
 from paradrive.scene import Scene, load_scene, write_image, write_scene
 from paradrive.stages.base import StageContext, StageParams
@@ -118,7 +118,7 @@ def write_dynamic_masks(scene: Scene, root: Path, threshold_m: float) -> int:
     image of a scene with actors; returns the number of moving actors."""
     if not scene.actors:
         return 0
-    moving = [a for a in scene.actors if is_moving(a, threshold_m)]
+    moving = moving_actors(scene.actors, threshold_m)
     for name, cam in scene.cameras.items():
         for frame in scene.frames:
             if name not in frame.cameras:
