@@ -175,6 +175,42 @@ def test_resized_and_cropped_uint8_and_float_samples_agree(build):
     assert (raw["target"].float() - scaled[..., 5:37]).abs().mean() < 3.0
 
 
+@pytest.mark.parametrize("dtype", ["uint8", "float32", "bfloat16"])
+def test_frame_buffers_are_reused_only_once_nothing_holds_the_sample(build, dtype):
+    ds = PairDataset(build, dtype=dtype, num_frames=4)
+    first = ds[5]
+    kept = {role: first[role].clone() for role in ("source", "condition", "target")}
+    addresses = {first[role].data_ptr() for role in kept}
+    second = ds[40]   # the first sample is still held: its memory must not be written
+    for role, frames in kept.items():
+        assert torch.equal(first[role], frames)
+    assert not addresses & {second[role].data_ptr() for role in kept}
+    # a slice of the first sample outlives it: that buffer is still taken, the other two are free
+    held = first["target"][1:3]
+    del first, second
+    third = ds[17]
+    assert held.data_ptr() not in {third[role].data_ptr() for role in kept}
+    assert {third[role].data_ptr() for role in ("source", "condition")} <= addresses
+    assert torch.equal(held, kept["target"][1:3])
+    # a reused buffer holds exactly the new sample, not a mix with the old one
+    fresh = PairDataset(build, dtype=dtype, num_frames=4, reuse_buffers=False)[17]
+    for role in kept:
+        assert torch.equal(third[role], fresh[role])
+    assert ds.buffers.held_bytes() == 6 * third["source"].numel() * third["source"].element_size()
+
+
+def test_without_reuse_every_sample_is_new_memory_and_a_pickled_pool_starts_empty(build):
+    import pickle
+
+    ds = PairDataset(build, dtype="uint8", num_frames=2, reuse_buffers=False)
+    a = ds[0]["source"].data_ptr()
+    assert ds.buffers.held_bytes() == 0 and a != 0
+    pooled = PairDataset(build, dtype="uint8", num_frames=2)
+    pooled[0]
+    assert pooled.buffers.held_bytes() > 0
+    assert pickle.loads(pickle.dumps(pooled.buffers)).held_bytes() == 0
+
+
 def test_an_unknown_dtype_is_refused_with_the_choices(build):
     with pytest.raises(ValueError, match="uint8, float32, float16, bfloat16"):
         PairDataset(build, dtype="int16")
