@@ -67,6 +67,19 @@ def test_expected_depth_matches_torch_reference():
     torch.testing.assert_close(ours[0][..., 3][covered], ref[0][..., 3][covered], atol=1e-3, rtol=1e-4)
 
 
+@pytest.mark.parametrize("channels", [1, 2, 6])
+def test_feature_widths_other_than_rgb_match_torch_reference(channels):
+    """The kernels carry up to four channels in registers (one and two here); wider features
+    (six) take the torch-op compositor behind the same call."""
+    means, quats, scales, opac, _ = make_scene(n=180, seed=30 + channels)
+    feats = torch.rand(180, channels, generator=torch.Generator().manual_seed(channels))
+    bg = torch.rand(2, channels, generator=torch.Generator().manual_seed(40 + channels))
+    ours, ref = _both([means, quats, scales, opac, feats], _loss_weights(channels, seed=7),
+                      backgrounds=bg)
+    assert ours[0].shape == (2, H, W, channels) and ours[1].max() > 0.5
+    _assert_same(ours, ref)
+
+
 def test_means2d_gradient_and_radii_match_torch_reference():
     scene = make_scene(seed=14)
     cams = make_cameras()

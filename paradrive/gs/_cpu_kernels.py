@@ -33,6 +33,9 @@ ALPHA_MAX = 0.999
 T_MIN = 1e-4
 # Beyond it alpha < 1/255 for any opacity <= 1 (log 255 = 5.5413): pixels past it are not visited.
 SIGMA_CUT = 5.55
+# Channels the compositing kernels carry per Gaussian (RGB and depth); wider features take the
+# torch-op compositor.
+MAX_CHANNELS = 4
 
 
 @njit(cache=True)
@@ -97,13 +100,28 @@ def _row_span(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int) -> tup
 
 
 @njit(cache=True, inline="always")
-def _row_alphas(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int, out: np.ndarray
-                ) -> tuple[int, int]:
+def _row_range(gauss: np.ndarray, e: int, y_lo: int, y_hi: int) -> tuple[int, int]:
+    """Rows [y0, y1) of [y_lo, y_hi) that entry e's ellipse sigma <= SIGMA_CUT can reach (where
+    ``_row_span`` has a real root: (b^2 - ac) dy^2 + 2 a SIGMA_CUT >= 0), widened by a margin;
+    rows outside it have empty spans, so skipping them changes nothing."""
+    a, b, c = gauss[e, 2], gauss[e, 3], gauss[e, 4]
+    det = a * c - b * b
+    if a <= 0.0 or det <= 0.0:
+        return y_lo, y_hi
+    half = math.sqrt(2.0 * SIGMA_CUT * a / det) + 1e-3
+    y0 = max(y_lo, math.ceil(gauss[e, 1] - half - 0.5))
+    y1 = min(y_hi, math.floor(gauss[e, 1] + half - 0.5) + 1)
+    return y0, max(y0, y1)
+
+
+@njit(cache=True, inline="always")
+def _row_alphas(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int, ratio: float,
+                out: np.ndarray) -> tuple[int, int]:
     """Alphas of entry e along the row at py: out[x - x_lo] for x in the returned [x0, x1).
 
     Along a row sigma is a quadratic in x, so exp(-sigma) steps by a factor that itself changes
-    by exp(-a): two multiplications per pixel instead of an exp(). A pixel with sigma < 0
-    (exp(-sigma) > 1) or alpha < 1/255 gets 0.
+    by ``ratio`` = exp(-a) (the entry's, computed once): two multiplications per pixel instead
+    of an exp(). A pixel with sigma < 0 (exp(-sigma) > 1) or alpha < 1/255 gets 0.
     """
     x0, x1 = _row_span(gauss, e, py, x_lo, x_hi)
     if x0 == x1:
@@ -112,13 +130,19 @@ def _row_alphas(gauss: np.ndarray, e: int, py: float, x_lo: int, x_hi: int, out:
     dx = gauss[e, 0] - (x0 + 0.5)
     dy = gauss[e, 1] - py
     E = math.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy))
-    step, ratio = math.exp(a * dx - 0.5 * a + b * dy), math.exp(-a)
+    step = math.exp(a * dx - 0.5 * a + b * dy)
     for x in range(x0, x1):
         alpha = min(ALPHA_MAX, op * E)
         out[x - x_lo] = alpha if E <= 1.0 and alpha >= ALPHA_MIN else 0.0
         E *= step
         step *= ratio
     return x0, x1
+
+
+@njit(cache=True, inline="always")
+def _colour(gauss: np.ndarray, e: int, k: int, D: int) -> float:
+    """Channel k of entry e, 0 past its D channels (the kernels keep up to four in registers)."""
+    return gauss[e, 6 + k] if k < D else 0.0
 
 
 @njit(cache=True)
@@ -139,15 +163,19 @@ def _forward_tile(t: int, gauss: np.ndarray, start: int, n: int, ts: int, tiles_
     C, H, W, D = render.shape
     cam, y_lo, y_hi, x_lo, x_hi = _tile_box(t, ts, tiles_x, tiles_y, H, W)
     T = np.ones(ts * ts)
-    acc = np.zeros((ts * ts, D))
+    acc = np.zeros((ts * ts, MAX_CHANNELS))
     stop = np.zeros(ts * ts, dtype=np.int64)
     done = np.zeros(ts * ts, dtype=np.bool_)
     alphas = np.empty(ts)
     active = (y_hi - y_lo) * (x_hi - x_lo)
     for j in range(n):
         e = start + j
-        for y in range(y_lo, y_hi):
-            x0, x1 = _row_alphas(gauss, e, y + 0.5, x_lo, x_hi, alphas)
+        c0, c1, c2, c3 = (_colour(gauss, e, 0, D), _colour(gauss, e, 1, D),
+                          _colour(gauss, e, 2, D), _colour(gauss, e, 3, D))
+        ratio = math.exp(-gauss[e, 2])
+        ya, yb = _row_range(gauss, e, y_lo, y_hi)
+        for y in range(ya, yb):
+            x0, x1 = _row_alphas(gauss, e, y + 0.5, x_lo, x_hi, ratio, alphas)
             for x in range(x0, x1):
                 p = (y - y_lo) * ts + x - x_lo
                 alpha = alphas[x - x_lo]
@@ -159,8 +187,13 @@ def _forward_tile(t: int, gauss: np.ndarray, start: int, n: int, ts: int, tiles_
                     active -= 1
                     continue
                 w = alpha * T[p]
-                for k in range(D):
-                    acc[p, k] += w * gauss[e, 6 + k]
+                acc[p, 0] += w * c0
+                if D > 1:
+                    acc[p, 1] += w * c1
+                if D > 2:
+                    acc[p, 2] += w * c2
+                if D > 3:
+                    acc[p, 3] += w * c3
                 T[p] = next_T
                 stop[p] = j + 1
         if active == 0:
@@ -176,7 +209,7 @@ def _write_tile(cam: int, y_lo: int, y_hi: int, x_lo: int, x_hi: int, ts: int, a
     for y in range(y_lo, y_hi):
         for x in range(x_lo, x_hi):
             p = (y - y_lo) * ts + x - x_lo
-            for k in range(acc.shape[1]):
+            for k in range(render.shape[3]):
                 render[cam, y, x, k] = acc[p, k] + T[p] * bg[cam, k]
             trans[cam, y, x] = T[p]
             last[cam, y, x] = stop[p]
@@ -187,80 +220,105 @@ def composite_forward(gauss: np.ndarray, offsets: np.ndarray, counts: np.ndarray
                       tiles_x: int, tiles_y: int, bg: np.ndarray, render: np.ndarray,
                       trans: np.ndarray, last: np.ndarray) -> None:
     """Fill render (C, H, W, D), final transmittance trans (C, H, W) and last (C, H, W): the
-    number of list entries each pixel walked before it stopped (its last contribution + 1)."""
+    number of list entries each pixel walked before it stopped (its last contribution + 1).
+    D <= MAX_CHANNELS."""
     for t in prange(offsets.shape[0]):
         _forward_tile(t, gauss, offsets[t], counts[t], ts, tiles_x, tiles_y, bg, render, trans,
                       last)
 
 
+@njit(cache=True)
+def _pixel_state(cam: int, y_lo: int, y_hi: int, x_lo: int, x_hi: int, ts: int, bg: np.ndarray,
+                 trans: np.ndarray, last: np.ndarray, d_render: np.ndarray, d_alpha: np.ndarray,
+                 T: np.ndarray, q: np.ndarray, stop: np.ndarray, dC: np.ndarray) -> None:
+    """A tile's per-pixel state before the walk back to front: T the final transmittance, stop
+    the entries walked, dC the colour gradient and q = T_final (dA - bg . dC)."""
+    for y in range(y_lo, y_hi):
+        for x in range(x_lo, x_hi):
+            p = (y - y_lo) * ts + x - x_lo
+            T[p], stop[p] = trans[cam, y, x], last[cam, y, x]
+            bg_dot = 0.0
+            for k in range(d_render.shape[3]):
+                dC[p, k] = d_render[cam, y, x, k]
+                bg_dot += bg[cam, k] * dC[p, k]
+            q[p] = T[p] * (d_alpha[cam, y, x] - bg_dot)
+
+
 @njit(cache=True, inline="always")
-def _backward_pair(gauss: np.ndarray, e: int, alpha: float, px: float, py: float, p: int,
-                   T: np.ndarray, buf: np.ndarray, dC: np.ndarray, q: np.ndarray, g: np.ndarray
-                   ) -> None:
-    """One pixel's share of entry e's gradient, walking back to front: T[p] and buf[p] (the
-    colour behind e) are that pixel's running state; q[p] = T_final (dA - bg . dC)."""
-    ra = 1.0 / (1.0 - alpha)
-    T[p] *= ra  # transmittance in front of this Gaussian
-    w = alpha * T[p]
-    v_alpha = q[p] * ra
-    for k in range(dC.shape[1]):
-        c = gauss[e, 6 + k]
-        g[6 + k] += w * dC[p, k]
-        v_alpha += (c * T[p] - buf[p, k] * ra) * dC[p, k]
-        buf[p, k] += c * w
-    if alpha >= ALPHA_MAX:
-        return  # clamped: no gradient to opacity and shape
-    v_sigma = -alpha * v_alpha
-    dx = gauss[e, 0] - px
-    dy = gauss[e, 1] - py
-    g[0] += v_sigma * (gauss[e, 2] * dx + gauss[e, 3] * dy)
-    g[1] += v_sigma * (gauss[e, 3] * dx + gauss[e, 4] * dy)
-    g[2] += 0.5 * v_sigma * dx * dx
-    g[3] += v_sigma * dx * dy
-    g[4] += 0.5 * v_sigma * dy * dy
-    g[5] += alpha / gauss[e, 5] * v_alpha
+def _channel_vjp(c: float, d: float, T: float, ra: float, w: float, behind: float
+                 ) -> tuple[float, float, float]:
+    """One colour channel of one pixel, walking back: (the entry's colour gradient w d, its share
+    of the alpha gradient, the colour behind the entry with it added)."""
+    return w * d, (c * T - behind * ra) * d, behind + c * w
 
 
 @njit(cache=True)
 def _backward_tile(t: int, gauss: np.ndarray, start: int, ts: int, tiles_x: int, tiles_y: int,
                    bg: np.ndarray, trans: np.ndarray, last: np.ndarray, d_render: np.ndarray,
                    d_alpha: np.ndarray, grads: np.ndarray) -> None:
-    """Entries back to front, each over the pixels of its ellipse that it reached."""
+    """Entries back to front, each over the pixels of its ellipse that it reached. Per pixel,
+    walking back: T and buf (the colour behind the entry) are its running state; an entry's
+    gradient sums in registers over its pixels and is written once."""
     C, H, W, D = d_render.shape
     cam, y_lo, y_hi, x_lo, x_hi = _tile_box(t, ts, tiles_x, tiles_y, H, W)
     P = ts * ts
     T, q = np.zeros(P), np.zeros(P)
     stop = np.zeros(P, dtype=np.int64)
-    buf, dC = np.zeros((P, D)), np.zeros((P, D))
-    for y in range(y_lo, y_hi):
-        for x in range(x_lo, x_hi):
-            p = (y - y_lo) * ts + x - x_lo
-            T[p], stop[p] = trans[cam, y, x], last[cam, y, x]
-            bg_dot = 0.0
-            for k in range(D):
-                dC[p, k] = d_render[cam, y, x, k]
-                bg_dot += bg[cam, k] * dC[p, k]
-            q[p] = T[p] * (d_alpha[cam, y, x] - bg_dot)
-    g = np.zeros(grads.shape[1])
+    buf, dC = np.zeros((P, MAX_CHANNELS)), np.zeros((P, MAX_CHANNELS))
+    _pixel_state(cam, y_lo, y_hi, x_lo, x_hi, ts, bg, trans, last, d_render, d_alpha, T, q, stop, dC)
     alphas = np.empty(ts)
     for j in range(stop.max() - 1, -1, -1):
         e = start + j
-        g[:] = 0.0
-        for y in range(y_lo, y_hi):
-            x0, x1 = _row_alphas(gauss, e, y + 0.5, x_lo, x_hi, alphas)
+        mx, my, a, b, c, op = gauss[e, 0], gauss[e, 1], gauss[e, 2], gauss[e, 3], gauss[e, 4], gauss[e, 5]
+        c0, c1, c2, c3 = (_colour(gauss, e, 0, D), _colour(gauss, e, 1, D),
+                          _colour(gauss, e, 2, D), _colour(gauss, e, 3, D))
+        g0 = g1 = g2 = g3 = g4 = g5 = h0 = h1 = h2 = h3 = 0.0
+        ratio = math.exp(-a)
+        ya, yb = _row_range(gauss, e, y_lo, y_hi)
+        for y in range(ya, yb):
+            x0, x1 = _row_alphas(gauss, e, y + 0.5, x_lo, x_hi, ratio, alphas)
+            dy = my - (y + 0.5)
             for x in range(x0, x1):
                 p = (y - y_lo) * ts + x - x_lo
                 alpha = alphas[x - x_lo]
-                if j < stop[p] and alpha > 0.0:
-                    _backward_pair(gauss, e, alpha, x + 0.5, y + 0.5, p, T, buf, dC, q, g)
-        grads[e] = g
+                if j >= stop[p] or alpha == 0.0:
+                    continue
+                ra = 1.0 / (1.0 - alpha)
+                T[p] *= ra  # transmittance in front of this Gaussian
+                w = alpha * T[p]
+                v_alpha = q[p] * ra
+                dh, dv, buf[p, 0] = _channel_vjp(c0, dC[p, 0], T[p], ra, w, buf[p, 0])
+                h0, v_alpha = h0 + dh, v_alpha + dv
+                if D > 1:
+                    dh, dv, buf[p, 1] = _channel_vjp(c1, dC[p, 1], T[p], ra, w, buf[p, 1])
+                    h1, v_alpha = h1 + dh, v_alpha + dv
+                if D > 2:
+                    dh, dv, buf[p, 2] = _channel_vjp(c2, dC[p, 2], T[p], ra, w, buf[p, 2])
+                    h2, v_alpha = h2 + dh, v_alpha + dv
+                if D > 3:
+                    dh, dv, buf[p, 3] = _channel_vjp(c3, dC[p, 3], T[p], ra, w, buf[p, 3])
+                    h3, v_alpha = h3 + dh, v_alpha + dv
+                if alpha >= ALPHA_MAX:
+                    continue  # clamped: no gradient to opacity and shape
+                v_sigma = -alpha * v_alpha
+                dx = mx - (x + 0.5)
+                g0 += v_sigma * (a * dx + b * dy)
+                g1 += v_sigma * (b * dx + c * dy)
+                g2 += 0.5 * v_sigma * dx * dx
+                g3 += v_sigma * dx * dy
+                g4 += 0.5 * v_sigma * dy * dy
+                g5 += alpha / op * v_alpha
+        grads[e, 0], grads[e, 1], grads[e, 2], grads[e, 3], grads[e, 4], grads[e, 5] = g0, g1, g2, g3, g4, g5
+        for k, h in enumerate((h0, h1, h2, h3)):
+            if k < D:
+                grads[e, 6 + k] = h
 
 
 @njit(cache=True, parallel=True)
 def composite_backward(gauss: np.ndarray, offsets: np.ndarray, ts: int, tiles_x: int,
                        tiles_y: int, bg: np.ndarray, trans: np.ndarray, last: np.ndarray,
                        d_render: np.ndarray, d_alpha: np.ndarray) -> np.ndarray:
-    """Gradients per list entry, (n_isects, 6 + D) in the layout of ``gauss``."""
+    """Gradients per list entry, (n_isects, 6 + D) in the layout of ``gauss``; D <= MAX_CHANNELS."""
     grads = np.zeros(gauss.shape, dtype=np.float64)
     for t in prange(offsets.shape[0]):
         _backward_tile(t, gauss, offsets[t], ts, tiles_x, tiles_y, bg, trans, last, d_render,

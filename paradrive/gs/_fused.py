@@ -18,7 +18,7 @@ from torch import Tensor
 from paradrive.gs import _cpu_kernels as K
 from paradrive.gs import _cpu_project as P
 from paradrive.gs import _cpu_sh as S
-from paradrive.gs._tiles import TileBins
+from paradrive.gs._tiles import TileBins, composite
 from paradrive.gs.sh import shade
 
 __all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "shade_fused"]
@@ -112,7 +112,10 @@ class FusedComposite(torch.autograd.Function):
 
 def composite_fused(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
                     backgrounds: Tensor, bins: TileBins) -> tuple[Tensor, Tensor]:
-    """Differentiable compositing; see FusedComposite. Returns (renders, alphas)."""
+    """Differentiable compositing; see FusedComposite. Returns (renders, alphas). Features wider
+    than the kernels' ``MAX_CHANNELS`` (RGB and depth) take the torch-op compositor."""
+    if colors.shape[-1] > K.MAX_CHANNELS:
+        return composite(means2d, conics, opacities, colors, backgrounds, bins)
     return FusedComposite.apply(means2d, conics, opacities, colors, backgrounds, bins)
 
 
