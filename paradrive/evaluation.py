@@ -283,12 +283,16 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
     renders = RendersRecord.load(layout.renders_json, sid) if layout.renders_json.is_file() else None
     conds = render_params.condition_checkpoints
     final = render_params.source_checkpoint
+    fit = FitRecord.load(layout.fit_json, sid) if layout.fit_json.is_file() else None
     for it in conds + [final]:
         if not layout.checkpoint(it).is_file():
+            have = [c.iteration for c in fit.checkpoints] if fit is not None else []
             raise SceneError(f"checkpoint for iteration {it} is missing", scene_id=sid,
                              path=layout.checkpoint(it),
-                             fix="run the fit stage with the same profile first")
-    fit = FitRecord.load(layout.fit_json, sid) if layout.fit_json.is_file() else None
+                             fix=(f"this scene's fit has checkpoints {have}: evaluate with the "
+                                  f"profile it was built with (--profile NAME; make eval "
+                                  f"PROFILE=NAME), or run the fit stage with this profile first"
+                                  if have else "run the fit stage with the same profile first"))
     cams = list(cameras or render_params.cameras)
     for c in cams:
         if c not in scene.cameras or c not in street.cameras:

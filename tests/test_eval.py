@@ -10,6 +10,7 @@ import pytest
 
 from conftest import stage_params
 
+from paradrive.stages.records import FitRecord
 from paradrive.evaluation import depth_abs_rel, depth_signed_rel, evaluate_scene, image_quality
 
 from test_render import SCENE, SID, smoke_params
@@ -116,6 +117,22 @@ def test_cli_prints_the_table(evaluated, tmp_path):
     n_cond = len(evaluated["config"].params["render"]["condition_checkpoints"])
     assert sum("cond@" in line for line in result.output.splitlines()) == n_cond
     assert (tmp_path / "eval.json").is_file() and (tmp_path / "eval.png").is_file()
+
+
+def test_eval_with_another_profile_names_the_checkpoints_and_the_profile_flag(evaluated):
+    """A scene built with one profile and evaluated with another (``make eval`` after ``make demo``
+    without PROFILE=demo) is told which checkpoints it has and how to pass the profile."""
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+
+    have = [c.iteration for c in FitRecord.load(
+        evaluated["data_dir"] / "scenes" / SID / "gs" / "fit.json", SID).checkpoints]
+    result = CliRunner().invoke(app, ["eval", "--scene", SCENE, "--data", str(evaluated["data_dir"])])
+    text = " ".join(result.output.split())
+    assert result.exit_code == 2, result.output
+    assert "checkpoint for iteration" in text and "is missing" in text
+    assert str(have) in text and "--profile NAME" in text and "PROFILE=NAME" in text
 
 
 def test_cli_refuses_a_scene_without_ground_truth(tmp_path):
