@@ -21,6 +21,7 @@ from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 from paradrive import geometry
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError
+from paradrive.gs import fit as fit_module
 from paradrive.gs import strategy as strategy_module
 from paradrive.gs.fit import fit_scene, render_checkpoint
 from paradrive.gs.ply import load_ply
@@ -32,6 +33,14 @@ FIT = {**TINY_FIT, "checkpoints": [10, 20]}
 # reference runs it too; the fused CPU kernels are compared with it in test_rasterize_cpu.py.
 CPU_REF = {"device": "cpu", "backend": "torch"}
 DEVICES = ["simulated"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(autouse=True)
+def plain_adam_steps(monkeypatch):
+    """The stand-in device has no fused Adam kernel, so it takes torch's plain step; the CPU
+    reference takes it too, or the two fits would differ in the last bit for that reason alone
+    (the fused step's own device handling is torch's)."""
+    monkeypatch.setattr(fit_module, "FUSED_ADAM_DEVICES", ("cuda",))
 
 
 def _on(device: str):
