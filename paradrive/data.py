@@ -227,7 +227,7 @@ class PairDataset(Dataset):
         self.decode_threads = decode_threads
         self.dtype = _frame_dtype(dtype)
         self.frames_decoded = 0
-        self.buffers = FramePool(keep=6 if reuse_buffers else 0)
+        self.buffers = FramePool() if reuse_buffers else FramePool(keep=0)
         self._shards = shard_paths(self.build, self.index)
         tables = []
         for path, entry in zip(self._shards, self.index.shards):
