@@ -44,24 +44,29 @@ def _gaussians(means, rgb, scale=0.3):
                       torch.full((len(means), 3), scale), opacity=0.99, sh_degree=0)
 
 
-def test_a_node_is_moved_by_its_box_pose_and_left_out_where_absent():
+def test_a_node_is_moved_by_its_box_pose_and_hidden_where_absent():
     params = _gaussians([[0.0, 0.0, 5.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], [0.5, 0.5, 0.5])
     params["means"].requires_grad_(True)
+    params["opacities"].requires_grad_(True)
     node = torch.tensor([BACKGROUND, 0, 1])
     turn = geometry.make_pose(geometry.rotation_about("z", math.pi / 2), [10.0, 0.0, 0.0])
     poses = _poses([[turn, None], [turn, turn]])
 
-    out, index = place(params, node, poses, 0)
-    assert index.tolist() == [0, 1]                  # node 1 has no box at frame 0
+    out = place(params, node, poses, 0)
     torch.testing.assert_close(out["means"][0], params["means"][0])    # the background stays
     torch.testing.assert_close(out["means"][1], torch.tensor([10.0, 1.0, 0.0]))
     # the Gaussian's rotation turns with its box: identity local -> the box's own quaternion
     torch.testing.assert_close(out["quats"][1], poses.quats[0, 0])
-    out["means"][1].sum().backward()                 # differentiable in the local parameters
-    assert params["means"].grad[1].abs().sum() > 0 and params["means"].grad[2].abs().sum() == 0
+    # node 1 has no box at frame 0: its Gaussian is hidden, the others keep their opacity
+    assert torch.sigmoid(out["opacities"]).tolist()[2] == 0.0
+    torch.testing.assert_close(out["opacities"][:2], params["opacities"][:2])
+    (out["means"][1].sum() + out["means"][2].sum() + out["opacities"].sum()).backward()
+    assert params["means"].grad[1].abs().sum() > 0      # differentiable in the local parameters
+    assert params["opacities"].grad[2] == 0 and params["opacities"].grad[1] != 0
 
-    out, index = place(params, node, poses, 1)
-    assert index is None and out["means"].shape[0] == 3
+    out = place(params, node, poses, 1)
+    assert bool(torch.isfinite(out["opacities"]).all())
+    torch.testing.assert_close(out["means"][2], torch.tensor([10.0, 2.0, 0.0]))
 
 
 def _render(model: FittedModel, frames: list[int]) -> np.ndarray:
@@ -312,7 +317,7 @@ def test_a_box_refinement_moves_and_turns_the_node():
     np.testing.assert_allclose(quat[0].detach().numpy(), geometry.rotation_to_quaternion(expected[:3, :3]),
                                atol=1e-6)
     params = _gaussians([[1.0, 0.0, 0.0]], [0.5, 0.5, 0.5])
-    out, _ = place(params, torch.tensor([0]), poses, 0, correction)
+    out = place(params, torch.tensor([0]), poses, 0, correction)
     out["means"].sum().backward()
     assert correction.grad is not None and correction.grad.abs().sum() > 0
 

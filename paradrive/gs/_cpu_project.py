@@ -218,15 +218,29 @@ def _backward_one(mean, cov3, view, K, width, height, near, far, eps2d, v2d, v_c
     return _mv(RvT, (v_x, v_y, v_z)), _mul(_mul(RvT, v_S), Rv)
 
 
+@njit(cache=True, inline="always")
+def _no_gradient(v2d: np.ndarray, v_conic: np.ndarray, v_depth: float) -> bool:
+    """True when a camera passes a Gaussian no gradient (its share would be exact zeros)."""
+    return (v2d[0] == 0.0 and v2d[1] == 0.0 and v_conic[0] == 0.0 and v_conic[1] == 0.0
+            and v_conic[2] == 0.0 and v_depth == 0.0)
+
+
 @njit(cache=True)
 def _gaussian_vjp(n, means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
                   v_means2d, v_conics, v_depths, v_means, v_quats, v_scales) -> None:
     """Row n of v_means, v_quats, v_scales, cameras summed in order."""
+    used = False
+    for c in range(viewmats.shape[0]):
+        used |= not _no_gradient(v_means2d[c, n], v_conics[c, n], v_depths[c, n, 0])
+    if not used:  # its rows stay 0: most Gaussians are outside a view
+        return
     cov3, M, R = _covariance(quats[n], scales[n])
     mean = (means[n, 0], means[n, 1], means[n, 2])
     vm = (0.0, 0.0, 0.0)
     vc = (0.0,) * 9
     for c in range(viewmats.shape[0]):
+        if _no_gradient(v_means2d[c, n], v_conics[c, n], v_depths[c, n, 0]):
+            continue
         dm, dc = _backward_one(mean, cov3, viewmats[c], Ks[c], width, height, near, far, eps2d,
                                v_means2d[c, n], v_conics[c, n], v_depths[c, n, 0])
         vm = (vm[0] + dm[0], vm[1] + dm[1], vm[2] + dm[2])

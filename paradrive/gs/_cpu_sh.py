@@ -74,19 +74,28 @@ def _unit_dir(mean: np.ndarray, campos: np.ndarray) -> tuple[float, float, float
     return dx / norm, dy / norm, dz / norm, norm
 
 
+CHUNK = 256  # Gaussians a task walks with one scratch basis (an allocation per Gaussian costs more)
+
+
 @njit(cache=True, parallel=True)
 def sh_forward(degree: int, means: np.ndarray, coeffs: np.ndarray, campos: np.ndarray,
-               colors: np.ndarray) -> None:
-    """Fill colors (C, N, 3) = max(SH + 0.5, 0)."""
-    for n in prange(means.shape[0]):
-        _sh_one(n, degree, means, coeffs, campos, colors)
+               visible: np.ndarray, colors: np.ndarray) -> None:
+    """Fill colors (C, N, 3) = max(SH + 0.5, 0) where ``visible`` (C, N) is set, 0 elsewhere
+    (the compositor reads no colour of a Gaussian it does not draw)."""
+    N = means.shape[0]
+    for chunk in prange((N + CHUNK - 1) // CHUNK):
+        basis = np.empty(16)
+        for n in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
+            _sh_one(n, degree, means, coeffs, campos, visible, colors, basis)
 
 
 @njit(cache=True)
-def _sh_one(n: int, degree: int, means, coeffs, campos, colors) -> None:
+def _sh_one(n: int, degree: int, means, coeffs, campos, visible, colors, basis) -> None:
     nb = (degree + 1) ** 2
-    basis = np.empty(16)
     for c in range(campos.shape[0]):
+        if not visible[c, n]:
+            colors[c, n, 0] = colors[c, n, 1] = colors[c, n, 2] = 0.0
+            continue
         x, y, z, _ = _unit_dir(means[n], campos[c])
         _basis(degree, x, y, z, basis)
         for ch in range(3):
@@ -98,10 +107,11 @@ def _sh_one(n: int, degree: int, means, coeffs, campos, colors) -> None:
 
 @njit(cache=True)
 def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_means,
-                v_coeffs) -> None:
+                v_coeffs, basis, w) -> None:
     nb = (degree + 1) ** 2
-    basis, w = np.empty(16), np.zeros(16)
     for c in range(campos.shape[0]):
+        if v_colors[c, n, 0] == 0.0 and v_colors[c, n, 1] == 0.0 and v_colors[c, n, 2] == 0.0:
+            continue  # adds nothing: most Gaussians are outside a view
         x, y, z, norm = _unit_dir(means[n], campos[c])
         _basis(degree, x, y, z, basis)
         w[:] = 0.0
@@ -120,8 +130,12 @@ def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_
 @njit(cache=True, parallel=True)
 def sh_backward(degree: int, means, coeffs, campos, colors, v_colors):
     """(v_means (N, 3), v_coeffs (N, K, 3)) float64 from v_colors (C, N, 3)."""
+    N = means.shape[0]
     v_means = np.zeros(means.shape)
     v_coeffs = np.zeros(coeffs.shape)
-    for n in prange(means.shape[0]):
-        _sh_vjp_one(n, degree, means, coeffs, campos, colors, v_colors, v_means, v_coeffs)
+    for chunk in prange((N + CHUNK - 1) // CHUNK):
+        basis, w = np.empty(16), np.zeros(16)
+        for n in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
+            _sh_vjp_one(n, degree, means, coeffs, campos, colors, v_colors, v_means, v_coeffs,
+                        basis, w)
     return v_means, v_coeffs

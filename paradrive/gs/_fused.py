@@ -166,15 +166,15 @@ def project_fused(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
 
 
 class FusedSH(torch.autograd.Function):
-    """``sh.shade`` in Numba kernels: means (N, 3), coeffs (N, K, 3), campos (C, 3) (no
-    gradient) -> colours (C, N, 3)."""
+    """``sh.shade`` in Numba kernels: means (N, 3), coeffs (N, K, 3), campos (C, 3) and
+    visible (C, N) bool (no gradient) -> colours (C, N, 3), 0 where a Gaussian is not visible."""
 
     @staticmethod
-    def forward(ctx, means, coeffs, campos, degree: int):
+    def forward(ctx, means, coeffs, campos, visible, degree: int):
         colors = np.empty((campos.shape[0], means.shape[0], 3), dtype=np.float32)
         arrays = (_f32(means), _f32(coeffs), _f32(campos))
         with _kernel_threads():
-            S.sh_forward(degree, *arrays, colors)
+            S.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors)
         ctx.arrays, ctx.colors, ctx.degree, ctx.dtype = arrays, colors, degree, means.dtype
         return torch.from_numpy(colors).to(means.dtype)
 
@@ -183,15 +183,19 @@ class FusedSH(torch.autograd.Function):
         with _kernel_threads():
             v_means, v_coeffs = S.sh_backward(ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors))
         return (torch.from_numpy(v_means).to(ctx.dtype), torch.from_numpy(v_coeffs).to(ctx.dtype),
-                None, None)
+                None, None, None)
 
 
-def shade_fused(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> Tensor:
-    """Same as ``sh.shade``; per-camera coefficients (C, N, K, 3) take the torch path."""
+def shade_fused(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor,
+                visible: Tensor | None = None) -> Tensor:
+    """``sh.shade`` for the Gaussians ``visible`` (C, N) marks (default: all); the others get
+    colour 0. Per-camera coefficients (C, N, K, 3) take the torch path, which colours all."""
     if coeffs.dim() != 3:
         return shade(sh_degree, means, coeffs, campos)
     _check_sh(sh_degree, coeffs)
-    return FusedSH.apply(means, coeffs, campos.detach(), sh_degree)
+    if visible is None:
+        visible = torch.ones(campos.shape[0], means.shape[0], dtype=torch.bool, device="cpu")
+    return FusedSH.apply(means, coeffs, campos.detach(), visible.detach().to("cpu"), sh_degree)
 
 
 def _check_sh(degree: int, coeffs: Tensor) -> None:

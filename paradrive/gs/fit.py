@@ -531,12 +531,10 @@ class _Fit:
         viewmat, K = self.gpu_views[vi]
         use_sky = self.has_sky and view.sky is not None and p.sky_depth_weight > 0
         target = self.depth_targets[vi]
-        gaussians, index = place(self.params, self.strat_state.get("node"), self.poses, view.frame,
-                                 self.boxes)
+        gaussians = place(self.params, self.strat_state.get("node"), self.poses, view.frame, self.boxes)
         out, _, info = render_gaussians(gaussians, viewmat, K, view.width, view.height,
                                         sh_degree=deg, backend=self.backend,
                                         render_mode="RGB+ED" if use_sky or target is not None else "RGB")
-        info["gaussian_ids"] = index
         pred = out[0, ..., :3]
         gt = view.rgb().to(device)
         masked = self.loss_masks[vi]

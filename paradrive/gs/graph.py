@@ -23,6 +23,7 @@ Checkpoints (:func:`save_model` / :func:`load_model`)::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -131,36 +132,33 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def place(params: Gaussians, node: torch.Tensor | None, poses: NodePoses | None,
-          frame: int, correction: torch.Tensor | None = None) -> tuple[Gaussians, torch.Tensor | None]:
+          frame: int, correction: torch.Tensor | None = None) -> Gaussians:
     """The Gaussians of scene frame ``frame`` in the world.
 
     Background Gaussians (``node == BACKGROUND``) as they are; node k's moved by its box2world at
     ``frame`` (refined by ``correction``, see :meth:`NodePoses.at`); those of nodes absent there
-    left out. Returns (Gaussians, ``index`` (M,) of the kept ones in ``params``, or None when all
-    are kept). Differentiable in ``params`` and ``correction``.
+    hidden (opacity 0: no rasterizer draws them, and they get no gradient). Every Gaussian stays,
+    in its place, so only the nodes' rows are computed (a street's background is most of them).
+    Differentiable in ``params`` and ``correction``.
     """
     if poses is None or node is None or not len(poses):
-        return params, None
-    present = poses.present[frame]
-    keep_node = torch.cat([torch.ones(1, dtype=torch.bool, device=present.device), present])
-    kept = keep_node[node + 1]
-    index = None if bool(kept.all()) else torch.nonzero(kept).squeeze(1)
-    sub = {k: params[k] for k in PARAM_KEYS} if index is None else {k: params[k][index] for k in PARAM_KEYS}
-    sub_node = node if index is None else node[index]
-    actor = sub_node >= 0
-    if not bool(actor.any()):
-        return sub, index
-    dev = sub["means"].device
+        return params
+    out = {k: params[k] for k in PARAM_KEYS}
+    rows = torch.nonzero(node >= 0).squeeze(1)
+    if not len(rows):
+        return out
+    dev = params["means"].device
+    k = node[rows]
     box, quats = poses.at(frame, correction)
-    eye = torch.eye(4, dtype=torch.float32, device=dev)[None]
-    mats = torch.cat([eye, box.to(dev)])[sub_node + 1]                           # (M, 4, 4)
-    ident = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float32, device=dev)
-    rots = torch.cat([ident, quats.to(dev)])[sub_node + 1]                       # (M, 4)
-    means = torch.einsum("nij,nj->ni", mats[:, :3, :3], sub["means"]) + mats[:, :3, 3]
-    out = dict(sub)
-    out["means"] = means
-    out["quats"] = quat_multiply(rots, sub["quats"])
-    return out, index
+    box, quats = box.to(dev), quats.to(dev)
+    means = torch.einsum("nij,nj->ni", box[k, :3, :3], params["means"][rows]) + box[k, :3, 3]
+    out["means"] = params["means"].index_put((rows,), means)
+    out["quats"] = params["quats"].index_put((rows,), quat_multiply(quats[k], params["quats"][rows]))
+    hidden = rows[~poses.present[frame].to(dev)[k]]
+    if len(hidden):
+        out["opacities"] = params["opacities"].index_put(
+            (hidden,), torch.full((len(hidden),), -math.inf, dtype=params["opacities"].dtype, device=dev))
+    return out
 
 
 def boxes_containing(points: np.ndarray, actors: Sequence[Actor], frame_index: int,
@@ -212,7 +210,7 @@ class FittedModel:
             return self.params
         if frame is None:
             raise ValueError("a scene-graph checkpoint renders at a frame: pass the frames")
-        return place(self.params, self.node, self.poses, int(frame))[0]
+        return place(self.params, self.node, self.poses, int(frame))
 
 
 def save_model(layout: SceneLayout, iteration: int, params: Gaussians, node: torch.Tensor | None,

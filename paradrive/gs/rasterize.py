@@ -109,7 +109,7 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
             feats = colors.expand(C, N, colors.shape[-1]) if colors.dim() == 2 else colors
         else:
             campos = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
-            feats = shade(sh_degree, means, colors, campos)
+            feats = shade(sh_degree, means, colors, campos, (radii_xy > 0).all(dim=-1))
         D = feats.shape[-1]
         if render_mode != "RGB":
             feats = torch.cat([feats, depths[..., None]], dim=-1)
@@ -144,10 +144,15 @@ def _stages(backend: str):
     """(projection, SH colour, binning, compositing) of a CPU-capable backend: the torch-op reference or the
     fused kernels."""
     if backend == "torch":
-        return _project, shade, bin_gaussians, composite
+        return _project, _shade_all, bin_gaussians, composite
     from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused, shade_fused
 
     return project_fused, shade_fused, bin_gaussians_fused, composite_fused
+
+
+def _shade_all(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor, visible: Tensor) -> Tensor:
+    """The torch-op reference colours every Gaussian, drawn or not."""
+    return shade(sh_degree, means, coeffs, campos)
 
 
 def cuda_backend_available() -> bool:
