@@ -139,3 +139,28 @@ def test_torch_keeps_its_thread_count_after_the_kernels_run():
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(old)
+
+
+def test_fused_shading_colours_only_the_gaussians_a_view_draws():
+    from paradrive.gs._fused import shade_fused
+    from paradrive.gs.sh import shade
+
+    g = torch.Generator().manual_seed(7)
+    means = (torch.randn(60, 3, generator=g) * 2).requires_grad_()
+    coeffs = (torch.randn(60, 16, 3, generator=g) * 0.3).requires_grad_()
+    campos = torch.tensor([[0.0, 0.0, -5.0], [1.0, 2.0, -4.0]])
+    visible = torch.rand(2, 60, generator=g) > 0.5
+    never = ~visible.any(0)
+    assert never.any() and visible.any()
+    ours = shade_fused(3, means, coeffs, campos, visible)
+    means_ref, coeffs_ref = means.detach().clone().requires_grad_(), coeffs.detach().clone().requires_grad_()
+    ref = shade(3, means_ref, coeffs_ref, campos)
+    torch.testing.assert_close(ours[visible], ref[visible], atol=1e-6, rtol=0)
+    assert ours[~visible].abs().max() == 0
+    # gradient only where a Gaussian is drawn, as the compositor passes it: the reference's gradient
+    w = torch.rand(2, 60, 3, generator=g) * visible[..., None]
+    (ours * w).sum().backward()
+    (ref * w).sum().backward()
+    torch.testing.assert_close(coeffs.grad, coeffs_ref.grad, atol=1e-5, rtol=0)
+    torch.testing.assert_close(means.grad, means_ref.grad, atol=1e-5, rtol=0)
+    assert coeffs.grad[never].abs().max() == 0 and means.grad[never].abs().max() == 0
