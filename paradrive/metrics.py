@@ -42,12 +42,60 @@ def psnr(a: torch.Tensor, b: torch.Tensor, max_val: float = 1.0) -> torch.Tensor
 
 
 @functools.lru_cache(maxsize=8)
-def _gauss_window(size: int, sigma: float, channels: int) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float32) - (size - 1) / 2.0
+def _gauss_taps(size: int, sigma: float) -> torch.Tensor:
+    """The normalised 1-D Gaussian (size,) on the CPU; the 2-D window is its outer product."""
+    x = torch.arange(size, dtype=torch.float32, device="cpu") - (size - 1) / 2.0
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    w2 = g[:, None] @ g[None, :]
-    return w2.expand(channels, 1, size, size).contiguous()
+    return g / g.sum()
+
+
+def _blur(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
+    """Each channel of x (B, C, H, W) filtered by the separable Gaussian, zero padding, same
+    size. The window is symmetric, so this is also its own adjoint (the gradient's filter)."""
+    n, k = x.shape[1], taps.shape[0]
+    pad = k // 2
+    x = F.conv2d(x, taps.view(1, 1, k, 1).expand(n, 1, k, 1), padding=(pad, 0), groups=n)
+    return F.conv2d(x, taps.view(1, 1, 1, k).expand(n, 1, 1, k), padding=(0, pad), groups=n)
+
+
+def _ssim_terms(x: torch.Tensor, y: torch.Tensor, taps: torch.Tensor, c1: float, c2: float
+                ) -> tuple[torch.Tensor, ...]:
+    """(SSIM map, its four factors A, B, C, D, mu_x, mu_y) for x, y (B, C, H, W):
+    SSIM = A B / (C D), A = 2 mu_x mu_y + c1, B = 2 s_xy + c2, C = mu_x^2 + mu_y^2 + c1,
+    D = s_xx + s_yy + c2, every moment blurred by the Gaussian window."""
+    ch = x.shape[1]
+    mu_x, mu_y, xx, yy, xy = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), taps).split(ch, 1)
+    A = 2 * mu_x * mu_y + c1
+    B = 2 * (xy - mu_x * mu_y) + c2
+    C = mu_x**2 + mu_y**2 + c1
+    D = (xx - mu_x**2) + (yy - mu_y**2) + c2
+    return A * B / (C * D), A, B, C, D, mu_x, mu_y
+
+
+class _MeanSSIM(torch.autograd.Function):
+    """Mean SSIM per image with its gradient in closed form: the map's derivatives with respect
+    to the blurred moments mu_x, E[x^2] and E[xy], blurred back (the window is self-adjoint) and
+    combined per pixel. Two filterings instead of autograd through five. No gradient to y."""
+
+    @staticmethod
+    def forward(ctx, x, y, taps, c1: float, c2: float):
+        smap, A, B, C, D, mu_x, mu_y = _ssim_terms(x, y, taps, c1, c2)
+        n = smap[0].numel()
+        CD = C * D
+        # dS/dmu_x, dS/dE[x^2], dS/dE[xy], each over the pixel count of the mean
+        d_mu = (2 * mu_y * (B - A) / CD - 2 * mu_x * smap * (1 / C - 1 / D)) / n
+        d_xx = -smap / D / n
+        d_xy = 2 * A / CD / n
+        ctx.save_for_backward(x, y, taps, d_mu, d_xx, d_xy)
+        return smap.flatten(1).mean(1)
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, y, taps, d_mu, d_xx, d_xy = ctx.saved_tensors
+        ch = x.shape[1]
+        g_mu, g_xx, g_xy = _blur(torch.cat([d_mu, d_xx, d_xy], dim=1), taps).split(ch, 1)
+        g = (g_mu + 2 * x * g_xx + y * g_xy) * grad.view(-1, 1, 1, 1)
+        return g, None, None, None, None
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
@@ -56,25 +104,18 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
 
     a, b: (H, W, C) or (B, H, W, C). Zero padding at the borders ("same" size), as in the
     reference 3DGS code. Returns the mean SSIM per image: () or (B,); with reduce=False the
-    SSIM map (B, C, H, W).
+    SSIM map (B, C, H, W). The mean is differentiable with respect to ``a`` only (the render
+    against its target; the gradient is in closed form), the map with respect to both.
     """
     single = a.dim() == 3
     x = _batch(a).float().permute(0, 3, 1, 2)
     y = _batch(b).float().permute(0, 3, 1, 2)
-    ch = x.shape[1]
-    w = _gauss_window(window, sigma, ch).to(x.device, x.dtype)
-    pad = window // 2
-    mu_x = F.conv2d(x, w, padding=pad, groups=ch)
-    mu_y = F.conv2d(y, w, padding=pad, groups=ch)
-    sxx = F.conv2d(x * x, w, padding=pad, groups=ch) - mu_x**2
-    syy = F.conv2d(y * y, w, padding=pad, groups=ch) - mu_y**2
-    sxy = F.conv2d(x * y, w, padding=pad, groups=ch) - mu_x * mu_y
+    taps = _gauss_taps(window, sigma).to(x.device, x.dtype)
     c1 = (0.01 * max_val) ** 2
     c2 = (0.03 * max_val) ** 2
-    smap = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
     if not reduce:
-        return smap
-    out = smap.flatten(1).mean(1)
+        return _ssim_terms(x, y, taps, c1, c2)[0]
+    out = _MeanSSIM.apply(x, y.detach(), taps, c1, c2)
     return out[0] if single else out
 
 

@@ -59,6 +59,39 @@ def test_psnr_and_ssim_of_identical_and_noisy_images():
     assert psnr(batch, torch.stack([a, a])).shape == (2,)
 
 
+def _ssim_2d_window(x, y, window=11, sigma=1.5):
+    """Mean SSIM per image the textbook way: the 11x11 window as one 2-D filter, autograd."""
+    import torch.nn.functional as F
+
+    t = torch.arange(window, dtype=x.dtype) - (window - 1) / 2
+    g = torch.exp(-t**2 / (2 * sigma**2))
+    w = (g[:, None] * g[None, :] / g.sum()**2).expand(3, 1, window, window)
+    x, y = x.permute(0, 3, 1, 2), y.permute(0, 3, 1, 2)
+    blur = lambda z: F.conv2d(z, w, padding=window // 2, groups=3)  # noqa: E731
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    smap = (2 * mx * my + c1) * (2 * sxy + c2) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
+    return smap.flatten(1).mean(1)
+
+
+def test_ssim_and_its_closed_form_gradient_match_the_textbook_window():
+    g = torch.Generator().manual_seed(3)
+    a = torch.rand(2, 24, 30, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    b = (a.detach() + 0.2 * torch.randn(a.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    weights = torch.tensor([0.3, -1.7], dtype=torch.float64)
+    ours = ssim(a, b)
+    ref = _ssim_2d_window(a.float(), b.float())
+    torch.testing.assert_close(ours, ref, atol=1e-5, rtol=0)
+    (grad,) = torch.autograd.grad((ours * weights).sum(), a)
+    (grad_ref,) = torch.autograd.grad((_ssim_2d_window(a, b) * weights).sum(), a)
+    assert grad.abs().max() > 1e-3  # not a vanishing gradient
+    torch.testing.assert_close(grad, grad_ref, atol=2e-6, rtol=1e-4)
+    smap = ssim(a, b, reduce=False)  # the map stays differentiable through autograd
+    (grad_map,) = torch.autograd.grad((smap.flatten(1).mean(1) * weights).sum(), a)
+    torch.testing.assert_close(grad_map, grad_ref, atol=2e-6, rtol=1e-4)
+
+
 # --------------------------------------------------------------------------- quality
 
 def test_smoke_fit_psnr_rises_across_checkpoints_and_reaches_24db(smoke_scene):

@@ -1,5 +1,6 @@
 """The fused CPU rasterizer (backend 'cpu'): images and gradients against the torch-op reference,
-and byte-identical results at any thread count."""
+and byte-identical results at any thread count; every test runs on both compositing kernel sets
+(the vectorised native library and the Numba kernels it falls back to)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,17 @@ from test_rasterize import (
     make_scene,
 )
 
+from paradrive.gs import _native
 from paradrive.gs.rasterize import rasterize
+
+
+@pytest.fixture(autouse=True, params=["native", "numba"])
+def kernels(request, monkeypatch):
+    """Each test once per compositing kernel set; 'native' fails where it cannot be built."""
+    monkeypatch.setenv("PARADRIVE_KERNELS", request.param)
+    assert (_native.load() is not None) == (request.param == "native")
+    return request.param
+
 
 BG = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.0, 0.3]])
 

@@ -1,5 +1,9 @@
 """Numba kernels of the fused CPU rasterizer: tile binning, forward and backward compositing.
 
+The compositing normally runs in the vectorised C++ of ``_composite.cpp`` (see ``_native``),
+which follows the same rules on the same layouts; the kernels here stand in where no compiler
+builds it, or with ``PARADRIVE_KERNELS=numba``.
+
 Every kernel parallelises over tiles (``prange``) and each tile is the work of one thread, in a
 fixed order inside it, so images and gradients do not depend on the thread count. Per-Gaussian
 gradients are first written per tile-Gaussian pair and then summed in list order by one thread.

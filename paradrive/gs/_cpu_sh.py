@@ -22,7 +22,7 @@ from paradrive.gs.sh import SH_C3 as C3
 Vec3 = tuple[float, float, float]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _basis(degree: int, x: float, y: float, z: float, out: np.ndarray) -> None:
     """out[:(degree+1)^2] = the real SH basis at the unit direction (x, y, z)."""
     out[0] = C0
@@ -42,7 +42,7 @@ def _basis(degree: int, x: float, y: float, z: float, out: np.ndarray) -> None:
     out[15] = C3[6] * x * (xx - 3 * yy)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _basis_vjp(degree: int, x: float, y: float, z: float, w: np.ndarray) -> Vec3:
     """Gradient of sum_k w[k] * basis_k with respect to the unit direction (x, y, z)."""
     gx = gy = gz = 0.0
@@ -66,7 +66,7 @@ def _basis_vjp(degree: int, x: float, y: float, z: float, w: np.ndarray) -> Vec3
     return gx, gy, gz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _unit_dir(mean: np.ndarray, campos: np.ndarray) -> tuple[float, float, float, float]:
     """(x, y, z, |d|) of d = mean - campos, normalised as eval_sh does (norm floored at 1e-12)."""
     dx, dy, dz = mean[0] - campos[0], mean[1] - campos[1], mean[2] - campos[2]
@@ -89,7 +89,7 @@ def sh_forward(degree: int, means: np.ndarray, coeffs: np.ndarray, campos: np.nd
             _sh_one(n, degree, means, coeffs, campos, visible, colors, basis)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sh_one(n: int, degree: int, means, coeffs, campos, visible, colors, basis) -> None:
     nb = (degree + 1) ** 2
     for c in range(campos.shape[0]):
@@ -105,7 +105,7 @@ def _sh_one(n: int, degree: int, means, coeffs, campos, visible, colors, basis) 
             colors[c, n, ch] = max(v, 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_means,
                 v_coeffs, basis, w) -> None:
     nb = (degree + 1) ** 2
@@ -129,10 +129,11 @@ def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_
 
 @njit(cache=True, parallel=True)
 def sh_backward(degree: int, means, coeffs, campos, colors, v_colors):
-    """(v_means (N, 3), v_coeffs (N, K, 3)) float64 from v_colors (C, N, 3)."""
+    """(v_means (N, 3) float64, v_coeffs (N, K, 3) float32) from v_colors (C, N, 3); v_coeffs
+    is the larger by far, so it is accumulated in the dtype torch takes it in."""
     N = means.shape[0]
     v_means = np.zeros(means.shape)
-    v_coeffs = np.zeros(coeffs.shape)
+    v_coeffs = np.zeros(coeffs.shape, dtype=np.float32)
     for chunk in prange((N + CHUNK - 1) // CHUNK):
         basis, w = np.empty(16), np.zeros(16)
         for n in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):

@@ -1,5 +1,6 @@
 """Torch side of the fused CPU rasterizer: tile binning and a compositing autograd function whose
-work runs in the Numba kernels of ``_cpu_kernels``, on ``torch.get_num_threads()`` threads.
+work runs in the vectorised kernels of ``_composite.cpp`` (built by ``_native``; the Numba kernels
+of ``_cpu_kernels`` where no compiler is found), on ``torch.get_num_threads()`` threads.
 
 Same interface as ``_tiles.bin_gaussians`` / ``_tiles.composite``, so the two compositors are
 interchangeable behind ``rasterize``.
@@ -18,6 +19,7 @@ from torch import Tensor
 from paradrive.gs import _cpu_kernels as K
 from paradrive.gs import _cpu_project as P
 from paradrive.gs import _cpu_sh as S
+from paradrive.gs import _native
 from paradrive.gs._tiles import TileBins, composite
 from paradrive.gs.sh import shade
 
@@ -68,7 +70,7 @@ def _gather(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
 
 
 class FusedComposite(torch.autograd.Function):
-    """``_tiles.Composite`` with the per-pixel work in Numba kernels.
+    """``_tiles.Composite`` with the per-pixel work in the native (or Numba) kernels.
 
     Inputs: means2d (C*N, 2), conics (C*N, 3), opacities (C*N,), colors (C*N, D),
     backgrounds (C, D); bins: TileBins. Outputs: renders (C, H, W, D), alphas (C, H, W, 1).
@@ -82,10 +84,16 @@ class FusedComposite(torch.autograd.Function):
         render = np.empty((C, H, W, D), dtype=np.float32)
         trans = np.empty((C, H, W), dtype=np.float32)
         last = np.empty((C, H, W), dtype=np.int64)
-        with _kernel_threads():
-            K.composite_forward(gauss, bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size,
-                                bins.tiles_x, bins.tiles_y, bg, render, trans, last)
+        args = (gauss, bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size, bins.tiles_x,
+                bins.tiles_y, bg, render, trans, last)
+        native = _native.load()
+        if native is not None:
+            native.composite_forward(*args, torch.get_num_threads())
+        else:
+            with _kernel_threads():
+                K.composite_forward(*args)
         ctx.bins, ctx.arrays, ctx.n_flat = bins, (gauss, bg, trans, last), means2d.shape[0]
+        ctx.native = native
         ctx.save_for_backward(backgrounds)
         dtype = means2d.dtype
         renders = torch.from_numpy(render).to(dtype)
@@ -97,10 +105,13 @@ class FusedComposite(torch.autograd.Function):
         (backgrounds,) = ctx.saved_tensors
         bins = ctx.bins
         gauss, bg, trans, last = ctx.arrays
-        with _kernel_threads():
-            per_isect = K.composite_backward(gauss, bins.offsets.numpy(), bins.tile_size,
-                                             bins.tiles_x, bins.tiles_y, bg, trans, last,
-                                             _f32(grad_renders), _f32(grad_alphas[..., 0]))
+        args = (gauss, bins.offsets.numpy(), bins.tile_size, bins.tiles_x, bins.tiles_y, bg, trans,
+                last, _f32(grad_renders), _f32(grad_alphas[..., 0]))
+        if ctx.native is not None:  # the backward of the kernels that ran the forward
+            per_isect = ctx.native.composite_backward(*args, torch.get_num_threads())
+        else:
+            with _kernel_threads():
+                per_isect = K.composite_backward(*args)
         dtype = grad_renders.dtype
         total = torch.from_numpy(K.sum_by_gaussian(per_isect, bins.flat_ids.numpy(),
                                                    ctx.n_flat)).to(dtype)
