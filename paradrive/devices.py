@@ -15,10 +15,26 @@ import torch
 
 from paradrive.errors import ConfigError
 
-__all__ = ["resolve_device", "resolve_backend", "gsplat_status", "BACKENDS"]
+__all__ = ["resolve_device", "resolve_backend", "gsplat_status", "cpu_kernel_threads",
+           "set_cpu_kernel_threads", "BACKENDS"]
 
 BACKENDS = ("auto", "cpu", "torch", "gsplat")
 log = logging.getLogger("paradrive.devices")
+
+_cpu_kernel_threads = 0  # 0: torch's count
+
+
+def cpu_kernel_threads() -> int:
+    """Threads of the fused CPU kernels: the count set by :func:`set_cpu_kernel_threads`, else
+    torch's. Their results do not depend on it."""
+    return _cpu_kernel_threads or torch.get_num_threads()
+
+
+def set_cpu_kernel_threads(n: int) -> int:
+    """Run the fused CPU kernels on ``n`` threads (0: torch's count); returns the old setting."""
+    global _cpu_kernel_threads
+    old, _cpu_kernel_threads = _cpu_kernel_threads, max(int(n), 0)
+    return old
 
 
 def resolve_device(name: str) -> torch.device:

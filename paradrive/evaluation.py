@@ -177,9 +177,11 @@ def evaluate_scene(scene_dir: str | os.PathLike, render_params: RenderParams, *,
     cameras: default ``render_params.cameras``. Writes ``<out_dir or scene/eval>/eval.json``
     and ``eval.png``. Renders use the render stage's thread count, as its PNGs do.
     """
+    from paradrive.devices import resolve_backend, resolve_device
     from paradrive.gs.model import deterministic_torch
 
-    with deterministic_torch(render_params.threads):
+    backend = resolve_backend("auto", resolve_device(render_params.device))  # as _render draws
+    with deterministic_torch(render_params.threads, backend):
         return _evaluate_scene(scene_dir, render_params, ingest_params=ingest_params,
                                cameras=cameras, max_frames=max_frames, out_dir=out_dir, log=log)
 

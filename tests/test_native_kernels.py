@@ -80,3 +80,62 @@ def test_an_unknown_kernel_choice_is_refused(monkeypatch):
     monkeypatch.setenv("PARADRIVE_KERNELS", "cuda")
     with pytest.raises(ValueError, match="auto, native, numba"):
         _native.load()
+
+
+def test_native_binning_and_gradient_sums_give_the_numba_kernels_bytes():
+    """The tile lists (sorted by depth, ties by id) and the per-Gaussian sums of the native
+    library are the Numba kernels' own, on two cameras with depth ties and unseen Gaussians."""
+    from paradrive.gs import _cpu_kernels as K
+    from paradrive.gs._fused import _f32
+
+    native = _native.load()
+    if native is None:
+        pytest.skip("no C++ compiler here")
+    g = torch.Generator().manual_seed(3)
+    C, N, ts = 2, 400, 16
+    means2d = torch.rand(C, N, 2, generator=g) * torch.tensor([W + 40.0, H + 40.0]) - 20.0
+    radii = torch.randint(0, 30, (C, N, 2), generator=g, dtype=torch.int32)
+    depths = torch.randint(1, 40, (C, N), generator=g).float() * 0.25  # many equal depths
+    tiles_x, tiles_y = -(-W // ts), -(-H // ts)
+    ours = native.bin_lists(_f32(depths.reshape(-1)), _f32(means2d.reshape(-1, 2)),
+                            _f32(radii.reshape(-1, 2)), N, ts, tiles_x, tiles_y,
+                            C * tiles_x * tiles_y)
+    visible = torch.nonzero((radii > 0).all(-1).reshape(-1)).squeeze(1)
+    order = visible[torch.sort(depths.reshape(-1)[visible], stable=True).indices]
+    ref = K.bin_lists(order.numpy(), _f32(means2d.reshape(-1, 2)), _f32(radii.reshape(-1, 2)),
+                      N, ts, tiles_x, tiles_y, C * tiles_x * tiles_y)
+    assert len(ours[0]) > 500 and (radii == 0).any()
+    for a, b in zip(ours, ref, strict=True):
+        assert a.dtype == b.dtype and (a == b).all()
+    grads = torch.randn(len(ref[0]), 9, generator=g, dtype=torch.float64).numpy()
+    sums = [native.sum_by_gaussian(grads, ref[0], C * N, threads) for threads in (1, 2, 3)]
+    expected = K.sum_by_gaussian(grads, ref[0], C * N)
+    assert all(s.tobytes() == expected.tobytes() for s in sums)
+
+
+@pytest.mark.parametrize("choice", ["native", "numba"])
+def test_sh_coefficients_in_two_parts_render_as_the_concatenated_tensor(monkeypatch, choice):
+    """A fit's sh0 and shN go to the kernels as they are: same images and gradients as their
+    concatenation, and the torch-op path (which concatenates them) agrees."""
+    monkeypatch.setenv("PARADRIVE_KERNELS", choice)
+    means, quats, scales, opac, colors = make_scene(n=150, seed=5, sh_k=16)
+    cams = make_cameras()
+    results = []
+    for backend, parts in (("cpu", False), ("cpu", True), ("torch", True)):
+        leaves = [t.detach().clone().requires_grad_() for t in (means, quats, scales, opac)]
+        sh0 = colors[:, :1].clone().requires_grad_()
+        shN = colors[:, 1:].clone().requires_grad_()
+        coeffs = (sh0, shN) if parts else torch.cat([sh0, shN], 1)
+        r, a, _ = rasterize(*leaves, coeffs, *cams, W, H, sh_degree=2, backend=backend)
+        (r.square().sum() + a.sum()).backward()
+        results.append((r.detach(), [t.grad for t in leaves] + [sh0.grad, shN.grad]))
+    (r0, g0), (r1, g1), (r2, g2) = results
+    assert r0.max() > 0.3 and torch.equal(r0, r1)
+    assert all(torch.equal(x, y) for x, y in zip(g0, g1, strict=True))
+    assert g1[-1][:, 8:].abs().max() == 0 and g1[-1][:, :8].abs().max() > 0  # bands 3: unused
+    torch.testing.assert_close(r1, r2, atol=1e-4, rtol=0)
+    for x, y in zip(g1, g2, strict=True):
+        torch.testing.assert_close(x, y, atol=2e-3, rtol=2e-3)
+    with pytest.raises(ValueError, match="set sh_degree"):
+        rasterize(means, quats, scales, opac, (colors[:, :1], colors[:, 1:]), *cams, W, H,
+                  backend="cpu")

@@ -175,3 +175,25 @@ def test_fused_shading_colours_only_the_gaussians_a_view_draws():
     torch.testing.assert_close(coeffs.grad, coeffs_ref.grad, atol=1e-5, rtol=0)
     torch.testing.assert_close(means.grad, means_ref.grad, atol=1e-5, rtol=0)
     assert coeffs.grad[never].abs().max() == 0 and means.grad[never].abs().max() == 0
+
+
+def test_with_the_fused_kernels_torch_runs_on_one_thread_and_the_kernels_on_the_rest():
+    """deterministic_torch(n, 'cpu'): the kernels take the n threads, torch's own operations
+    one (its idle workers would spin on the kernels' cores); both restored afterwards."""
+    from paradrive.devices import cpu_kernel_threads
+    from paradrive.gs.model import deterministic_torch
+
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with deterministic_torch(3, "cpu"):
+            assert torch.get_num_threads() == 1 and cpu_kernel_threads() == 3
+            scene = _leaves(make_scene(n=50, seed=31, sh_k=16))
+            r, a, _ = rasterize(*scene, *make_cameras(), W, H, sh_degree=3, backend="cpu")
+            (r.sum() + a.sum()).backward()
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2 and cpu_kernel_threads() == 2
+        with deterministic_torch(3, "torch"):
+            assert torch.get_num_threads() == 3 and cpu_kernel_threads() == 3
+    finally:
+        torch.set_num_threads(old)

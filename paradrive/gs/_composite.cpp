@@ -88,8 +88,16 @@ struct Entry {
     float col[MAX_CHANNELS];
 };
 
-inline Entry entry(const float* gauss, int64_t e, int F, int D) {
-    const float* g = gauss + e * F;
+// Rows of the table a list walks ahead of the one it reads: they are scattered over the table,
+// so they are fetched into the cache early.
+constexpr int PREFETCH = 4;
+
+inline void prefetch(const float* table, const int64_t* ids, int64_t e, int F) {
+    __builtin_prefetch(table + ids[e] * F);
+}
+
+inline Entry entry(const float* table, const int64_t* ids, int64_t e, int F, int D) {
+    const float* g = table + ids[e] * F;
     Entry r{g[0], g[1], g[2], g[3], g[4], g[5], {0.0f, 0.0f, 0.0f, 0.0f}};
     for (int k = 0; k < D; ++k) r.col[k] = g[6 + k];
     return r;
@@ -199,7 +207,8 @@ void parallel_tiles(int64_t n_tiles, int threads, Fn fn) {
     for (auto& th : pool) th.join();
 }
 
-void forward_tile(int64_t t, const float* gauss, int F, int64_t start, int64_t n, const Shape& s,
+void forward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,
+                  int64_t n, const Shape& s,
                   const float* bg, float* render, float* trans, int64_t* last) {
     TileBox box = tile_box(t, s);
     const int P = s.ts * s.chunks;
@@ -217,7 +226,8 @@ void forward_tile(int64_t t, const float* gauss, int F, int64_t start, int64_t n
             active += L - count(outside);
         }
     for (int64_t j = 0; j < n && active > 0; ++j) {
-        const Entry g = entry(gauss, start + j, F, s.D);
+        if (j + PREFETCH < n) prefetch(table, ids, start + j + PREFETCH, F);
+        const Entry g = entry(table, ids, start + j, F, s.D);
         int ya, yb, ca, cb;
         extent(g, 1, box.y_lo, box.y_hi, &ya, &yb);
         chunk_range(g, box.x_lo, box.x_hi, &ca, &cb);
@@ -268,7 +278,8 @@ inline double hsum(vf v) {
     return r;
 }
 
-void backward_tile(int64_t t, const float* gauss, int F, int64_t start, const Shape& s,
+void backward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,
+                   const Shape& s,
                    const float* bg, const float* trans, const int64_t* last,
                    const float* d_render, const float* d_alpha, double* grads) {
     TileBox box = tile_box(t, s);
@@ -295,7 +306,8 @@ void backward_tile(int64_t t, const float* gauss, int F, int64_t start, const Sh
     RowBuffers rows(P);
     for (int64_t j = walked - 1; j >= 0; --j) {
         const int64_t e = start + j;
-        const Entry g = entry(gauss, e, F, s.D);
+        if (j >= PREFETCH) prefetch(table, ids, e - PREFETCH, F);
+        const Entry g = entry(table, ids, e, F, s.D);
         const vi jj = splat_i(static_cast<int32_t>(j));
         vf g0 = splat(0.0f), g1 = g0, g2 = g0, g3 = g0, g4 = g0, g5 = g0;
         vf h[MAX_CHANNELS] = {g0, g0, g0, g0};
@@ -346,36 +358,620 @@ Shape shape(int ts, int tiles_x, int tiles_y, int C, int H, int W, int D) {
     return {ts, tiles_x, tiles_y, C, H, W, D, (ts + L - 1) / L};
 }
 
+// Tiles [x0, x1) x [y0, y1) of a box of half-size (rx, ry) around (mx, my), as
+// _cpu_kernels.tile_ranges computes them (the difference in float32, the division in double).
+struct TileRect {
+    int x0, x1, y0, y1;
+};
+
+inline int clamp_tile(double v, int n) {
+    return v < 0.0 ? 0 : (v > n ? n : static_cast<int>(v));
+}
+
+inline TileRect tile_rect(const float* means2d, const float* radii, int64_t g, int ts,
+                          int tiles_x, int tiles_y) {
+    const float mx = means2d[2 * g], my = means2d[2 * g + 1], rx = radii[2 * g],
+                ry = radii[2 * g + 1];
+    return {clamp_tile(std::floor(static_cast<double>(mx - rx) / ts), tiles_x),
+            clamp_tile(std::ceil(static_cast<double>(mx + rx) / ts), tiles_x),
+            clamp_tile(std::floor(static_cast<double>(my - ry) / ts), tiles_y),
+            clamp_tile(std::ceil(static_cast<double>(my + ry) / ts), tiles_y)};
+}
+
+// A float's bits as an unsigned key with the float's order (negatives flipped).
+inline uint32_t order_key(float f) {
+    uint32_t u;
+    std::memcpy(&u, &f, sizeof u);
+    return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+
+// ---- EWA projection (rasterize._project; the Numba kernels of _cpu_project.py), 16 Gaussians
+// per vector in float32. Small matrices are arrays of 9 row-major vectors.
+
+constexpr float RADIUS_SIGMAS = 3.33f;
+
+// Lane i of a field of row n0 + i of a (N, stride) array; rows past N repeat the last one.
+inline vf load_lanes(const float* a, int stride, int k, const int64_t* rows) {
+    vf v;
+    for (int i = 0; i < L; ++i) v[i] = a[rows[i] * stride + k];
+    return v;
+}
+
+inline vf vsqrt(vf x) {
+#if defined(__AVX512F__)
+    __m512 m;
+    std::memcpy(&m, &x, sizeof m);
+    m = _mm512_sqrt_ps(m);
+    std::memcpy(&x, &m, sizeof m);
+#else
+    for (int i = 0; i < L; ++i) x[i] = std::sqrt(x[i]);
+#endif
+    return x;
+}
+
+struct Lanes {
+    int64_t rows[L];
+    int valid;
+};
+
+// The rows of block b of a list of m ids (ids == nullptr: the ids 0..m-1).
+inline Lanes block_rows(const int64_t* ids, int64_t m, int64_t b) {
+    Lanes r;
+    r.valid = 0;
+    for (int i = 0; i < L; ++i) {
+        int64_t j = b * L + i;
+        if (j < m) r.valid = i + 1;
+        j = j < m ? j : m - 1;
+        r.rows[i] = ids ? ids[j] : j;
+    }
+    return r;
+}
+
+struct Quat {
+    vf w, x, y, z, norm;  // unit quaternion and the (floored) norm it was divided by
+};
+
+inline Quat unit_quat(const float* quats, const Lanes& g) {
+    vf w = load_lanes(quats, 4, 0, g.rows), x = load_lanes(quats, 4, 1, g.rows);
+    vf y = load_lanes(quats, 4, 2, g.rows), z = load_lanes(quats, 4, 3, g.rows);
+    vf n = vsqrt(w * w + x * x + y * y + z * z);
+    n = n > 1e-12f ? n : splat(1e-12f);
+    return {w / n, x / n, y / n, z / n, n};
+}
+
+inline void rotmat(const Quat& q, vf* R) {
+    const vf w = q.w, x = q.x, y = q.y, z = q.z;
+    R[0] = 1.0f - 2.0f * (y * y + z * z), R[1] = 2.0f * (x * y - w * z), R[2] = 2.0f * (x * z + w * y);
+    R[3] = 2.0f * (x * y + w * z), R[4] = 1.0f - 2.0f * (x * x + z * z), R[5] = 2.0f * (y * z - w * x);
+    R[6] = 2.0f * (x * z - w * y), R[7] = 2.0f * (y * z + w * x), R[8] = 1.0f - 2.0f * (x * x + y * y);
+}
+
+// cov3 = M M^T with M = R diag(s); M and R are returned too.
+inline void covariance(const float* quats, const float* scales, const Lanes& g, vf* cov, vf* M,
+                       vf* R, Quat* q) {
+    *q = unit_quat(quats, g);
+    rotmat(*q, R);
+    for (int j = 0; j < 3; ++j) {
+        const vf s = load_lanes(scales, 3, j, g.rows);
+        for (int i = 0; i < 3; ++i) M[3 * i + j] = R[3 * i + j] * s;
+    }
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            cov[3 * i + j] = M[3 * i] * M[3 * j] + M[3 * i + 1] * M[3 * j + 1] + M[3 * i + 2] * M[3 * j + 2];
+}
+
+// One camera's view of the lanes: camera-space mean and covariance, and the clamped Jacobian.
+struct Camera {
+    float Rv[9], t[3], fx, fy, cx, cy;
+};
+
+inline Camera camera(const float* viewmats, const float* Ks, int c) {
+    const float* v = viewmats + 16 * c;
+    const float* K = Ks + 9 * c;
+    Camera r;
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) r.Rv[3 * i + j] = v[4 * i + j];
+        r.t[i] = v[4 * i + 3];
+    }
+    r.fx = K[0], r.fy = K[4], r.cx = K[2], r.cy = K[5];
+    return r;
+}
+
+struct View {
+    vf mc[3], S[9], zs, tx, ty;
+    vi in_depth, clx, cly;
+};
+
+inline View view(const Camera& cam, const vf* mean, const vf* cov, int width, int height,
+                 float near, float far) {
+    View r;
+    for (int i = 0; i < 3; ++i)
+        r.mc[i] = cam.Rv[3 * i] * mean[0] + cam.Rv[3 * i + 1] * mean[1] + cam.Rv[3 * i + 2] * mean[2] + cam.t[i];
+    vf A[9];  // Rv cov
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            A[3 * i + j] = cam.Rv[3 * i] * cov[j] + cam.Rv[3 * i + 1] * cov[3 + j] + cam.Rv[3 * i + 2] * cov[6 + j];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            r.S[3 * i + j] = A[3 * i] * cam.Rv[3 * j] + A[3 * i + 1] * cam.Rv[3 * j + 1] + A[3 * i + 2] * cam.Rv[3 * j + 2];
+    r.in_depth = (r.mc[2] > near) & (r.mc[2] < far);
+    r.zs = r.in_depth ? r.mc[2] : splat(1.0f);
+    const vf rx = r.mc[0] / r.zs, ry = r.mc[1] / r.zs;
+    const float x_hi = (width - cam.cx) / cam.fx + 0.15f * width / cam.fx;
+    const float x_lo = -(cam.cx / cam.fx + 0.15f * width / cam.fx);
+    const float y_hi = (height - cam.cy) / cam.fy + 0.15f * height / cam.fy;
+    const float y_lo = -(cam.cy / cam.fy + 0.15f * height / cam.fy);
+    r.tx = rx < x_hi ? rx : splat(x_hi);
+    r.tx = r.tx > x_lo ? r.tx : splat(x_lo);
+    r.ty = ry < y_hi ? ry : splat(y_hi);
+    r.ty = r.ty > y_lo ? r.ty : splat(y_lo);
+    r.clx = r.tx != rx;
+    r.cly = r.ty != ry;
+    return r;
+}
+
+// (c00, c11, c01) of J S J^T, J = [[j00, 0, j02], [0, j11, j12]].
+inline void cov2(const vf* S, vf j00, vf j02, vf j11, vf j12, vf* c) {
+    c[0] = j00 * j00 * S[0] + 2.0f * j00 * j02 * S[2] + j02 * j02 * S[8];
+    c[1] = j11 * j11 * S[4] + 2.0f * j11 * j12 * S[5] + j12 * j12 * S[8];
+    c[2] = j00 * j11 * S[1] + j00 * j12 * S[2] + j02 * j11 * S[5] + j02 * j12 * S[8];
+}
+
+inline vf ceil_pos(vf x) {  // ceil of x >= 0, capped at 1e9
+    x = x < 1e9f ? x : splat(1e9f);
+    vf t = __builtin_convertvector(__builtin_convertvector(x, vi), vf);
+    return t < x ? t + 1.0f : t;
+}
+
+struct ProjectArgs {
+    const float *means, *quats, *scales, *opacities, *viewmats, *Ks;
+    int64_t N;
+    int C, width, height;
+    float near, far, eps2d, radius_clip;
+};
+
+void project_block(const ProjectArgs& a, int64_t b, float* means2d, float* conics, float* depths,
+                   int32_t* radii) {
+    const Lanes g = block_rows(nullptr, a.N, b);
+    vf cov[9], M[9], R[9], mean[3];
+    Quat q;
+    covariance(a.quats, a.scales, g, cov, M, R, &q);
+    for (int k = 0; k < 3; ++k) mean[k] = load_lanes(a.means, 3, k, g.rows);
+    const vf op = load_lanes(a.opacities, 1, 0, g.rows);
+    vf extend;
+    for (int i = 0; i < L; ++i) {
+        const float ratio = op[i] / ALPHA_MIN > 1.0f ? op[i] / ALPHA_MIN : 1.0f;
+        const float e = std::sqrt(2.0f * std::log(ratio));
+        extend[i] = e < RADIUS_SIGMAS ? e : RADIUS_SIGMAS;
+    }
+    for (int c = 0; c < a.C; ++c) {
+        const Camera cam = camera(a.viewmats, a.Ks, c);
+        const View v = view(cam, mean, cov, a.width, a.height, a.near, a.far);
+        vf c2[3];
+        cov2(v.S, cam.fx / v.zs, -cam.fx * v.tx / v.zs, cam.fy / v.zs, -cam.fy * v.ty / v.zs, c2);
+        const vf c00 = c2[0] + a.eps2d, c11 = c2[1] + a.eps2d, c01 = c2[2];
+        const vf det = c00 * c11 - c01 * c01;
+        const vf d = det > 1e-10f ? det : splat(1e-10f);
+        const vf u = cam.fx * v.mc[0] / v.zs + cam.cx, w = cam.fy * v.mc[1] / v.zs + cam.cy;
+        const vf rx = ceil_pos(extend * vsqrt(c00 > 0.0f ? c00 : splat(0.0f))),
+                 ry = ceil_pos(extend * vsqrt(c11 > 0.0f ? c11 : splat(0.0f)));
+        const vi ok = v.in_depth & (det > 0.0f) & (op >= ALPHA_MIN) & (rx > 0.0f) & (ry > 0.0f) &
+                      ~((rx <= a.radius_clip) & (ry <= a.radius_clip)) & (u + rx > 0.0f) &
+                      (u - rx < static_cast<float>(a.width)) & (w + ry > 0.0f) &
+                      (w - ry < static_cast<float>(a.height));
+        const vf conic0 = c11 / d, conic1 = -c01 / d, conic2 = c00 / d;
+        for (int i = 0; i < g.valid; ++i) {
+            const int64_t o = c * a.N + b * L + i;
+            means2d[2 * o] = u[i], means2d[2 * o + 1] = w[i];
+            conics[3 * o] = conic0[i], conics[3 * o + 1] = conic1[i], conics[3 * o + 2] = conic2[i];
+            depths[o] = v.mc[2][i];
+            radii[2 * o] = ok[i] ? static_cast<int32_t>(rx[i]) : 0;
+            radii[2 * o + 1] = ok[i] ? static_cast<int32_t>(ry[i]) : 0;
+        }
+    }
+}
+
+// Lanes where a camera passes a gradient (Numba's _no_gradient negated).
+inline vi has_gradient(const float* v2d, const float* v_conic, const float* v_depth, int64_t N,
+                       int c, const Lanes& g) {
+    vi r = splat_i(0);
+    for (int i = 0; i < L; ++i) {
+        const int64_t o = c * N + g.rows[i];
+        const bool used = v2d[2 * o] != 0.0f || v2d[2 * o + 1] != 0.0f || v_conic[3 * o] != 0.0f ||
+                          v_conic[3 * o + 1] != 0.0f || v_conic[3 * o + 2] != 0.0f ||
+                          v_depth[o] != 0.0f;
+        r[i] = used ? -1 : 0;
+    }
+    return r;
+}
+
+inline vf lane_field(const float* a, int stride, int k, int64_t N, int c, const Lanes& g) {
+    vf v;
+    for (int i = 0; i < L; ++i) v[i] = a[(c * N + g.rows[i]) * stride + k];
+    return v;
+}
+
+// Gradients of the lanes listed in block b of ids (Gaussians some camera passes a gradient to):
+// cameras summed in order, as _cpu_project._gaussian_vjp.
+void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m, int64_t b,
+                            const float* v2d, const float* v_conic, const float* v_depth,
+                            float* v_means, float* v_quats, float* v_scales) {
+    const Lanes g = block_rows(ids, m, b);
+    vf cov[9], M[9], R[9], mean[3];
+    Quat q;
+    covariance(a.quats, a.scales, g, cov, M, R, &q);
+    for (int k = 0; k < 3; ++k) mean[k] = load_lanes(a.means, 3, k, g.rows);
+    const vf zero = splat(0.0f);
+    vf vm[3] = {zero, zero, zero};
+    vf vc[9];
+    for (auto& x : vc) x = zero;
+    for (int c = 0; c < a.C; ++c) {
+        const vi used = has_gradient(v2d, v_conic, v_depth, a.N, c, g);
+        if (!any(used)) continue;
+        const Camera cam = camera(a.viewmats, a.Ks, c);
+        const View v = view(cam, mean, cov, a.width, a.height, a.near, a.far);
+        const float fx = cam.fx, fy = cam.fy;
+        const vf r00 = fx / v.zs, r02 = -fx * v.tx / v.zs, r11 = fy / v.zs, r12 = -fy * v.ty / v.zs;
+        vf c2[3];
+        cov2(v.S, r00, r02, r11, r12, c2);
+        // the conic's gradient back to J S J^T (c00 and c11 with eps2d)
+        const vf c00 = c2[0] + a.eps2d, c11 = c2[1] + a.eps2d, c01 = c2[2];
+        const vf det = c00 * c11 - c01 * c01;
+        const vf d = det > 1e-10f ? det : splat(1e-10f);
+        const vf va = lane_field(v_conic, 3, 0, a.N, c, g), vb = lane_field(v_conic, 3, 1, a.N, c, g),
+                 vcn = lane_field(v_conic, 3, 2, a.N, c, g);
+        vf g00 = vcn / d, g11 = va / d, g01 = -vb / d;
+        const vf v_d = (det > 1e-10f) ? -(va * c11 - vb * c01 + vcn * c00) / (d * d) : zero;
+        g00 += v_d * c11;
+        g11 += v_d * c00;
+        g01 = 0.5f * (g01 - 2.0f * v_d * c01);
+        // v_S = J^T G J, J rows r0 = (r00, 0, r02), r1 = (0, r11, r12)
+        const vf r0[3] = {r00, zero, r02}, r1[3] = {zero, r11, r12};
+        vf vS[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                vS[3 * i + j] = g00 * r0[i] * r0[j] + g01 * (r0[i] * r1[j] + r1[i] * r0[j]) +
+                                g11 * r1[i] * r1[j];
+        vf u0[3], u1[3];  // S r0, S r1
+        for (int i = 0; i < 3; ++i) {
+            u0[i] = v.S[3 * i] * r00 + v.S[3 * i + 2] * r02;
+            u1[i] = v.S[3 * i + 1] * r11 + v.S[3 * i + 2] * r12;
+        }
+        const vf vj00 = 2.0f * (g00 * u0[0] + g01 * u1[0]), vj02 = 2.0f * (g00 * u0[2] + g01 * u1[2]);
+        const vf vj11 = 2.0f * (g01 * u0[1] + g11 * u1[1]), vj12 = 2.0f * (g01 * u0[2] + g11 * u1[2]);
+        const vf z2 = v.zs * v.zs;
+        const vf v2x = lane_field(v2d, 2, 0, a.N, c, g), v2y = lane_field(v2d, 2, 1, a.N, c, g);
+        vf v_x = v2x * fx / v.zs, v_y = v2y * fy / v.zs;
+        vf v_zs = -(v2x * fx * v.mc[0] + v2y * fy * v.mc[1]) / z2;
+        v_zs += (-vj00 * fx - vj11 * fy + vj02 * fx * v.tx + vj12 * fy * v.ty) / z2;
+        v_x = v.clx ? v_x : v_x - vj02 * fx / z2;  // tx = x / zs where not clamped
+        v_zs = v.clx ? v_zs : v_zs + vj02 * fx * v.tx / z2;
+        v_y = v.cly ? v_y : v_y - vj12 * fy / z2;
+        v_zs = v.cly ? v_zs : v_zs + vj12 * fy * v.ty / z2;
+        const vf v_z = lane_field(v_depth, 1, 0, a.N, c, g) + (v.in_depth ? v_zs : zero);
+        const vf vmc[3] = {v_x, v_y, v_z};
+        const float* Rv = cam.Rv;
+        for (int k = 0; k < 3; ++k)  // Rv^T vmc
+            vm[k] += used ? Rv[k] * vmc[0] + Rv[3 + k] * vmc[1] + Rv[6 + k] * vmc[2] : zero;
+        vf B[9];  // v_S Rv
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                B[3 * i + j] = vS[3 * i] * Rv[j] + vS[3 * i + 1] * Rv[3 + j] + vS[3 * i + 2] * Rv[6 + j];
+        for (int i = 0; i < 3; ++i)  // Rv^T B
+            for (int j = 0; j < 3; ++j)
+                vc[3 * i + j] += used ? Rv[i] * B[j] + Rv[3 + i] * B[3 + j] + Rv[6 + i] * B[6 + j] : zero;
+    }
+    vf vs[9], vM[9], vR[9], vsc[3];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) vs[3 * i + j] = vc[3 * i + j] + vc[3 * j + i];
+    for (int i = 0; i < 3; ++i)  // d(M M^T) = (V + V^T) M
+        for (int j = 0; j < 3; ++j)
+            vM[3 * i + j] = vs[3 * i] * M[j] + vs[3 * i + 1] * M[3 + j] + vs[3 * i + 2] * M[6 + j];
+    for (int j = 0; j < 3; ++j) {
+        const vf s = load_lanes(a.scales, 3, j, g.rows);
+        vsc[j] = vM[j] * R[j] + vM[3 + j] * R[3 + j] + vM[6 + j] * R[6 + j];
+        for (int i = 0; i < 3; ++i) vR[3 * i + j] = vM[3 * i + j] * s;
+    }
+    const vf w = q.w, x = q.x, y = q.y, z = q.z;
+    const vf g0 = 2.0f * (-z * vR[1] + y * vR[2] + z * vR[3] - x * vR[5] - y * vR[6] + x * vR[7]);
+    const vf g1 = 2.0f * (y * vR[1] + z * vR[2] + y * vR[3] - 2.0f * x * vR[4] - w * vR[5] +
+                          z * vR[6] + w * vR[7] - 2.0f * x * vR[8]);
+    const vf g2 = 2.0f * (-2.0f * y * vR[0] + x * vR[1] + w * vR[2] + x * vR[3] + z * vR[5] -
+                          w * vR[6] + z * vR[7] - 2.0f * y * vR[8]);
+    const vf g3 = 2.0f * (-2.0f * z * vR[0] - w * vR[1] + x * vR[2] + w * vR[3] - 2.0f * z * vR[4] +
+                          y * vR[5] + x * vR[6] + y * vR[7]);
+    // through q / max(|q|, 1e-12): the floor passes no gradient to the norm
+    const vf dot = q.norm > 1e-12f ? w * g0 + x * g1 + y * g2 + z * g3 : zero;
+    const vf vq[4] = {(g0 - w * dot) / q.norm, (g1 - x * dot) / q.norm, (g2 - y * dot) / q.norm,
+                      (g3 - z * dot) / q.norm};
+    for (int i = 0; i < g.valid; ++i) {
+        const int64_t n = g.rows[i];
+        for (int k = 0; k < 3; ++k) v_means[3 * n + k] = vm[k][i], v_scales[3 * n + k] = vsc[k][i];
+        for (int k = 0; k < 4; ++k) v_quats[4 * n + k] = vq[k][i];
+    }
+}
+
+// ---- View-dependent colour from spherical harmonics (sh.eval_sh; _cpu_sh.py), one Gaussian at a
+// time in float32. The coefficients come in the fit's two parts: c0 (N, 1, 3) and cN (N, KN, 3)
+// holding bands 1..3 (KN = K - 1).
+
+constexpr float SH_C0 = 0.28209479177387814f, SH_C1 = 0.4886025119029199f;
+constexpr float SH_C2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f,
+                            -1.0925484305920792f, 0.5462742152960396f};
+constexpr float SH_C3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f,
+                            0.3731763325901154f, -0.4570457994644658f, 1.445305721320277f,
+                            -0.5900435899266435f};
+constexpr int64_t SH_CHUNK = 256;  // Gaussians a thread takes at a time
+
+inline int sh_basis(int degree, float x, float y, float z, float* b) {
+    b[0] = SH_C0;
+    if (degree < 1) return 1;
+    b[1] = -SH_C1 * y, b[2] = SH_C1 * z, b[3] = -SH_C1 * x;
+    if (degree < 2) return 4;
+    const float xx = x * x, yy = y * y, zz = z * z;
+    b[4] = SH_C2[0] * x * y, b[5] = SH_C2[1] * y * z, b[6] = SH_C2[2] * (2 * zz - xx - yy);
+    b[7] = SH_C2[3] * x * z, b[8] = SH_C2[4] * (xx - yy);
+    if (degree < 3) return 9;
+    b[9] = SH_C3[0] * y * (3 * xx - yy), b[10] = SH_C3[1] * x * y * z;
+    b[11] = SH_C3[2] * y * (4 * zz - xx - yy), b[12] = SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy);
+    b[13] = SH_C3[4] * x * (4 * zz - xx - yy), b[14] = SH_C3[5] * z * (xx - yy);
+    b[15] = SH_C3[6] * x * (xx - 3 * yy);
+    return 16;
+}
+
+// Gradient of sum_k w[k] b_k with respect to the unit direction.
+inline void sh_basis_vjp(int degree, float x, float y, float z, const float* w, float* g) {
+    float gx = 0, gy = 0, gz = 0;
+    if (degree >= 1) gx = -SH_C1 * w[3], gy = -SH_C1 * w[1], gz = SH_C1 * w[2];
+    if (degree >= 2) {
+        gx += SH_C2[0] * y * w[4] - 2 * SH_C2[2] * x * w[6] + SH_C2[3] * z * w[7] + 2 * SH_C2[4] * x * w[8];
+        gy += SH_C2[0] * x * w[4] + SH_C2[1] * z * w[5] - 2 * SH_C2[2] * y * w[6] - 2 * SH_C2[4] * y * w[8];
+        gz += SH_C2[1] * y * w[5] + 4 * SH_C2[2] * z * w[6] + SH_C2[3] * x * w[7];
+    }
+    if (degree >= 3) {
+        const float xx = x * x, yy = y * y, zz = z * z;
+        gx += 6 * SH_C3[0] * x * y * w[9] + SH_C3[1] * y * z * w[10] - 2 * SH_C3[2] * x * y * w[11] -
+              6 * SH_C3[3] * x * z * w[12] + SH_C3[4] * (4 * zz - 3 * xx - yy) * w[13] +
+              2 * SH_C3[5] * x * z * w[14] + 3 * SH_C3[6] * (xx - yy) * w[15];
+        gy += 3 * SH_C3[0] * (xx - yy) * w[9] + SH_C3[1] * x * z * w[10] +
+              SH_C3[2] * (4 * zz - xx - 3 * yy) * w[11] - 6 * SH_C3[3] * y * z * w[12] -
+              2 * SH_C3[4] * x * y * w[13] - 2 * SH_C3[5] * y * z * w[14] - 6 * SH_C3[6] * x * y * w[15];
+        gz += SH_C3[1] * x * y * w[10] + 8 * SH_C3[2] * y * z * w[11] +
+              SH_C3[3] * (6 * zz - 3 * xx - 3 * yy) * w[12] + 8 * SH_C3[4] * x * z * w[13] +
+              SH_C3[5] * (xx - yy) * w[14];
+    }
+    g[0] = gx, g[1] = gy, g[2] = gz;
+}
+
+// Unit direction from the camera centre to the mean (norm floored at 1e-12); returns the norm.
+inline float sh_dir(const float* mean, const float* campos, float* d) {
+    const float dx = mean[0] - campos[0], dy = mean[1] - campos[1], dz = mean[2] - campos[2];
+    float norm = std::sqrt(dx * dx + dy * dy + dz * dz);
+    norm = norm > 1e-12f ? norm : 1e-12f;
+    d[0] = dx / norm, d[1] = dy / norm, d[2] = dz / norm;
+    return norm;
+}
+
+
 }  // namespace
 
 extern "C" {
 
-// render (C, H, W, D), trans (C, H, W) and last (C, H, W) as composite_forward fills them.
-int pd_composite_forward(const float* gauss, int F, const int64_t* offsets, const int64_t* counts,
-                         int64_t n_tiles, int ts, int tiles_x, int tiles_y, int C, int H, int W,
-                         int D, const float* bg, float* render, float* trans, int64_t* last,
-                         int threads) {
+// render (C, H, W, D), trans (C, H, W) and last (C, H, W) as composite_forward fills them;
+// list entry e is row ids[e] of table (C*N, 6 + D).
+int pd_composite_forward(const float* table, int F, const int64_t* ids, const int64_t* offsets,
+                         const int64_t* counts, int64_t n_tiles, int ts, int tiles_x,
+                         int tiles_y, int C, int H, int W, int D, const float* bg, float* render,
+                         float* trans, int64_t* last, int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
-        forward_tile(t, gauss, F, offsets[t], counts[t], s, bg, render, trans, last);
+        forward_tile(t, table, ids, F, offsets[t], counts[t], s, bg, render, trans, last);
     });
     return 0;
 }
 
 // grads (n_isects, F) per list entry, as composite_backward returns them; entries that no
 // pixel reached are left as they are (the caller passes zeros).
-int pd_composite_backward(const float* gauss, int F, const int64_t* offsets, int64_t n_tiles,
-                          int ts, int tiles_x, int tiles_y, int C, int H, int W, int D,
-                          const float* bg, const float* trans, const int64_t* last,
+int pd_composite_backward(const float* table, int F, const int64_t* ids, const int64_t* offsets,
+                          int64_t n_tiles, int ts, int tiles_x, int tiles_y, int C, int H,
+                          int W, int D, const float* bg, const float* trans, const int64_t* last,
                           const float* d_render, const float* d_alpha, double* grads,
                           int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
-        backward_tile(t, gauss, F, offsets[t], s, bg, trans, last, d_render, d_alpha, grads);
+        backward_tile(t, table, ids, F, offsets[t], s, bg, trans, last, d_render, d_alpha, grads);
     });
     return 0;
+}
+
+// First half of the tile binning. order (n,) gets the flat ids of the visible Gaussians (both
+// radii > 0) sorted front to back by depth, ties by id (a stable radix sort on the float bits);
+// counts (n_tiles,) gets each tile's list length. Returns the number of visible Gaussians.
+int64_t pd_bin_count(const float* depths, const float* means2d, const float* radii, int64_t n,
+                     int64_t n_per_cam, int ts, int tiles_x, int tiles_y, int64_t* order,
+                     int64_t* counts) {
+    const int64_t per_cam_tiles = static_cast<int64_t>(tiles_x) * tiles_y;
+    std::vector<uint32_t> keys;
+    std::vector<int64_t> idx;
+    for (int64_t cam = 0, g = 0; g < n; ++cam)
+        for (int64_t i = 0; i < n_per_cam && g < n; ++i, ++g) {
+            if (!(radii[2 * g] > 0.0f && radii[2 * g + 1] > 0.0f)) continue;
+            const TileRect r = tile_rect(means2d, radii, g, ts, tiles_x, tiles_y);
+            const int64_t base = cam * per_cam_tiles;
+            for (int ty = r.y0; ty < r.y1; ++ty)
+                for (int tx = r.x0; tx < r.x1; ++tx)
+                    ++counts[base + static_cast<int64_t>(ty) * tiles_x + tx];
+            keys.push_back(order_key(depths[g]));
+            idx.push_back(g);
+        }
+    const int64_t m = static_cast<int64_t>(idx.size());
+    std::vector<uint32_t> keys2(m);
+    std::vector<int64_t> idx2(m);
+    for (int shift = 0; shift < 32; shift += 8) {  // least significant byte first: stable
+        int64_t pos[257] = {0};
+        for (int64_t i = 0; i < m; ++i) ++pos[((keys[i] >> shift) & 255u) + 1];
+        if (m == 0 || pos[((keys[0] >> shift) & 255u) + 1] == m) continue;  // one value: as is
+        for (int b = 0; b < 256; ++b) pos[b + 1] += pos[b];
+        for (int64_t i = 0; i < m; ++i) {
+            const int64_t k = pos[(keys[i] >> shift) & 255u]++;
+            keys2[k] = keys[i];
+            idx2[k] = idx[i];
+        }
+        keys.swap(keys2);
+        idx.swap(idx2);
+    }
+    std::memcpy(order, idx.data(), static_cast<size_t>(m) * sizeof(int64_t));
+    return m;
+}
+
+// Second half: ids (n_isects,) grouped by tile in the order of order (m,); fill (n_tiles,)
+// starts as the tiles' offsets and is advanced in place.
+void pd_bin_fill(const int64_t* order, int64_t m, const float* means2d, const float* radii,
+                 int64_t n_per_cam, int ts, int tiles_x, int tiles_y, int64_t* fill,
+                 int64_t* ids) {
+    const int64_t per_cam_tiles = static_cast<int64_t>(tiles_x) * tiles_y;
+    for (int64_t i = 0; i < m; ++i) {
+        const int64_t g = order[i];
+        const TileRect r = tile_rect(means2d, radii, g, ts, tiles_x, tiles_y);
+        const int64_t base = (n_per_cam > g ? 0 : g / n_per_cam) * per_cam_tiles;
+        for (int ty = r.y0; ty < r.y1; ++ty)
+            for (int tx = r.x0; tx < r.x1; ++tx)
+                ids[fill[base + static_cast<int64_t>(ty) * tiles_x + tx]++] = g;
+    }
+}
+
+// out (n, F) float32: the rows of grads (n_isects, F) summed per Gaussian id, in list order and
+// in double (as _cpu_kernels.sum_by_gaussian). Each thread owns a range of ids and walks the
+// whole list, so the sums do not depend on the thread count.
+void pd_sum_by_gaussian(const double* grads, const int64_t* ids, int64_t n_isects, int F,
+                        int64_t n, float* out, int threads) {
+    const int64_t parts = threads > 1 ? threads : 1;
+    parallel_tiles(parts, threads, [&](int64_t part) {
+        const int64_t lo = n * part / parts, hi = n * (part + 1) / parts;
+        std::vector<double> acc(static_cast<size_t>((hi - lo) * F), 0.0);
+        for (int64_t e = 0; e < n_isects; ++e) {
+            const int64_t g = ids[e];
+            if (g < lo || g >= hi) continue;
+            double* a = acc.data() + (g - lo) * F;
+            const double* v = grads + e * F;
+            for (int k = 0; k < F; ++k) a[k] += v[k];
+        }
+        for (int64_t i = 0; i < (hi - lo) * F; ++i) out[lo * F + i] = static_cast<float>(acc[i]);
+    });
+}
+
+}  // extern "C"
+
+extern "C" {
+
+// means2d (C, N, 2), conics (C, N, 3), depths (C, N) and radii (C, N, 2) as
+// _cpu_project.project_forward fills them, in float32.
+void pd_project_forward(const float* means, const float* quats, const float* scales,
+                        const float* opacities, const float* viewmats, const float* Ks, int64_t N,
+                        int C, int width, int height, float near, float far, float eps2d,
+                        float radius_clip, float* means2d, float* conics, float* depths,
+                        int32_t* radii, int threads) {
+    const ProjectArgs a{means, quats, scales, opacities, viewmats, Ks, N, C, width, height,
+                        near, far, eps2d, radius_clip};
+    const int64_t blocks = (N + L - 1) / L;
+    parallel_tiles(blocks, threads, [&](int64_t b) {
+        project_block(a, b, means2d, conics, depths, radii);
+    });
+}
+
+// v_means (N, 3), v_quats (N, 4), v_scales (N, 3), zero-filled by the caller, get the gradients
+// of the Gaussians some camera passes a gradient to (v_means2d (C, N, 2), v_conics (C, N, 3),
+// v_depths (C, N)), as _cpu_project.project_backward computes them.
+void pd_project_backward(const float* means, const float* quats, const float* scales,
+                         const float* viewmats, const float* Ks, int64_t N, int C, int width,
+                         int height, float near, float far, float eps2d, const float* v2d,
+                         const float* v_conic, const float* v_depth, float* v_means,
+                         float* v_quats, float* v_scales, int threads) {
+    const ProjectArgs a{means, quats, scales, nullptr, viewmats, Ks, N, C, width, height,
+                        near, far, eps2d, 0.0f};
+    std::vector<int64_t> ids;
+    for (int64_t n = 0; n < N; ++n)
+        for (int c = 0; c < C; ++c) {
+            const int64_t o = c * N + n;
+            if (v2d[2 * o] != 0.0f || v2d[2 * o + 1] != 0.0f || v_conic[3 * o] != 0.0f ||
+                v_conic[3 * o + 1] != 0.0f || v_conic[3 * o + 2] != 0.0f || v_depth[o] != 0.0f) {
+                ids.push_back(n);
+                break;
+            }
+        }
+    const int64_t m = static_cast<int64_t>(ids.size());
+    const int64_t blocks = (m + L - 1) / L;
+    parallel_tiles(blocks, threads, [&](int64_t b) {
+        project_backward_block(a, ids.data(), m, b, v2d, v_conic, v_depth, v_means, v_quats,
+                               v_scales);
+    });
+}
+
+}  // extern "C"
+
+extern "C" {
+
+// colors (C, N, 3) = max(SH + 0.5, 0) where visible (C, N) is set, 0 elsewhere.
+void pd_sh_forward(int degree, const float* means, const float* c0, const float* cN, int KN,
+                   const float* campos, int64_t N, int C, const uint8_t* visible, float* colors,
+                   int threads) {
+    parallel_tiles((N + SH_CHUNK - 1) / SH_CHUNK, threads, [&](int64_t chunk) {
+        float b[16], d[3];
+        const int64_t hi = (chunk + 1) * SH_CHUNK < N ? (chunk + 1) * SH_CHUNK : N;
+        for (int64_t n = chunk * SH_CHUNK; n < hi; ++n)
+            for (int c = 0; c < C; ++c) {
+                float* out = colors + (c * N + n) * 3;
+                if (!visible[c * N + n]) {
+                    out[0] = out[1] = out[2] = 0.0f;
+                    continue;
+                }
+                sh_dir(means + 3 * n, campos + 3 * c, d);
+                const int nb = sh_basis(degree, d[0], d[1], d[2], b);
+                const float* q0 = c0 + 3 * n;
+                const float* qN = cN + n * KN * 3 - 3;  // row k of band 1..3 at qN + 3 k
+                float v[3] = {0.5f + b[0] * q0[0], 0.5f + b[0] * q0[1], 0.5f + b[0] * q0[2]};
+                for (int k = 1; k < nb; ++k)
+                    for (int ch = 0; ch < 3; ++ch) v[ch] += b[k] * qN[3 * k + ch];
+                for (int ch = 0; ch < 3; ++ch) out[ch] = v[ch] > 0.0f ? v[ch] : 0.0f;
+            }
+    });
+}
+
+// v_means (N, 3), v_c0 (N, 1, 3) and v_cN (N, KN, 3), zero-filled by the caller, get the
+// gradients from v_colors (C, N, 3); colors are the forward's (the clamp at 0 passes none).
+void pd_sh_backward(int degree, const float* means, const float* c0, const float* cN, int KN,
+                    const float* campos, int64_t N, int C, const float* colors,
+                    const float* v_colors, float* v_means, float* v_c0, float* v_cN,
+                    int threads) {
+    parallel_tiles((N + SH_CHUNK - 1) / SH_CHUNK, threads, [&](int64_t chunk) {
+        float b[16], w[16], d[3], g[3];
+        const int64_t hi = (chunk + 1) * SH_CHUNK < N ? (chunk + 1) * SH_CHUNK : N;
+        for (int64_t n = chunk * SH_CHUNK; n < hi; ++n)
+            for (int c = 0; c < C; ++c) {
+                const float* vc = v_colors + (c * N + n) * 3;
+                if (vc[0] == 0.0f && vc[1] == 0.0f && vc[2] == 0.0f) continue;  // outside the view
+                const float* col = colors + (c * N + n) * 3;
+                const float gc[3] = {col[0] > 0.0f ? vc[0] : 0.0f, col[1] > 0.0f ? vc[1] : 0.0f,
+                                     col[2] > 0.0f ? vc[2] : 0.0f};
+                const float norm = sh_dir(means + 3 * n, campos + 3 * c, d);
+                const int nb = sh_basis(degree, d[0], d[1], d[2], b);
+                const float* q0 = c0 + 3 * n;
+                const float* qN = cN + n * KN * 3 - 3;  // row k of band 1..3 at qN + 3 k
+                float* v0 = v_c0 + 3 * n;
+                float* vN = v_cN + n * KN * 3 - 3;
+                w[0] = q0[0] * gc[0] + q0[1] * gc[1] + q0[2] * gc[2];
+                for (int ch = 0; ch < 3; ++ch) v0[ch] += b[0] * gc[ch];
+                for (int k = 1; k < nb; ++k) {
+                    w[k] = qN[3 * k] * gc[0] + qN[3 * k + 1] * gc[1] + qN[3 * k + 2] * gc[2];
+                    for (int ch = 0; ch < 3; ++ch) vN[3 * k + ch] += b[k] * gc[ch];
+                }
+                sh_basis_vjp(degree, d[0], d[1], d[2], w, g);
+                const float dot = norm > 1e-12f ? d[0] * g[0] + d[1] * g[1] + d[2] * g[2] : 0.0f;
+                for (int k = 0; k < 3; ++k) v_means[3 * n + k] += (g[k] - d[k] * dot) / norm;
+            }
+    });
 }
 
 }  // extern "C"

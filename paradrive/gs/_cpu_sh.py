@@ -4,7 +4,8 @@
 gradient to the coefficients and the means. One thread owns a Gaussian and walks the cameras in
 order, so results do not depend on the thread count.
 
-Shapes: means (N, 3), coeffs (N, K, 3), campos (C, 3) camera centres; colours (C, N, 3).
+Shapes: means (N, 3), campos (C, 3) camera centres, colours (C, N, 3); the coefficients in
+the fit's two parts, c0 (N, 1, 3) (band 0) and cN (N, K - 1, 3) (bands 1..3).
 """
 
 from __future__ import annotations
@@ -74,23 +75,28 @@ def _unit_dir(mean: np.ndarray, campos: np.ndarray) -> tuple[float, float, float
     return dx / norm, dy / norm, dz / norm, norm
 
 
+@njit(cache=True, inline="always")
+def _coef(c0: np.ndarray, cN: np.ndarray, n: int, k: int, ch: int) -> float:
+    return c0[n, 0, ch] if k == 0 else cN[n, k - 1, ch]
+
+
 CHUNK = 256  # Gaussians a task walks with one scratch basis (an allocation per Gaussian costs more)
 
 
 @njit(cache=True, parallel=True)
-def sh_forward(degree: int, means: np.ndarray, coeffs: np.ndarray, campos: np.ndarray,
-               visible: np.ndarray, colors: np.ndarray) -> None:
+def sh_forward(degree: int, means: np.ndarray, c0: np.ndarray, cN: np.ndarray,
+               campos: np.ndarray, visible: np.ndarray, colors: np.ndarray) -> None:
     """Fill colors (C, N, 3) = max(SH + 0.5, 0) where ``visible`` (C, N) is set, 0 elsewhere
     (the compositor reads no colour of a Gaussian it does not draw)."""
     N = means.shape[0]
     for chunk in prange((N + CHUNK - 1) // CHUNK):
         basis = np.empty(16)
         for n in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
-            _sh_one(n, degree, means, coeffs, campos, visible, colors, basis)
+            _sh_one(n, degree, means, c0, cN, campos, visible, colors, basis)
 
 
 @njit(cache=True, inline="always")
-def _sh_one(n: int, degree: int, means, coeffs, campos, visible, colors, basis) -> None:
+def _sh_one(n: int, degree: int, means, c0, cN, campos, visible, colors, basis) -> None:
     nb = (degree + 1) ** 2
     for c in range(campos.shape[0]):
         if not visible[c, n]:
@@ -101,13 +107,13 @@ def _sh_one(n: int, degree: int, means, coeffs, campos, visible, colors, basis) 
         for ch in range(3):
             v = 0.5
             for k in range(nb):
-                v += basis[k] * coeffs[n, k, ch]
+                v += basis[k] * _coef(c0, cN, n, k, ch)
             colors[c, n, ch] = max(v, 0.0)
 
 
 @njit(cache=True, inline="always")
-def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_means,
-                v_coeffs, basis, w) -> None:
+def _sh_vjp_one(n: int, degree: int, means, c0, cN, campos, colors, v_colors, v_means, v_c0,
+                v_cN, basis, w) -> None:
     nb = (degree + 1) ** 2
     for c in range(campos.shape[0]):
         if v_colors[c, n, 0] == 0.0 and v_colors[c, n, 1] == 0.0 and v_colors[c, n, 2] == 0.0:
@@ -117,9 +123,11 @@ def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_
         w[:] = 0.0
         for ch in range(3):
             g = v_colors[c, n, ch] if colors[c, n, ch] > 0.0 else 0.0  # clamp at 0
-            for k in range(nb):
-                v_coeffs[n, k, ch] += basis[k] * g
-                w[k] += coeffs[n, k, ch] * g
+            v_c0[n, 0, ch] += basis[0] * g
+            w[0] += c0[n, 0, ch] * g
+            for k in range(1, nb):
+                v_cN[n, k - 1, ch] += basis[k] * g
+                w[k] += cN[n, k - 1, ch] * g
         gx, gy, gz = _basis_vjp(degree, x, y, z, w)
         dot = x * gx + y * gy + z * gz if norm > 1e-12 else 0.0
         v_means[n, 0] += (gx - x * dot) / norm
@@ -128,15 +136,12 @@ def _sh_vjp_one(n: int, degree: int, means, coeffs, campos, colors, v_colors, v_
 
 
 @njit(cache=True, parallel=True)
-def sh_backward(degree: int, means, coeffs, campos, colors, v_colors):
-    """(v_means (N, 3) float64, v_coeffs (N, K, 3) float32) from v_colors (C, N, 3); v_coeffs
-    is the larger by far, so it is accumulated in the dtype torch takes it in."""
+def sh_backward(degree: int, means, c0, cN, campos, colors, v_colors, v_means, v_c0, v_cN):
+    """Fill v_means (N, 3), v_c0 and v_cN (zeros, the parts' shapes, float32) from v_colors
+    (C, N, 3); the coefficients' gradient is accumulated in the dtype torch takes it in."""
     N = means.shape[0]
-    v_means = np.zeros(means.shape)
-    v_coeffs = np.zeros(coeffs.shape, dtype=np.float32)
     for chunk in prange((N + CHUNK - 1) // CHUNK):
         basis, w = np.empty(16), np.zeros(16)
         for n in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
-            _sh_vjp_one(n, degree, means, coeffs, campos, colors, v_colors, v_means, v_coeffs,
+            _sh_vjp_one(n, degree, means, c0, cN, campos, colors, v_colors, v_means, v_c0, v_cN,
                         basis, w)
-    return v_means, v_coeffs

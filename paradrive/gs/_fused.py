@@ -1,6 +1,7 @@
 """Torch side of the fused CPU rasterizer: tile binning and a compositing autograd function whose
 work runs in the vectorised kernels of ``_composite.cpp`` (built by ``_native``; the Numba kernels
-of ``_cpu_kernels`` where no compiler is found), on ``torch.get_num_threads()`` threads.
+of ``_cpu_kernels`` where no compiler is found), on ``devices.cpu_kernel_threads()`` threads
+(torch's count unless set).
 
 Same interface as ``_tiles.bin_gaussians`` / ``_tiles.composite``, so the two compositors are
 interchangeable behind ``rasterize``.
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from paradrive.devices import cpu_kernel_threads
 from paradrive.gs import _cpu_kernels as K
 from paradrive.gs import _cpu_project as P
 from paradrive.gs import _cpu_sh as S
@@ -28,10 +30,10 @@ __all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "shade_fus
 
 @contextmanager
 def _kernel_threads() -> Iterator[None]:
-    """Run Numba on torch's thread count and give torch its count back afterwards: Numba's
+    """Run Numba on the kernels' thread count and give torch its count back afterwards: Numba's
     OpenMP layer shares torch's OpenMP runtime and resets its thread count when it starts."""
     n = torch.get_num_threads()
-    K.set_threads(n)
+    K.set_threads(cpu_kernel_threads())
     try:
         yield
     finally:
@@ -53,6 +55,13 @@ def bin_gaussians_fused(means2d: Tensor, radii_xy: Tensor, depths: Tensor, width
     """
     C, N = depths.shape
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    native = _native.load()
+    if native is not None:
+        lists = native.bin_lists(_f32(depths.reshape(-1)), _f32(means2d.reshape(-1, 2)),
+                                 _f32(radii_xy.reshape(-1, 2)), max(N, 1), tile_size, tiles_x,
+                                 tiles_y, C * tiles_x * tiles_y)
+        return TileBins(C, width, height, tile_size, tiles_x, tiles_y,
+                        *(torch.from_numpy(a) for a in lists))
     visible = torch.nonzero((radii_xy > 0).all(dim=-1).reshape(-1)).squeeze(1)
     order = visible[torch.sort(depths.detach().reshape(-1)[visible], stable=True).indices]
     m, r = _f32(means2d.reshape(-1, 2)), _f32(radii_xy.reshape(-1, 2))
@@ -62,11 +71,10 @@ def bin_gaussians_fused(means2d: Tensor, radii_xy: Tensor, depths: Tensor, width
                     torch.from_numpy(offsets), torch.from_numpy(counts))
 
 
-def _gather(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
-            bins: TileBins) -> np.ndarray:
-    """(n_isects, 6 + D) rows in tile list order; see ``_cpu_kernels``."""
+def _table(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor) -> np.ndarray:
+    """(C*N, 6 + D) float32 rows per Gaussian: the layout of ``_cpu_kernels``' ``gauss``."""
     table = torch.cat([means2d, conics, opacities[:, None], colors], dim=1).detach()
-    return table.to(torch.float32)[bins.flat_ids].numpy()
+    return table.to(torch.float32).contiguous().numpy()
 
 
 class FusedComposite(torch.autograd.Function):
@@ -79,19 +87,22 @@ class FusedComposite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, backgrounds, bins: TileBins):
         C, H, W, D = bins.n_cameras, bins.height, bins.width, colors.shape[-1]
-        gauss = _gather(means2d, conics, opacities, colors, bins)
+        table = _table(means2d, conics, opacities, colors)
+        ids = bins.flat_ids.numpy()
         bg = _f32(backgrounds)
         render = np.empty((C, H, W, D), dtype=np.float32)
         trans = np.empty((C, H, W), dtype=np.float32)
         last = np.empty((C, H, W), dtype=np.int64)
-        args = (gauss, bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size, bins.tiles_x,
+        tail = (bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size, bins.tiles_x,
                 bins.tiles_y, bg, render, trans, last)
         native = _native.load()
-        if native is not None:
-            native.composite_forward(*args, torch.get_num_threads())
+        if native is not None:  # the table and the ids: no gathered copy
+            native.composite_forward(table, ids, *tail, cpu_kernel_threads())
+            gauss = table
         else:
+            gauss = table[ids]
             with _kernel_threads():
-                K.composite_forward(*args)
+                K.composite_forward(gauss, *tail)
         ctx.bins, ctx.arrays, ctx.n_flat = bins, (gauss, bg, trans, last), means2d.shape[0]
         ctx.native = native
         ctx.save_for_backward(backgrounds)
@@ -105,16 +116,18 @@ class FusedComposite(torch.autograd.Function):
         (backgrounds,) = ctx.saved_tensors
         bins = ctx.bins
         gauss, bg, trans, last = ctx.arrays
-        args = (gauss, bins.offsets.numpy(), bins.tile_size, bins.tiles_x, bins.tiles_y, bg, trans,
-                last, _f32(grad_renders), _f32(grad_alphas[..., 0]))
+        ids, threads = bins.flat_ids.numpy(), cpu_kernel_threads()
+        tail = (bins.offsets.numpy(), bins.tile_size, bins.tiles_x, bins.tiles_y, bg, trans, last,
+                _f32(grad_renders), _f32(grad_alphas[..., 0]))
         if ctx.native is not None:  # the backward of the kernels that ran the forward
-            per_isect = ctx.native.composite_backward(*args, torch.get_num_threads())
+            per_isect = ctx.native.composite_backward(gauss, ids, *tail, threads)
+            summed = ctx.native.sum_by_gaussian(per_isect, ids, ctx.n_flat, threads)
         else:
             with _kernel_threads():
-                per_isect = K.composite_backward(*args)
+                per_isect = K.composite_backward(gauss, *tail)
+            summed = K.sum_by_gaussian(per_isect, ids, ctx.n_flat)
         dtype = grad_renders.dtype
-        total = torch.from_numpy(K.sum_by_gaussian(per_isect, bins.flat_ids.numpy(),
-                                                   ctx.n_flat)).to(dtype)
+        total = torch.from_numpy(summed).to(dtype)
         g_bg = None
         if ctx.needs_input_grad[4]:
             g_bg = (grad_renders * torch.from_numpy(trans)[..., None].to(dtype)).sum(dim=(1, 2))
@@ -131,7 +144,8 @@ def composite_fused(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: 
 
 
 class FusedProjection(torch.autograd.Function):
-    """``rasterize._project`` in Numba kernels; viewmats and Ks get no gradient.
+    """``rasterize._project`` in the native kernels (the Numba ones where there are none);
+    viewmats and Ks get no gradient.
 
     Inputs: means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), viewmats (C, 4, 4),
     Ks (C, 3, 3) and the camera settings. Outputs: means2d (C, N, 2), conics (C, N, 3),
@@ -148,9 +162,15 @@ class FusedProjection(torch.autograd.Function):
         radii = np.empty((C, N, 2), dtype=np.int32)
         arrays = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(viewmats),
                   _f32(Ks))
-        with _kernel_threads():
-            P.project_forward(*arrays, *settings, means2d, conics, depths, radii)
-        ctx.arrays, ctx.settings, ctx.dtype = arrays, settings, dtype
+        native = _native.load()
+        if native is not None:
+            width, height, near, far, eps2d, radius_clip = settings
+            native.project_forward(*arrays, width, height, near, far, eps2d, radius_clip, means2d,
+                                   conics, depths, radii, cpu_kernel_threads())
+        else:
+            with _kernel_threads():
+                P.project_forward(*arrays, *settings, means2d, conics, depths, radii)
+        ctx.arrays, ctx.settings, ctx.dtype, ctx.native = arrays, settings, dtype, native
         ctx.mark_non_differentiable(radii_t := torch.from_numpy(radii))
         return (torch.from_numpy(means2d).to(dtype), torch.from_numpy(conics).to(dtype),
                 torch.from_numpy(depths[..., 0]).to(dtype), radii_t)
@@ -159,10 +179,13 @@ class FusedProjection(torch.autograd.Function):
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
         means, quats, scales, _, viewmats, Ks = ctx.arrays
         width, height, near, far, eps2d, _ = ctx.settings
-        with _kernel_threads():
-            grads = P.project_backward(means, quats, scales, viewmats, Ks, width, height, near, far,
-                                       eps2d, _f32(v_means2d), _f32(v_conics),
-                                       _f32(v_depths[..., None]))
+        args = (means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+                _f32(v_means2d), _f32(v_conics), _f32(v_depths[..., None]))
+        if ctx.native is not None:
+            grads = ctx.native.project_backward(*args, cpu_kernel_threads())
+        else:
+            with _kernel_threads():
+                grads = P.project_backward(*args)
         v_means, v_quats, v_scales = (torch.from_numpy(g).to(ctx.dtype) for g in grads)
         return v_means, v_quats, v_scales, None, None, None, None
 
@@ -177,42 +200,65 @@ def project_fused(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
 
 
 class FusedSH(torch.autograd.Function):
-    """``sh.shade`` in Numba kernels: means (N, 3), coeffs (N, K, 3), campos (C, 3) and
-    visible (C, N) bool (no gradient) -> colours (C, N, 3), 0 where a Gaussian is not visible."""
+    """``sh.shade`` in the native kernels (the Numba ones where there are none): means (N, 3),
+    the coefficients in two parts c0 (N, 1, 3) and cN (N, K - 1, 3), campos (C, 3) and visible
+    (C, N) bool (no gradient) -> colours (C, N, 3), 0 where a Gaussian is not visible."""
 
     @staticmethod
-    def forward(ctx, means, coeffs, campos, visible, degree: int):
+    def forward(ctx, means, c0, cN, campos, visible, degree: int):
         colors = np.empty((campos.shape[0], means.shape[0], 3), dtype=np.float32)
-        arrays = (_f32(means), _f32(coeffs), _f32(campos))
-        with _kernel_threads():
-            S.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors)
+        arrays = (_f32(means), _f32(c0), _f32(cN), _f32(campos))
+        native = _native.load()
+        if native is not None:
+            native.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors,
+                              cpu_kernel_threads())
+        else:
+            with _kernel_threads():
+                S.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors)
         ctx.arrays, ctx.colors, ctx.degree, ctx.dtype = arrays, colors, degree, means.dtype
+        ctx.native = native
         return torch.from_numpy(colors).to(means.dtype)
 
     @staticmethod
     def backward(ctx, v_colors):
-        with _kernel_threads():
-            v_means, v_coeffs = S.sh_backward(ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors))
-        return (torch.from_numpy(v_means).to(ctx.dtype), torch.from_numpy(v_coeffs).to(ctx.dtype),
-                None, None, None)
+        means, c0, cN, _ = ctx.arrays
+        out = (np.zeros(means.shape, np.float32), np.zeros(c0.shape, np.float32),
+               np.zeros(cN.shape, np.float32))
+        args = (ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors), *out)
+        if ctx.native is not None:
+            ctx.native.sh_backward(*args, cpu_kernel_threads())
+        else:
+            with _kernel_threads():
+                S.sh_backward(*args)
+        v_means, v_c0, v_cN = (torch.from_numpy(g).to(ctx.dtype) for g in out)
+        return v_means, v_c0, v_cN, None, None, None
 
 
-def shade_fused(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor,
+SHCoefficients = Tensor | tuple[Tensor, Tensor]
+
+
+def shade_fused(sh_degree: int, means: Tensor, coeffs: SHCoefficients, campos: Tensor,
                 visible: Tensor | None = None) -> Tensor:
     """``sh.shade`` for the Gaussians ``visible`` (C, N) marks (default: all); the others get
-    colour 0. Per-camera coefficients (C, N, K, 3) take the torch path, which colours all."""
-    if coeffs.dim() != 3:
+    colour 0. ``coeffs`` (N, K, 3), or its two parts (sh0 (N, 1, 3), shN (N, K - 1, 3)) as the
+    fit keeps them, read in place (no concatenated copy). Per-camera coefficients
+    (C, N, K, 3) take the torch path, which colours all."""
+    if isinstance(coeffs, tuple):
+        c0, cN = coeffs
+    elif coeffs.dim() != 3:
         return shade(sh_degree, means, coeffs, campos)
-    _check_sh(sh_degree, coeffs)
+    else:
+        c0, cN = coeffs[:, :1], coeffs[:, 1:]
+    _check_sh(sh_degree, c0.shape[0], 1 + cN.shape[1])
     if visible is None:
         visible = torch.ones(campos.shape[0], means.shape[0], dtype=torch.bool, device="cpu")
-    return FusedSH.apply(means, coeffs, campos.detach(), visible.detach().to("cpu"), sh_degree)
+    return FusedSH.apply(means, c0, cN, campos.detach(), visible.detach().to("cpu"), sh_degree)
 
 
-def _check_sh(degree: int, coeffs: Tensor) -> None:
+def _check_sh(degree: int, n: int, k: int) -> None:
     """The errors eval_sh gives, before the kernel indexes past the coefficients."""
     if not 0 <= degree <= 3:
         raise ValueError(f"sh_degree={degree} is not supported; use 0..3")
-    if coeffs.shape[-2] < (degree + 1) ** 2:
+    if k < (degree + 1) ** 2:
         raise ValueError(f"sh_degree={degree} needs {(degree + 1) ** 2} coefficients per Gaussian, "
-                         f"got colors of shape {tuple(coeffs.shape)}")
+                         f"got colors of shape {(n, k, 3)}")

@@ -31,12 +31,14 @@ __all__ = ["NativeBuildError", "kernel_choice", "load"]
 log = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).with_name("_composite.cpp")
-FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-pthread")
+FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-shared", "-fPIC", "-pthread")
 CHOICES = ("auto", "native", "numba")
 
 _f32 = ctypes.POINTER(ctypes.c_float)
 _f64 = ctypes.POINTER(ctypes.c_double)
 _i64 = ctypes.POINTER(ctypes.c_int64)
+_i32 = ctypes.POINTER(ctypes.c_int32)
+_u8 = ctypes.POINTER(ctypes.c_uint8)
 _int, _long = ctypes.c_int, ctypes.c_int64
 
 
@@ -98,50 +100,156 @@ def _build(cxx: str, target: Path) -> None:
 
 
 class Kernels:
-    """The two entry points, with numpy arguments checked for dtype and layout."""
+    """The entry points, with numpy arguments checked for dtype and layout.
+
+    The compositing takes a per-Gaussian ``table`` (C*N, 6 + D) and the lists' ``ids`` instead
+    of the Numba kernels' gathered rows: row ``ids[e]`` of the table is their row e.
+    """
 
     def __init__(self, lib: ctypes.CDLL, path: Path) -> None:
         self.path = path
         self._forward = lib.pd_composite_forward
         self._forward.restype = _int
-        self._forward.argtypes = [_f32, _int, _i64, _i64, _long, _int, _int, _int, _int, _int,
-                                  _int, _int, _f32, _f32, _f32, _i64, _int]
+        self._forward.argtypes = [_f32, _int, _i64, _i64, _i64, _long, _int, _int, _int, _int,
+                                  _int, _int, _int, _f32, _f32, _f32, _i64, _int]
         self._backward = lib.pd_composite_backward
         self._backward.restype = _int
-        self._backward.argtypes = [_f32, _int, _i64, _long, _int, _int, _int, _int, _int, _int,
-                                   _int, _f32, _f32, _i64, _f32, _f32, _f64, _int]
+        self._backward.argtypes = [_f32, _int, _i64, _i64, _long, _int, _int, _int, _int, _int,
+                                   _int, _int, _f32, _f32, _i64, _f32, _f32, _f64, _int]
+        self._bin_count = lib.pd_bin_count
+        self._bin_count.restype = _long
+        self._bin_count.argtypes = [_f32, _f32, _f32, _long, _long, _int, _int, _int, _i64, _i64]
+        self._bin_fill = lib.pd_bin_fill
+        self._bin_fill.restype = None
+        self._bin_fill.argtypes = [_i64, _long, _f32, _f32, _long, _int, _int, _int, _i64, _i64]
+        self._sum = lib.pd_sum_by_gaussian
+        self._sum.restype = None
+        self._sum.argtypes = [_f64, _i64, _long, _int, _long, _f32, _int]
+        _flt = ctypes.c_float
+        self._project = lib.pd_project_forward
+        self._project.restype = None
+        self._project.argtypes = [_f32] * 6 + [_long, _int, _int, _int, _flt, _flt, _flt, _flt,
+                                               _f32, _f32, _f32, _i32, _int]
+        self._sh = lib.pd_sh_forward
+        self._sh.restype = None
+        self._sh.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _u8, _f32, _int]
+        self._sh_vjp = lib.pd_sh_backward
+        self._sh_vjp.restype = None
+        self._sh_vjp.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _f32, _f32,
+                                 _f32, _f32, _f32, _int]
+        self._project_vjp = lib.pd_project_backward
+        self._project_vjp.restype = None
+        self._project_vjp.argtypes = [_f32] * 5 + [_long, _int, _int, _int, _flt, _flt, _flt,
+                                                   _f32, _f32, _f32, _f32, _f32, _f32, _int]
 
-    def composite_forward(self, gauss: np.ndarray, offsets: np.ndarray, counts: np.ndarray,
-                          ts: int, tiles_x: int, tiles_y: int, bg: np.ndarray,
-                          render: np.ndarray, trans: np.ndarray, last: np.ndarray,
+    def composite_forward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
+                          counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
+                          bg: np.ndarray, render: np.ndarray, trans: np.ndarray, last: np.ndarray,
                           threads: int) -> None:
         """``_cpu_kernels.composite_forward``, on ``threads`` threads."""
         C, H, W, D = render.shape
-        rc = self._forward(_ptr(gauss, np.float32), gauss.shape[1], _ptr(offsets, np.int64),
-                           _ptr(counts, np.int64), offsets.shape[0], ts, tiles_x, tiles_y, C, H,
-                           W, D, _ptr(bg, np.float32), _ptr(render, np.float32),
-                           _ptr(trans, np.float32), _ptr(last, np.int64), threads)
+        rc = self._forward(_ptr(table, np.float32), table.shape[1], _ptr(ids, np.int64),
+                           _ptr(offsets, np.int64), _ptr(counts, np.int64), offsets.shape[0], ts,
+                           tiles_x, tiles_y, C, H, W, D, _ptr(bg, np.float32),
+                           _ptr(render, np.float32), _ptr(trans, np.float32),
+                           _ptr(last, np.int64), threads)
         if rc != 0:
             raise ValueError(f"composite_forward: {D} channels; the kernels carry 1 to 4")
 
-    def composite_backward(self, gauss: np.ndarray, offsets: np.ndarray, ts: int, tiles_x: int,
-                           tiles_y: int, bg: np.ndarray, trans: np.ndarray, last: np.ndarray,
-                           d_render: np.ndarray, d_alpha: np.ndarray, threads: int) -> np.ndarray:
-        """``_cpu_kernels.composite_backward``, on ``threads`` threads."""
+    def composite_backward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
+                           ts: int, tiles_x: int, tiles_y: int, bg: np.ndarray, trans: np.ndarray,
+                           last: np.ndarray, d_render: np.ndarray, d_alpha: np.ndarray,
+                           threads: int) -> np.ndarray:
+        """``_cpu_kernels.composite_backward`` (one row per list entry), on ``threads`` threads."""
         C, H, W, D = d_render.shape
-        grads = np.zeros(gauss.shape, dtype=np.float64)
-        rc = self._backward(_ptr(gauss, np.float32), gauss.shape[1], _ptr(offsets, np.int64),
-                            offsets.shape[0], ts, tiles_x, tiles_y, C, H, W, D,
-                            _ptr(bg, np.float32), _ptr(trans, np.float32), _ptr(last, np.int64),
-                            _ptr(d_render, np.float32), _ptr(d_alpha, np.float32),
-                            _ptr(grads, np.float64), threads)
+        grads = np.zeros((ids.shape[0], table.shape[1]), dtype=np.float64)
+        rc = self._backward(_ptr(table, np.float32), table.shape[1], _ptr(ids, np.int64),
+                            _ptr(offsets, np.int64), offsets.shape[0], ts, tiles_x, tiles_y, C,
+                            H, W, D, _ptr(bg, np.float32), _ptr(trans, np.float32),
+                            _ptr(last, np.int64), _ptr(d_render, np.float32),
+                            _ptr(d_alpha, np.float32), _ptr(grads, np.float64), threads)
         if rc != 0:
             raise ValueError(f"composite_backward: {D} channels; the kernels carry 1 to 4")
         return grads
 
+    def bin_lists(self, depths: np.ndarray, means2d: np.ndarray, radii: np.ndarray,
+                  n_per_cam: int, ts: int, tiles_x: int, tiles_y: int, n_tiles: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, offsets, counts) as ``_fused.bin_gaussians_fused`` builds them with
+        ``_cpu_kernels.bin_lists``: depths (C*N,), means2d and radii (C*N, 2), all float32."""
+        n = depths.shape[0]
+        order = np.empty(n, dtype=np.int64)
+        counts = np.zeros(n_tiles, dtype=np.int64)
+        m = self._bin_count(_ptr(depths, np.float32), _ptr(means2d, np.float32),
+                            _ptr(radii, np.float32), n, n_per_cam, ts, tiles_x, tiles_y,
+                            _ptr(order, np.int64), _ptr(counts, np.int64))
+        offsets = np.cumsum(counts) - counts
+        ids = np.empty(int(counts.sum()), dtype=np.int64)
+        fill = offsets.copy()
+        self._bin_fill(_ptr(order, np.int64), m, _ptr(means2d, np.float32),
+                       _ptr(radii, np.float32), n_per_cam, ts, tiles_x, tiles_y,
+                       _ptr(fill, np.int64), _ptr(ids, np.int64))
+        return ids, offsets, counts
+
+    def project_forward(self, means: np.ndarray, quats: np.ndarray, scales: np.ndarray,
+                        opacities: np.ndarray, viewmats: np.ndarray, Ks: np.ndarray, width: int,
+                        height: int, near: float, far: float, eps2d: float, radius_clip: float,
+                        means2d: np.ndarray, conics: np.ndarray, depths: np.ndarray,
+                        radii: np.ndarray, threads: int) -> None:
+        """``_cpu_project.project_forward`` in float32, on ``threads`` threads."""
+        f32 = np.float32
+        self._project(_ptr(means, f32), _ptr(quats, f32), _ptr(scales, f32),
+                      _ptr(opacities, f32), _ptr(viewmats, f32), _ptr(Ks, f32), means.shape[0],
+                      viewmats.shape[0], width, height, near, far, eps2d, radius_clip,
+                      _ptr(means2d, f32), _ptr(conics, f32), _ptr(depths, f32),
+                      _ptr(radii, np.int32), threads)
+
+    def project_backward(self, means: np.ndarray, quats: np.ndarray, scales: np.ndarray,
+                         viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
+                         near: float, far: float, eps2d: float, v_means2d: np.ndarray,
+                         v_conics: np.ndarray, v_depths: np.ndarray, threads: int
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_cpu_project.project_backward`` in float32 (v_means, v_quats, v_scales)."""
+        f32, N = np.float32, means.shape[0]
+        out = (np.zeros((N, 3), f32), np.zeros((N, 4), f32), np.zeros((N, 3), f32))
+        self._project_vjp(_ptr(means, f32), _ptr(quats, f32), _ptr(scales, f32),
+                          _ptr(viewmats, f32), _ptr(Ks, f32), N, viewmats.shape[0], width, height,
+                          near, far, eps2d, _ptr(v_means2d, f32), _ptr(v_conics, f32),
+                          _ptr(v_depths, f32), *(_ptr(a, f32) for a in out), threads)
+        return out
+
+    def sh_forward(self, degree: int, means: np.ndarray, c0: np.ndarray, cN: np.ndarray,
+                   campos: np.ndarray, visible: np.ndarray, colors: np.ndarray,
+                   threads: int) -> None:
+        """``_cpu_sh.sh_forward``: visible (C, N) bool, colors (C, N, 3) filled."""
+        f32 = np.float32
+        self._sh(degree, _ptr(means, f32), _ptr(c0, f32), _ptr(cN, f32), cN.shape[1],
+                 _ptr(campos, f32), means.shape[0], campos.shape[0],
+                 _ptr(visible.view(np.uint8), np.uint8), _ptr(colors, f32), threads)
+
+    def sh_backward(self, degree: int, means: np.ndarray, c0: np.ndarray, cN: np.ndarray,
+                    campos: np.ndarray, colors: np.ndarray, v_colors: np.ndarray,
+                    v_means: np.ndarray, v_c0: np.ndarray, v_cN: np.ndarray,
+                    threads: int) -> None:
+        """``_cpu_sh.sh_backward``: adds into v_means, v_c0 and v_cN (zeros, float32)."""
+        f32 = np.float32
+        self._sh_vjp(degree, _ptr(means, f32), _ptr(c0, f32), _ptr(cN, f32), cN.shape[1],
+                     _ptr(campos, f32), means.shape[0], campos.shape[0], _ptr(colors, f32),
+                     _ptr(v_colors, f32), _ptr(v_means, f32), _ptr(v_c0, f32), _ptr(v_cN, f32),
+                     threads)
+
+    def sum_by_gaussian(self, grads: np.ndarray, ids: np.ndarray, n: int,
+                        threads: int) -> np.ndarray:
+        """``_cpu_kernels.sum_by_gaussian`` (the same bytes), on ``threads`` threads."""
+        out = np.empty((n, grads.shape[1]), dtype=np.float32)
+        self._sum(_ptr(grads, np.float64), _ptr(ids, np.int64), ids.shape[0], grads.shape[1], n,
+                  _ptr(out, np.float32), threads)
+        return out
+
 
 _CTYPES: dict[str, type] = {"float32": ctypes.c_float, "float64": ctypes.c_double,
-                            "int64": ctypes.c_int64}
+                            "int64": ctypes.c_int64, "int32": ctypes.c_int32,
+                            "uint8": ctypes.c_uint8}
 
 
 def _ptr(a: np.ndarray, dtype: type) -> ctypes._Pointer:

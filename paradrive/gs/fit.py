@@ -373,7 +373,7 @@ def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
     layout.gs_dir.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(layout.gs_dir)
     device = resolve_device(p.device)
-    with deterministic_torch(p.threads):
+    with deterministic_torch(p.threads, resolve_backend(p.backend, device)):
         loaded = load_scene(layout.root)
         graph = Graph.of(loaded, p, moving_threshold_m)
         return _fit(_Fit(loaded, layout, p, device, log or log_default, graph), progress, stop_after)

@@ -93,14 +93,15 @@ def activated(params: Gaussians) -> dict:
     """Activated tensors as the rasterizer takes them.
 
     Returns means (N, 3), quats (N, 4) (unnormalised; the rasterizer normalises),
-    scales (N, 3) metres, opacities (N,) in (0, 1), sh (N, K, 3).
+    scales (N, 3) metres, opacities (N,) in (0, 1), sh: the coefficients in their two parts
+    (sh0 (N, 1, 3), shN (N, K - 1, 3)), which the rasterizer takes as they are.
     """
     return {
         "means": params["means"],
         "quats": params["quats"],
         "scales": torch.exp(params["scales"]),
         "opacities": torch.sigmoid(params["opacities"]),
-        "sh": torch.cat([params["sh0"], params["shN"]], 1),
+        "sh": (params["sh0"], params["shN"]),
     }
 
 
@@ -118,8 +119,7 @@ def render_gaussians(params: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor
 
     a = activated(params)
     degree = sh_degree_of(params) if sh_degree is None else int(sh_degree)
-    k = num_sh_bases(degree)
-    return rasterize(a["means"], a["quats"], a["scales"], a["opacities"], a["sh"][:, :k],
+    return rasterize(a["means"], a["quats"], a["scales"], a["opacities"], a["sh"],
                      viewmats, Ks, int(width), int(height), sh_degree=degree,
                      backgrounds=backgrounds, render_mode=render_mode, **kwargs)
 
@@ -135,21 +135,28 @@ def scene_scale_of(c2w: torch.Tensor | np.ndarray) -> float:
 
 
 @contextmanager
-def deterministic_torch(threads: int):
+def deterministic_torch(threads: int, backend: str = "torch"):
     """Fixed thread count and deterministic kernels (fit, render); restored afterwards.
 
-    The fused CPU rasterizer kernels run on the same count (their results do not depend on it);
-    a fixed count makes torch's floating-point sums, hence the files, identical whichever
-    executor runs the stage.
+    A fixed count makes torch's floating-point sums, hence the files, identical whichever
+    executor runs the stage. With the fused CPU kernels (``backend`` 'cpu') the kernels take the
+    ``threads`` (their results do not depend on the count) and torch's own operations run on one:
+    torch's idle OpenMP workers spin on the cores the kernels need (a demo fit iteration on two
+    cores: 45 ms with both on two threads, 37 ms so).
     """
+    from paradrive.devices import set_cpu_kernel_threads
+
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    fused = backend == "cpu"
+    old_kernels = set_cpu_kernel_threads(threads if fused and threads > 0 else 0)
     if threads > 0:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(1 if fused else threads)
     torch.use_deterministic_algorithms(True, warn_only=True)
     try:
         yield
     finally:
         torch.set_num_threads(old_threads)
+        set_cpu_kernel_threads(old_kernels)
         torch.use_deterministic_algorithms(old_det, warn_only=old_warn)

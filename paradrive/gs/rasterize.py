@@ -191,7 +191,9 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
 
     means (N, 3) world; quats (N, 4) wxyz (need not be normalised); scales (N, 3) activated;
     opacities (N,) activated in [0, 1]; colors (N, 3) RGB (or (C, N, D) per camera), or SH
-    coefficients (N, K, 3) with sh_degree set (colour = SH(view dir) + 0.5, clamped at 0);
+    coefficients (N, K, 3) with sh_degree set (colour = SH(view dir) + 0.5, clamped at 0; the
+    first (sh_degree + 1)^2 are used), or those in two parts (sh0 (N, 1, 3), shN (N, K - 1, 3)),
+    as a fit keeps them: the fused CPU kernels read them in place, other backends concatenate;
     viewmats (C, 4, 4) world-to-camera (OpenCV); Ks (C, 3, 3); backgrounds (C, 3) or None.
     render_mode: 'RGB' -> (C, H, W, 3); 'RGB+ED' -> (C, H, W, 4), last channel the expected
     depth (alpha-normalised z); 'RGB+D' accumulated depth; 'D' / 'ED' -> (C, H, W, 1).
@@ -216,6 +218,11 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
         raise ValueError(f"means must be (N, 3), got {tuple(means.shape)}")
     width, height = int(width), int(height)
     backend = resolve_backend(backend, means.device)
+    if isinstance(colors, tuple):
+        if sh_degree is None:
+            raise ValueError("colors in two parts (sh0, shN) are SH coefficients: set sh_degree")
+        if backend != "cpu":
+            colors = torch.cat(colors, 1)[:, :(int(sh_degree) + 1) ** 2]
     args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)

@@ -254,7 +254,9 @@ def render_scene(layout: SceneLayout | Path, params: Params, *, log: logging.Log
 
 
 def run(ctx: StageContext[Params]) -> RendersRecord:
+    from paradrive.devices import resolve_backend, resolve_device
     from paradrive.gs.model import deterministic_torch
 
-    with deterministic_torch(ctx.params.threads):
+    p = ctx.params
+    with deterministic_torch(p.threads, resolve_backend(p.backend, resolve_device(p.device))):
         return render_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress)
