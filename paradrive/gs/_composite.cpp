@@ -106,19 +106,22 @@ inline Entry entry(const float* table, const int64_t* ids, int64_t e, int F, int
 // Rows [y0, y1) of [y_lo, y_hi) that the entry's ellipse sigma <= SIGMA_CUT reaches, as
 // _row_range computes them (axis 1), and likewise its columns (axis 0).
 inline void extent(const Entry& g, int axis, int lo, int hi, int* i0, int* i1) {
-    double a = g.a, b = g.b, c = g.c, det = a * c - b * b;
-    if (a <= 0.0 || det <= 0.0) {
+    const float det = g.a * g.c - g.b * g.b;
+    if (!(g.a > 0.0f && det > 0.0f)) {
         *i0 = lo;
         *i1 = hi;
         return;
     }
-    double half = std::sqrt(2.0 * SIGMA_CUT * (axis == 1 ? a : c) / det) + 1e-3;
-    double m = axis == 1 ? g.my : g.mx;
-    int l = static_cast<int>(std::ceil(m - half - 0.5));
-    int h = static_cast<int>(std::floor(m + half - 0.5)) + 1;
-    *i0 = l > lo ? l : lo;
-    *i1 = h < hi ? h : hi;
-    if (*i1 < *i0) *i1 = *i0;
+    // in float, widened a little more than _row_range's margin for the rounding: a row it adds
+    // is skipped by the alpha test anyway
+    const float half = std::sqrt(2.0f * static_cast<float>(SIGMA_CUT) * (axis == 1 ? g.a : g.c) / det) *
+                           1.0001f + 2e-3f;
+    const float m = axis == 1 ? g.my : g.mx;
+    float l = std::ceil(m - half - 0.5f), h = std::floor(m + half - 0.5f) + 1.0f;
+    l = l > lo ? l : static_cast<float>(lo);  // clamped before the conversion (and NaN to lo)
+    h = h < hi ? h : static_cast<float>(hi);
+    *i0 = l < hi ? static_cast<int>(l) : hi;
+    *i1 = h > *i0 ? static_cast<int>(h) : *i0;
 }
 
 // The chunks of L pixels of a tile row that the entry's columns [x0, x1) touch.
@@ -265,7 +268,7 @@ void forward_tile(int64_t t, const float* table, const int64_t* ids, int F, int6
 }
 
 // The sum of the lanes, in a fixed order.
-inline double hsum(vf v) {
+inline float hsum(vf v) {
 #if defined(__AVX512F__)
     if constexpr (L == 16) {
         __m512 m;
@@ -279,9 +282,9 @@ inline double hsum(vf v) {
 }
 
 void backward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,
-                   const Shape& s,
-                   const float* bg, const float* trans, const int64_t* last,
-                   const float* d_render, const float* d_alpha, double* grads) {
+                   int64_t n, const Shape& s, const float* bg, const float* trans,
+                   const int64_t* last, const float* d_render, const float* d_alpha,
+                   float* grads) {
     TileBox box = tile_box(t, s);
     const int P = s.ts * s.chunks;
     std::vector<vf> T(P, splat(0.0f)), q(P, splat(0.0f));
@@ -304,6 +307,8 @@ void backward_tile(int64_t t, const float* table, const int64_t* ids, int F, int
         }
     const vf centres = lane_centres();
     RowBuffers rows(P);
+    if (n > walked)  // entries behind every pixel's last: no gradient
+        std::memset(grads + (start + walked) * F, 0, sizeof(float) * F * (n - walked));
     for (int64_t j = walked - 1; j >= 0; --j) {
         const int64_t e = start + j;
         if (j >= PREFETCH) prefetch(table, ids, e - PREFETCH, F);
@@ -346,8 +351,11 @@ void backward_tile(int64_t t, const float* table, const int64_t* ids, int F, int
                 g5 += shaped ? rows.E[p] * v_alpha : splat(0.0f);
             }
         }
-        if (!touched) continue;  // no pixel reached it: its gradient stays zero
-        double* out = grads + e * F;
+        float* out = grads + e * F;
+        if (!touched) {  // no pixel reached it
+            std::memset(out, 0, sizeof(float) * F);
+            continue;
+        }
         out[0] = hsum(g0), out[1] = hsum(g1), out[2] = hsum(g2);
         out[3] = hsum(g3), out[4] = hsum(g4), out[5] = hsum(g5);
         for (int k = 0; k < s.D; ++k) out[6 + k] = hsum(h[k]);
@@ -771,17 +779,18 @@ int pd_composite_forward(const float* table, int F, const int64_t* ids, const in
     return 0;
 }
 
-// grads (n_isects, F) per list entry, as composite_backward returns them; entries that no
-// pixel reached are left as they are (the caller passes zeros).
+// grads (n_isects, F) per list entry, as composite_backward returns them (every row written:
+// zeros where no pixel reached the entry).
 int pd_composite_backward(const float* table, int F, const int64_t* ids, const int64_t* offsets,
-                          int64_t n_tiles, int ts, int tiles_x, int tiles_y, int C, int H,
+                          const int64_t* counts, int64_t n_tiles, int ts, int tiles_x, int tiles_y, int C, int H,
                           int W, int D, const float* bg, const float* trans, const int64_t* last,
-                          const float* d_render, const float* d_alpha, double* grads,
+                          const float* d_render, const float* d_alpha, float* grads,
                           int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
-        backward_tile(t, table, ids, F, offsets[t], s, bg, trans, last, d_render, d_alpha, grads);
+        backward_tile(t, table, ids, F, offsets[t], counts[t], s, bg, trans, last, d_render,
+                      d_alpha, grads);
     });
     return 0;
 }
@@ -845,7 +854,7 @@ void pd_bin_fill(const int64_t* order, int64_t m, const float* means2d, const fl
 // out (n, F) float32: the rows of grads (n_isects, F) summed per Gaussian id, in list order and
 // in double (as _cpu_kernels.sum_by_gaussian). Each thread owns a range of ids and walks the
 // whole list, so the sums do not depend on the thread count.
-void pd_sum_by_gaussian(const double* grads, const int64_t* ids, int64_t n_isects, int F,
+void pd_sum_by_gaussian(const float* grads, const int64_t* ids, int64_t n_isects, int F,
                         int64_t n, float* out, int threads) {
     const int64_t parts = threads > 1 ? threads : 1;
     parallel_tiles(parts, threads, [&](int64_t part) {
@@ -855,7 +864,7 @@ void pd_sum_by_gaussian(const double* grads, const int64_t* ids, int64_t n_isect
             const int64_t g = ids[e];
             if (g < lo || g >= hi) continue;
             double* a = acc.data() + (g - lo) * F;
-            const double* v = grads + e * F;
+            const float* v = grads + e * F;
             for (int k = 0; k < F; ++k) a[k] += v[k];
         }
         for (int64_t i = 0; i < (hi - lo) * F; ++i) out[lo * F + i] = static_cast<float>(acc[i]);

@@ -120,7 +120,8 @@ class FusedComposite(torch.autograd.Function):
         tail = (bins.offsets.numpy(), bins.tile_size, bins.tiles_x, bins.tiles_y, bg, trans, last,
                 _f32(grad_renders), _f32(grad_alphas[..., 0]))
         if ctx.native is not None:  # the backward of the kernels that ran the forward
-            per_isect = ctx.native.composite_backward(gauss, ids, *tail, threads)
+            per_isect = ctx.native.composite_backward(gauss, ids, tail[0], bins.counts.numpy(),
+                                                      *tail[1:], threads)
             summed = ctx.native.sum_by_gaussian(per_isect, ids, ctx.n_flat, threads)
         else:
             with _kernel_threads():

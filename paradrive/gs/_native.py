@@ -35,7 +35,6 @@ FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-shared", "-f
 CHOICES = ("auto", "native", "numba")
 
 _f32 = ctypes.POINTER(ctypes.c_float)
-_f64 = ctypes.POINTER(ctypes.c_double)
 _i64 = ctypes.POINTER(ctypes.c_int64)
 _i32 = ctypes.POINTER(ctypes.c_int32)
 _u8 = ctypes.POINTER(ctypes.c_uint8)
@@ -114,8 +113,8 @@ class Kernels:
                                   _int, _int, _int, _f32, _f32, _f32, _i64, _int]
         self._backward = lib.pd_composite_backward
         self._backward.restype = _int
-        self._backward.argtypes = [_f32, _int, _i64, _i64, _long, _int, _int, _int, _int, _int,
-                                   _int, _int, _f32, _f32, _i64, _f32, _f32, _f64, _int]
+        self._backward.argtypes = [_f32, _int, _i64, _i64, _i64, _long, _int, _int, _int, _int,
+                                   _int, _int, _int, _f32, _f32, _i64, _f32, _f32, _f32, _int]
         self._bin_count = lib.pd_bin_count
         self._bin_count.restype = _long
         self._bin_count.argtypes = [_f32, _f32, _f32, _long, _long, _int, _int, _int, _i64, _i64]
@@ -124,7 +123,7 @@ class Kernels:
         self._bin_fill.argtypes = [_i64, _long, _f32, _f32, _long, _int, _int, _int, _i64, _i64]
         self._sum = lib.pd_sum_by_gaussian
         self._sum.restype = None
-        self._sum.argtypes = [_f64, _i64, _long, _int, _long, _f32, _int]
+        self._sum.argtypes = [_f32, _i64, _long, _int, _long, _f32, _int]
         _flt = ctypes.c_float
         self._project = lib.pd_project_forward
         self._project.restype = None
@@ -157,17 +156,19 @@ class Kernels:
             raise ValueError(f"composite_forward: {D} channels; the kernels carry 1 to 4")
 
     def composite_backward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
-                           ts: int, tiles_x: int, tiles_y: int, bg: np.ndarray, trans: np.ndarray,
-                           last: np.ndarray, d_render: np.ndarray, d_alpha: np.ndarray,
-                           threads: int) -> np.ndarray:
-        """``_cpu_kernels.composite_backward`` (one row per list entry), on ``threads`` threads."""
+                           counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
+                           bg: np.ndarray, trans: np.ndarray, last: np.ndarray,
+                           d_render: np.ndarray, d_alpha: np.ndarray, threads: int) -> np.ndarray:
+        """``_cpu_kernels.composite_backward`` (one row per list entry; float32, the lanes'
+        sums), on ``threads`` threads."""
         C, H, W, D = d_render.shape
-        grads = np.zeros((ids.shape[0], table.shape[1]), dtype=np.float64)
+        grads = np.empty((ids.shape[0], table.shape[1]), dtype=np.float32)
         rc = self._backward(_ptr(table, np.float32), table.shape[1], _ptr(ids, np.int64),
-                            _ptr(offsets, np.int64), offsets.shape[0], ts, tiles_x, tiles_y, C,
-                            H, W, D, _ptr(bg, np.float32), _ptr(trans, np.float32),
-                            _ptr(last, np.int64), _ptr(d_render, np.float32),
-                            _ptr(d_alpha, np.float32), _ptr(grads, np.float64), threads)
+                            _ptr(offsets, np.int64), _ptr(counts, np.int64), offsets.shape[0], ts,
+                            tiles_x, tiles_y, C, H, W, D, _ptr(bg, np.float32),
+                            _ptr(trans, np.float32), _ptr(last, np.int64),
+                            _ptr(d_render, np.float32), _ptr(d_alpha, np.float32),
+                            _ptr(grads, np.float32), threads)
         if rc != 0:
             raise ValueError(f"composite_backward: {D} channels; the kernels carry 1 to 4")
         return grads
@@ -240,9 +241,10 @@ class Kernels:
 
     def sum_by_gaussian(self, grads: np.ndarray, ids: np.ndarray, n: int,
                         threads: int) -> np.ndarray:
-        """``_cpu_kernels.sum_by_gaussian`` (the same bytes), on ``threads`` threads."""
+        """``_cpu_kernels.sum_by_gaussian`` of float32 rows (the same bytes), on ``threads``
+        threads."""
         out = np.empty((n, grads.shape[1]), dtype=np.float32)
-        self._sum(_ptr(grads, np.float64), _ptr(ids, np.int64), ids.shape[0], grads.shape[1], n,
+        self._sum(_ptr(grads, np.float32), _ptr(ids, np.int64), ids.shape[0], grads.shape[1], n,
                   _ptr(out, np.float32), threads)
         return out
 
