@@ -1,5 +1,7 @@
-"""The native compositing library: built once per machine into the cache and reused, the Numba
-kernels where no compiler builds it, and a clear error where native kernels are required."""
+"""The native kernel library: built once per machine into the cache and reused, the Numba
+kernels where no compiler builds it, and a clear error where native kernels are required; its
+binning and gradient sums give the Numba kernels' bytes, and SH coefficients in two parts
+render as their concatenation."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The fused CPU rasterizer (backend 'cpu'): images and gradients against the torch-op reference,
-and byte-identical results at any thread count; every test runs on both compositing kernel sets
-(the vectorised native library and the Numba kernels it falls back to)."""
+and byte-identical results at any thread count; every test runs on both kernel sets (the
+vectorised native library and the Numba kernels it falls back to)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from paradrive.gs.rasterize import rasterize
 
 @pytest.fixture(autouse=True, params=["native", "numba"])
 def kernels(request, monkeypatch):
-    """Each test once per compositing kernel set; 'native' fails where it cannot be built."""
+    """Each test once per kernel set; 'native' fails where it cannot be built."""
     monkeypatch.setenv("PARADRIVE_KERNELS", request.param)
     assert (_native.load() is not None) == (request.param == "native")
     return request.param

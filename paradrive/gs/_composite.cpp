@@ -1,5 +1,9 @@
-// Forward and backward compositing of the CPU rasterizer, 16 pixels of a tile row at a time.
+// The fused CPU rasterizer's kernels: forward and backward compositing (16 pixels of a tile row
+// at a time), tile binning, per-Gaussian gradient sums, EWA projection (16 Gaussians at a time)
+// and SH shading, each with the rules of its Numba counterpart (_cpu_kernels.py,
+// _cpu_project.py, _cpu_sh.py) in float32.
 //
+// Compositing:
 // The same rules and array layouts as the Numba kernels of _cpu_kernels.py (see there): per
 // pixel, the depth-sorted entries of its tile front to back, alpha = min(0.999, opacity *
 // exp(-sigma)), sigma < 0 or alpha < 1/255 skipped, a pixel stops before the entry that would

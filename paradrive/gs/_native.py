@@ -1,5 +1,6 @@
-"""The vectorised compositing kernels of ``_composite.cpp``: built with the machine's C++
-compiler on first use, cached, and called through ctypes.
+"""The vectorised kernels of ``_composite.cpp`` (projection, SH shading, tile binning and
+compositing): built with the machine's C++ compiler on first use, cached, and called through
+ctypes.
 
 The library is built for the CPU it runs on (``-march=native``), so its cache key holds the
 source, the compiler's version and the CPU's flags; a shared home on machines of several kinds
@@ -42,7 +43,7 @@ _int, _long = ctypes.c_int, ctypes.c_int64
 
 
 class NativeBuildError(RuntimeError):
-    """The compositing library could not be built or loaded."""
+    """The kernel library could not be built or loaded."""
 
 
 def kernel_choice() -> str:
@@ -283,7 +284,7 @@ def _load() -> Kernels | NativeBuildError:
 
 @functools.lru_cache(maxsize=1)
 def _fallback_warning(reason: str) -> None:
-    log.warning("vectorised compositing unavailable, using the Numba kernels: %s", reason)
+    log.warning("vectorised kernels unavailable, using the Numba kernels: %s", reason)
 
 
 def load() -> Kernels | None:
