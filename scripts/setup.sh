@@ -12,7 +12,7 @@ need_apt=()
 for pkg in libusb-1.0-0 libgl1 libegl1 libxrender1 libosmesa6; do
     dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
-# The CPU compositing kernels are C++, built on first use (the Numba ones stand in without it).
+# The CPU rasterizer kernels are C++, built on first use (the Numba ones stand in without it).
 command -v c++ >/dev/null 2>&1 || command -v g++ >/dev/null 2>&1 || need_apt+=(g++)
 if [ "${#need_apt[@]}" -gt 0 ]; then
     if command -v apt-get >/dev/null 2>&1; then
