@@ -41,6 +41,15 @@ def _kernel_threads() -> Iterator[None]:
             torch.set_num_threads(n)
 
 
+def _call(native: _native.Kernels | None, name: str, fallback, *args):
+    """Kernel ``name`` of the native library on the kernels' threads, or its Numba ``fallback``
+    (same arguments) where there is no library."""
+    if native is not None:
+        return getattr(native, name)(*args, cpu_kernel_threads())
+    with _kernel_threads():
+        return fallback(*args)
+
+
 def _f32(t: Tensor) -> np.ndarray:
     return t.detach().to(torch.float32).contiguous().numpy()
 
@@ -164,13 +173,8 @@ class FusedProjection(torch.autograd.Function):
         arrays = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(viewmats),
                   _f32(Ks))
         native = _native.load()
-        if native is not None:
-            width, height, near, far, eps2d, radius_clip = settings
-            native.project_forward(*arrays, width, height, near, far, eps2d, radius_clip, means2d,
-                                   conics, depths, radii, cpu_kernel_threads())
-        else:
-            with _kernel_threads():
-                P.project_forward(*arrays, *settings, means2d, conics, depths, radii)
+        _call(native, "project_forward", P.project_forward, *arrays, *settings, means2d, conics,
+              depths, radii)
         ctx.arrays, ctx.settings, ctx.dtype, ctx.native = arrays, settings, dtype, native
         ctx.mark_non_differentiable(radii_t := torch.from_numpy(radii))
         return (torch.from_numpy(means2d).to(dtype), torch.from_numpy(conics).to(dtype),
@@ -182,11 +186,7 @@ class FusedProjection(torch.autograd.Function):
         width, height, near, far, eps2d, _ = ctx.settings
         args = (means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
                 _f32(v_means2d), _f32(v_conics), _f32(v_depths[..., None]))
-        if ctx.native is not None:
-            grads = ctx.native.project_backward(*args, cpu_kernel_threads())
-        else:
-            with _kernel_threads():
-                grads = P.project_backward(*args)
+        grads = _call(ctx.native, "project_backward", P.project_backward, *args)
         v_means, v_quats, v_scales = (torch.from_numpy(g).to(ctx.dtype) for g in grads)
         return v_means, v_quats, v_scales, None, None, None, None
 
@@ -210,12 +210,8 @@ class FusedSH(torch.autograd.Function):
         colors = np.empty((campos.shape[0], means.shape[0], 3), dtype=np.float32)
         arrays = (_f32(means), _f32(c0), _f32(cN), _f32(campos))
         native = _native.load()
-        if native is not None:
-            native.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors,
-                              cpu_kernel_threads())
-        else:
-            with _kernel_threads():
-                S.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors)
+        _call(native, "sh_forward", S.sh_forward, degree, *arrays, visible.contiguous().numpy(),
+              colors)
         ctx.arrays, ctx.colors, ctx.degree, ctx.dtype = arrays, colors, degree, means.dtype
         ctx.native = native
         return torch.from_numpy(colors).to(means.dtype)
@@ -226,11 +222,7 @@ class FusedSH(torch.autograd.Function):
         out = (np.zeros(means.shape, np.float32), np.zeros(c0.shape, np.float32),
                np.zeros(cN.shape, np.float32))
         args = (ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors), *out)
-        if ctx.native is not None:
-            ctx.native.sh_backward(*args, cpu_kernel_threads())
-        else:
-            with _kernel_threads():
-                S.sh_backward(*args)
+        _call(ctx.native, "sh_backward", S.sh_backward, *args)
         v_means, v_c0, v_cN = (torch.from_numpy(g).to(ctx.dtype) for g in out)
         return v_means, v_c0, v_cN, None, None, None
 
