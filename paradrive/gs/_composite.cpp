@@ -584,23 +584,23 @@ void project_block(const ProjectArgs& a, int64_t b, float* means2d, float* conic
 }
 
 // Lanes where a camera passes a gradient (Numba's _no_gradient negated).
+// Whether row o (camera * N + Gaussian) of the projection's output gradients is not all zero.
+inline bool gets_gradient(const float* v2d, const float* v_conic, const float* v_depth,
+                          int64_t o) {
+    return v2d[2 * o] != 0.0f || v2d[2 * o + 1] != 0.0f || v_conic[3 * o] != 0.0f ||
+           v_conic[3 * o + 1] != 0.0f || v_conic[3 * o + 2] != 0.0f || v_depth[o] != 0.0f;
+}
+
 inline vi has_gradient(const float* v2d, const float* v_conic, const float* v_depth, int64_t N,
                        int c, const Lanes& g) {
     vi r = splat_i(0);
-    for (int i = 0; i < L; ++i) {
-        const int64_t o = c * N + g.rows[i];
-        const bool used = v2d[2 * o] != 0.0f || v2d[2 * o + 1] != 0.0f || v_conic[3 * o] != 0.0f ||
-                          v_conic[3 * o + 1] != 0.0f || v_conic[3 * o + 2] != 0.0f ||
-                          v_depth[o] != 0.0f;
-        r[i] = used ? -1 : 0;
-    }
+    for (int i = 0; i < L; ++i) r[i] = gets_gradient(v2d, v_conic, v_depth, c * N + g.rows[i]) ? -1 : 0;
     return r;
 }
 
+// Field k of camera c's rows of a (C, N, stride) array, for the lanes' Gaussians.
 inline vf lane_field(const float* a, int stride, int k, int64_t N, int c, const Lanes& g) {
-    vf v;
-    for (int i = 0; i < L; ++i) v[i] = a[(c * N + g.rows[i]) * stride + k];
-    return v;
+    return load_lanes(a + c * N * stride, stride, k, g.rows);
 }
 
 // Gradients of the lanes listed in block b of ids (Gaussians some camera passes a gradient to):
@@ -906,14 +906,11 @@ void pd_project_backward(const float* means, const float* quats, const float* sc
                         near, far, eps2d, 0.0f};
     std::vector<int64_t> ids;
     for (int64_t n = 0; n < N; ++n)
-        for (int c = 0; c < C; ++c) {
-            const int64_t o = c * N + n;
-            if (v2d[2 * o] != 0.0f || v2d[2 * o + 1] != 0.0f || v_conic[3 * o] != 0.0f ||
-                v_conic[3 * o + 1] != 0.0f || v_conic[3 * o + 2] != 0.0f || v_depth[o] != 0.0f) {
+        for (int c = 0; c < C; ++c)
+            if (gets_gradient(v2d, v_conic, v_depth, c * N + n)) {
                 ids.push_back(n);
                 break;
             }
-        }
     const int64_t m = static_cast<int64_t>(ids.size());
     const int64_t blocks = (m + L - 1) / L;
     parallel_tiles(blocks, threads, [&](int64_t b) {
