@@ -2,7 +2,9 @@
 
 Images are float tensors in [0, 1], shaped ``(H, W, 3)`` or ``(B, H, W, 3)`` (channels last,
 as renders come out of the rasterizer). Both functions are differentiable; ``ssim`` is also the
-D-SSIM term of the fit loss.
+D-SSIM term of the fit loss. Its mean runs in the native kernels of ``paradrive.gs`` for float32
+images on the CPU (where the library builds; ``PARADRIVE_KERNELS``), in torch operations
+elsewhere.
 """
 
 from __future__ import annotations
@@ -98,6 +100,47 @@ class _MeanSSIM(torch.autograd.Function):
         return g, None, None, None, None
 
 
+class _NativeMeanSSIM(torch.autograd.Function):
+    """:class:`_MeanSSIM` in the native kernels of ``paradrive.gs`` (CPU float32 images): one
+    pass over each row computes the moments, the map and its derivatives; the backward blurs
+    those back. x, y are (B, H, W, C) contiguous; the bytes do not depend on the thread count."""
+
+    @staticmethod
+    def forward(ctx, x, y, taps, c1: float, c2: float, kernels):
+        from paradrive.devices import cpu_kernel_threads
+
+        xn, yn, tn = x.detach().numpy(), y.detach().numpy(), taps.numpy()
+        mean, d = kernels.ssim_forward(xn, yn, tn, c1, c2, ctx.needs_input_grad[0],
+                                       cpu_kernel_threads())
+        ctx.kernels, ctx.d = kernels, d
+        ctx.save_for_backward(x, y, taps)
+        return torch.from_numpy(mean.astype("float32"))
+
+    @staticmethod
+    def backward(ctx, grad):
+        from paradrive.devices import cpu_kernel_threads
+
+        x, y, taps = ctx.saved_tensors
+        g = ctx.kernels.ssim_backward(x.detach().numpy(), y.numpy(), ctx.d, taps.numpy(),
+                                      grad.detach().float().contiguous().numpy(),
+                                      cpu_kernel_threads())
+        return torch.from_numpy(g), None, None, None, None, None
+
+
+# The widest window the native kernels take (their column pass keeps 32 rows).
+NATIVE_MAX_WINDOW = 31
+
+
+def _native_kernels(x: torch.Tensor):
+    """The native kernels where they take these images (float32 on the CPU, the library built),
+    else None: the torch operations run."""
+    if x.device.type != "cpu" or x.dtype != torch.float32:
+        return None
+    from paradrive.gs import _native
+
+    return _native.load()
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
          max_val: float = 1.0, reduce: bool = True) -> torch.Tensor:
     """Structural similarity, 11x11 Gaussian window (sigma 1.5), C1=(0.01L)^2, C2=(0.03L)^2.
@@ -108,11 +151,16 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
     against its target; the gradient is in closed form), the map with respect to both.
     """
     single = a.dim() == 3
-    x = _batch(a).float().permute(0, 3, 1, 2)
-    y = _batch(b).float().permute(0, 3, 1, 2)
-    taps = _gauss_taps(window, sigma).to(x.device, x.dtype)
     c1 = (0.01 * max_val) ** 2
     c2 = (0.03 * max_val) ** 2
+    xb, yb = _batch(a).float(), _batch(b).float()
+    kernels = _native_kernels(xb) if reduce and window <= NATIVE_MAX_WINDOW else None
+    if kernels is not None:
+        out = _NativeMeanSSIM.apply(xb.contiguous(), yb.detach().contiguous(), _gauss_taps(window, sigma),
+                                    c1, c2, kernels)
+        return out[0] if single else out
+    x, y = xb.permute(0, 3, 1, 2), yb.permute(0, 3, 1, 2)
+    taps = _gauss_taps(window, sigma).to(x.device, x.dtype)
     if not reduce:
         return _ssim_terms(x, y, taps, c1, c2)[0]
     out = _MeanSSIM.apply(x, y.detach(), taps, c1, c2)

@@ -18,7 +18,7 @@ import torch
 from simulated_device import DEVICE, DeviceMismatch, OnDevice, simulated_device, to_cpu
 from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 
-from paradrive import geometry
+from paradrive import geometry, metrics
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError
 from paradrive.gs import fit as fit_module
@@ -41,6 +41,13 @@ def plain_adam_steps(monkeypatch):
     reference takes it too, or the two fits would differ in the last bit for that reason alone
     (the fused step's own device handling is torch's)."""
     monkeypatch.setattr(fit_module, "FUSED_ADAM_DEVICES", ("cuda",))
+
+
+@pytest.fixture(autouse=True)
+def torch_ssim(monkeypatch):
+    """The stand-in device's SSIM is torch operations (the native kernels take CPU images only);
+    the CPU reference's is too, for the same reason."""
+    monkeypatch.setattr(metrics, "_native_kernels", lambda x: None)
 
 
 def _on(device: str):

@@ -92,7 +92,39 @@ def test_ssim_and_its_closed_form_gradient_match_the_textbook_window():
     torch.testing.assert_close(grad_map, grad_ref, atol=2e-6, rtol=1e-4)
 
 
-# --------------------------------------------------------------------------- quality
+def test_native_ssim_matches_the_textbook_window_with_the_same_bytes_at_any_thread_count(
+        monkeypatch):
+    from paradrive.devices import set_cpu_kernel_threads
+
+    monkeypatch.setenv("PARADRIVE_KERNELS", "native")
+    g = torch.Generator().manual_seed(4)
+    a = torch.rand(2, 37, 29, 3, generator=g, requires_grad=True)
+    b = (a.detach() + 0.2 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    weights = torch.tensor([0.3, -1.7])
+    a64 = a.detach().double().requires_grad_(True)
+    ref = _ssim_2d_window(a64, b.double())
+    (grad_ref,) = torch.autograd.grad((ref * weights.double()).sum(), a64)
+    runs = []
+    old = set_cpu_kernel_threads(1)
+    try:
+        for threads in (1, 2, 3):
+            set_cpu_kernel_threads(threads)
+            ours = ssim(a, b)
+            assert type(ours.grad_fn).__name__ == "_NativeMeanSSIMBackward"
+            (grad,) = torch.autograd.grad((ours * weights).sum(), a)
+            runs.append((ours.detach(), grad))
+    finally:
+        set_cpu_kernel_threads(old)
+    for ours, grad in runs[1:]:
+        assert torch.equal(ours, runs[0][0]) and torch.equal(grad, runs[0][1])
+    ours, grad = runs[0]
+    torch.testing.assert_close(ours.double(), ref.detach(), atol=1e-5, rtol=0)
+    assert grad.abs().max() > 1e-3
+    torch.testing.assert_close(grad.double(), grad_ref, atol=1e-6, rtol=1e-3)
+    monkeypatch.setenv("PARADRIVE_KERNELS", "numba")  # no library: the torch operations
+    torch_ops = ssim(a, b)
+    assert type(torch_ops.grad_fn).__name__ == "_MeanSSIMBackward"
+    torch.testing.assert_close(torch_ops.detach(), ours, atol=1e-6, rtol=0)
 
 def test_smoke_fit_psnr_rises_across_checkpoints_and_reaches_24db(smoke_scene):
     params = fit_params("smoke")

@@ -1,7 +1,8 @@
 // The fused CPU rasterizer's kernels: forward and backward compositing (16 pixels of a tile row
 // at a time), tile binning, per-Gaussian gradient sums, EWA projection (16 Gaussians at a time)
 // and SH shading, each with the rules of its Numba counterpart (_cpu_kernels.py,
-// _cpu_project.py, _cpu_sh.py) in float32.
+// _cpu_project.py, _cpu_sh.py) in float32; and the mean SSIM of the fit loss with its gradient
+// (paradrive/metrics.py's closed form).
 //
 // Compositing:
 // The same rules and array layouts as the Numba kernels of _cpu_kernels.py (see there): per
@@ -949,8 +950,9 @@ void pd_sh_forward(int degree, const float* means, const float* c0, const float*
     });
 }
 
-// v_means (N, 3), v_c0 (N, 1, 3) and v_cN (N, KN, 3), zero-filled by the caller, get the
-// gradients from v_colors (C, N, 3); colors are the forward's (the clamp at 0 passes none).
+// v_means (N, 3), v_c0 (N, 1, 3) and v_cN (N, KN, 3) are filled with the gradients from
+// v_colors (C, N, 3) (every row written, zero where no camera passes one); colors are the
+// forward's (the clamp at 0 passes none).
 void pd_sh_backward(int degree, const float* means, const float* c0, const float* cN, int KN,
                     const float* campos, int64_t N, int C, const float* colors,
                     const float* v_colors, float* v_means, float* v_c0, float* v_cN,
@@ -958,7 +960,11 @@ void pd_sh_backward(int degree, const float* means, const float* c0, const float
     parallel_tiles((N + SH_CHUNK - 1) / SH_CHUNK, threads, [&](int64_t chunk) {
         float b[16], w[16], d[3], g[3];
         const int64_t hi = (chunk + 1) * SH_CHUNK < N ? (chunk + 1) * SH_CHUNK : N;
-        for (int64_t n = chunk * SH_CHUNK; n < hi; ++n)
+        const int64_t lo = chunk * SH_CHUNK;
+        std::memset(v_means + 3 * lo, 0, sizeof(float) * 3 * (hi - lo));
+        std::memset(v_c0 + 3 * lo, 0, sizeof(float) * 3 * (hi - lo));
+        std::memset(v_cN + lo * KN * 3, 0, sizeof(float) * KN * 3 * (hi - lo));
+        for (int64_t n = lo; n < hi; ++n)
             for (int c = 0; c < C; ++c) {
                 const float* vc = v_colors + (c * N + n) * 3;
                 if (vc[0] == 0.0f && vc[1] == 0.0f && vc[2] == 0.0f) continue;  // outside the view
@@ -981,6 +987,210 @@ void pd_sh_backward(int degree, const float* means, const float* c0, const float
                 const float dot = norm > 1e-12f ? d[0] * g[0] + d[1] * g[1] + d[2] * g[2] : 0.0f;
                 for (int k = 0; k < 3; ++k) v_means[3 * n + k] += (g[k] - d[k] * dot) / norm;
             }
+    });
+}
+
+}  // extern "C"
+
+// SSIM (Wang et al. 2004, the 3DGS loss's window): the five moments of x and y blurred by a
+// separable Gaussian with zero padding, a column pass into a buffer, then a row pass per image
+// row. Images are (B, H, W, C) channels last, so a row is W * C floats and the row pass steps
+// by C. Every row is computed by one thread and the mean is summed over rows in order, so the
+// bytes do not depend on the number of threads.
+namespace {
+
+struct Plane {
+    int64_t B;
+    int H, W, C;
+    int64_t row() const { return static_cast<int64_t>(W) * C; }
+    int64_t image() const { return row() * H; }
+};
+
+inline vf loadu(const float* p) {
+    vf v;
+    std::memcpy(&v, p, sizeof v);
+    return v;
+}
+
+inline void storeu(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
+
+// out[j] (a row of n = W * C floats) = sum over taps of taps[i] * in[j + (i - K / 2) * C],
+// terms outside the row left out; 16 outputs at a time away from the ends.
+inline void row_blur(const float* in, int64_t n, int C, const float* taps, int K, float* out) {
+    const int64_t reach = static_cast<int64_t>(K / 2) * C;
+    auto one = [&](int64_t j) {
+        float sum = 0.0f;
+        for (int i = 0; i < K; ++i) {
+            const int64_t o = j + (i - K / 2) * static_cast<int64_t>(C);
+            if (o >= 0 && o < n) sum += taps[i] * in[o];
+        }
+        out[j] = sum;
+    };
+    int64_t j = 0;
+    for (; j < reach && j < n; ++j) one(j);
+    for (; j + L <= n - reach; j += L) {
+        vf sum{};
+        for (int i = 0; i < K; ++i) sum += splat(taps[i]) * loadu(in + j + (i - K / 2) * C);
+        storeu(out + j, sum);
+    }
+    for (; j < n; ++j) one(j);
+}
+
+// Row pass of image row q of M column-blurred maps (map k's rows at cols[k]): m[k] points at
+// its result, row k of buf (M rows of n floats).
+template <int M>
+inline void row_blurs(float* const* cols, int64_t q, int64_t n, int C, const float* taps, int K,
+                      float* buf, float** m) {
+    for (int k = 0; k < M; ++k) {
+        m[k] = buf + k * n;
+        row_blur(cols[k] + q * n, n, C, taps, K, m[k]);
+    }
+}
+
+// The source rows of a column pass: output row r of an image of H rows gets taps[i] times row
+// r + i - K / 2 where that row exists. Windows up to MAX_WINDOW rows (metrics.NATIVE_MAX_WINDOW).
+constexpr int MAX_WINDOW = 31;
+
+struct Column {
+    int count = 0;
+    int64_t rows[MAX_WINDOW];
+    float weights[MAX_WINDOW];
+};
+
+inline Column column(int64_t q, int H, const float* taps, int K) {
+    Column c;
+    const int64_t first = q - q % H;
+    const int r = static_cast<int>(q % H);
+    for (int i = 0; i < K && c.count < MAX_WINDOW; ++i) {
+        const int rr = r + i - K / 2;
+        if (rr < 0 || rr >= H) continue;
+        c.rows[c.count] = first + rr, c.weights[c.count] = taps[i], ++c.count;
+    }
+    return c;
+}
+
+// Column pass of the five moments: o_k (rows of n floats) = sum over the column's rows of
+// weight * (x, y, x^2, y^2, xy), 16 floats at a time in registers.
+inline void column_moments(const Column& c, const float* x, const float* y, int64_t n,
+                           float* const* o) {
+    auto lanes = [&](auto zero, auto load, auto store, int64_t j) {
+        auto s0 = zero, s1 = zero, s2 = zero, s3 = zero, s4 = zero;
+        for (int i = 0; i < c.count; ++i) {
+            const auto a = load(x + c.rows[i] * n + j), b = load(y + c.rows[i] * n + j);
+            const float t = c.weights[i];
+            s0 += t * a, s1 += t * b, s2 += t * (a * a), s3 += t * (b * b), s4 += t * (a * b);
+        }
+        store(o[0] + j, s0), store(o[1] + j, s1), store(o[2] + j, s2), store(o[3] + j, s3);
+        store(o[4] + j, s4);
+    };
+    int64_t j = 0;
+    for (; j + L <= n; j += L) lanes(vf{}, loadu, storeu, j);
+    for (; j < n; ++j)
+        lanes(0.0f, [](const float* p) { return *p; }, [](float* p, float v) { *p = v; }, j);
+}
+
+// Column pass of M maps (map k at in + k * stride): o_k = sum over the column's rows of
+// weight * map_k.
+template <int M>
+inline void column_maps(const Column& c, const float* in, int64_t stride, int64_t n,
+                        float* const* o) {
+    auto lanes = [&](auto zero, auto load, auto store, int64_t j) {
+        for (int k = 0; k < M; ++k) {
+            auto sum = zero;
+            for (int i = 0; i < c.count; ++i) sum += c.weights[i] * load(in + k * stride + c.rows[i] * n + j);
+            store(o[k] + j, sum);
+        }
+    };
+    int64_t j = 0;
+    for (; j + L <= n; j += L) lanes(vf{}, loadu, storeu, j);
+    for (; j < n; ++j)
+        lanes(0.0f, [](const float* p) { return *p; }, [](float* p, float v) { *p = v; }, j);
+}
+
+}  // namespace
+
+extern "C" {
+
+// Mean SSIM per image into mean (B,); where d is not null, d (3, B, H, W, C) gets the mean's
+// derivatives with respect to the blurred mu_x, E[x^2] and E[xy] at each pixel (the backward's
+// input). work holds 5 * B * H * W * C floats.
+void pd_ssim_forward(const float* x, const float* y, int64_t B, int H, int W, int C,
+                     const float* taps, int K, float c1, float c2, float* work, double* mean,
+                     float* d, int threads) {
+    const Plane p{B, H, W, C};
+    const int64_t n = p.row(), rows = B * H, size = B * p.image();
+    float* cols[5] = {work, work + size, work + 2 * size, work + 3 * size, work + 4 * size};
+    parallel_tiles(rows, threads, [&](int64_t q) {
+        float* o[5] = {cols[0] + q * n, cols[1] + q * n, cols[2] + q * n, cols[3] + q * n,
+                       cols[4] + q * n};
+        column_moments(column(q, H, taps, K), x, y, n, o);
+    });
+    std::vector<double> row_sums(rows);
+    const float inv = 1.0f / static_cast<float>(p.image());
+    parallel_tiles(rows, threads, [&](int64_t q) {
+        std::vector<float> buf(6 * n);
+        float* m[5];
+        row_blurs<5>(cols, q, n, C, taps, K, buf.data(), m);
+        const float* __restrict__ mx = m[0];
+        const float* __restrict__ my = m[1];
+        const float* __restrict__ xx = m[2];
+        const float* __restrict__ yy = m[3];
+        const float* __restrict__ xy = m[4];
+        float* __restrict__ smap = buf.data() + 5 * n;
+        for (int64_t j = 0; j < n; ++j) {
+            const float A = 2.0f * mx[j] * my[j] + c1, Bv = 2.0f * (xy[j] - mx[j] * my[j]) + c2;
+            const float Cv = mx[j] * mx[j] + my[j] * my[j] + c1;
+            const float D = (xx[j] - mx[j] * mx[j]) + (yy[j] - my[j] * my[j]) + c2;
+            smap[j] = A * Bv / (Cv * D);
+        }
+        if (d != nullptr) {
+            float* __restrict__ d_mu = d + q * n;
+            float* __restrict__ d_xx = d + size + q * n;
+            float* __restrict__ d_xy = d + 2 * size + q * n;
+            for (int64_t j = 0; j < n; ++j) {
+                const float A = 2.0f * mx[j] * my[j] + c1, Bv = 2.0f * (xy[j] - mx[j] * my[j]) + c2;
+                const float Cv = mx[j] * mx[j] + my[j] * my[j] + c1;
+                const float D = (xx[j] - mx[j] * mx[j]) + (yy[j] - my[j] * my[j]) + c2;
+                const float CD = Cv * D, s = smap[j];
+                d_mu[j] = (2.0f * my[j] * (Bv - A) / CD - 2.0f * mx[j] * s * (1.0f / Cv - 1.0f / D)) * inv;
+                d_xx[j] = -s / D * inv;
+                d_xy[j] = 2.0f * A / CD * inv;
+            }
+        }
+        double sum = 0.0;
+        for (int64_t j = 0; j < n; ++j) sum += smap[j];
+        row_sums[q] = sum;
+    });
+    for (int64_t b = 0; b < B; ++b) {
+        double total = 0.0;
+        for (int r = 0; r < H; ++r) total += row_sums[b * H + r];
+        mean[b] = total / static_cast<double>(p.image());
+    }
+}
+
+// The gradient of sum_b grad[b] * mean SSIM_b with respect to x, into g (B, H, W, C): the three
+// derivative maps of the forward blurred back (the window is symmetric, so its own adjoint)
+// and combined per pixel. work holds 3 * B * H * W * C floats.
+void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B, int H, int W,
+                      int C, const float* taps, int K, const float* grad, float* work, float* g,
+                      int threads) {
+    const Plane p{B, H, W, C};
+    const int64_t n = p.row(), rows = B * H, size = B * p.image();
+    float* cols[3] = {work, work + size, work + 2 * size};
+    parallel_tiles(rows, threads, [&](int64_t q) {
+        float* o[3] = {cols[0] + q * n, cols[1] + q * n, cols[2] + q * n};
+        column_maps<3>(column(q, H, taps, K), d, size, n, o);
+    });
+    parallel_tiles(rows, threads, [&](int64_t q) {
+        std::vector<float> buf(3 * n);
+        float* m[3];
+        row_blurs<3>(cols, q, n, C, taps, K, buf.data(), m);
+        const float scale = grad[q / H];
+        const float* xr = x + q * n;
+        const float* yr = y + q * n;
+        float* gr = g + q * n;
+        for (int64_t j = 0; j < n; ++j)
+            gr[j] = (m[0][j] + 2.0f * xr[j] * m[1][j] + yr[j] * m[2][j]) * scale;
     });
 }
 

@@ -219,8 +219,9 @@ class FusedSH(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_colors):
         means, c0, cN, _ = ctx.arrays
-        out = (np.zeros(means.shape, np.float32), np.zeros(c0.shape, np.float32),
-               np.zeros(cN.shape, np.float32))
+        alloc = np.zeros if ctx.native is None else np.empty  # the native kernel fills every row
+        out = (alloc(means.shape, np.float32), alloc(c0.shape, np.float32),
+               alloc(cN.shape, np.float32))
         args = (ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors), *out)
         _call(ctx.native, "sh_backward", S.sh_backward, *args)
         v_means, v_c0, v_cN = (torch.from_numpy(g).to(ctx.dtype) for g in out)

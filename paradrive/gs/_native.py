@@ -1,6 +1,6 @@
-"""The vectorised kernels of ``_composite.cpp`` (projection, SH shading, tile binning and
-compositing): built with the machine's C++ compiler on first use, cached, and called through
-ctypes.
+"""The vectorised kernels of ``_composite.cpp`` (projection, SH shading, tile binning,
+compositing, and the fit loss's SSIM): built with the machine's C++ compiler on first use,
+cached, and called through ctypes.
 
 The library is built for the CPU it runs on (``-march=native``), so its cache key holds the
 source, the compiler's version and the CPU's flags; a shared home on machines of several kinds
@@ -38,6 +38,7 @@ CHOICES = ("auto", "native", "numba")
 _f32 = ctypes.POINTER(ctypes.c_float)
 _i64 = ctypes.POINTER(ctypes.c_int64)
 _i32 = ctypes.POINTER(ctypes.c_int32)
+_f64 = ctypes.POINTER(ctypes.c_double)
 _u8 = ctypes.POINTER(ctypes.c_uint8)
 _int, _long = ctypes.c_int, ctypes.c_int64
 
@@ -141,6 +142,14 @@ class Kernels:
         self._project_vjp.restype = None
         self._project_vjp.argtypes = [_f32] * 5 + [_long, _int, _int, _int, _flt, _flt, _flt,
                                                    _f32, _f32, _f32, _f32, _f32, _f32, _int]
+        self._ssim = lib.pd_ssim_forward
+        self._ssim.restype = None
+        self._ssim.argtypes = [_f32, _f32, _long, _int, _int, _int, _f32, _int, _flt, _flt, _f32,
+                               _f64, _f32, _int]
+        self._ssim_vjp = lib.pd_ssim_backward
+        self._ssim_vjp.restype = None
+        self._ssim_vjp.argtypes = [_f32, _f32, _f32, _long, _int, _int, _int, _f32, _int, _f32,
+                                   _f32, _f32, _int]
 
     def composite_forward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
                           counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
@@ -233,12 +242,38 @@ class Kernels:
                     campos: np.ndarray, colors: np.ndarray, v_colors: np.ndarray,
                     v_means: np.ndarray, v_c0: np.ndarray, v_cN: np.ndarray,
                     threads: int) -> None:
-        """``_cpu_sh.sh_backward``: adds into v_means, v_c0 and v_cN (zeros, float32)."""
+        """``_cpu_sh.sh_backward``, filling v_means, v_c0 and v_cN (float32; need not be
+        zeroed)."""
         f32 = np.float32
         self._sh_vjp(degree, _ptr(means, f32), _ptr(c0, f32), _ptr(cN, f32), cN.shape[1],
                      _ptr(campos, f32), means.shape[0], campos.shape[0], _ptr(colors, f32),
                      _ptr(v_colors, f32), _ptr(v_means, f32), _ptr(v_c0, f32), _ptr(v_cN, f32),
                      threads)
+
+    def ssim_forward(self, x: np.ndarray, y: np.ndarray, taps: np.ndarray, c1: float, c2: float,
+                     derivatives: bool, threads: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Mean SSIM per image of x and y (B, H, W, C) float32 with the separable window ``taps``:
+        (means (B,) float64, and when ``derivatives`` the (3, B, H, W, C) maps the backward
+        takes)."""
+        f32, (B, H, W, C) = np.float32, x.shape
+        mean = np.empty(B, np.float64)
+        d = np.empty((3, *x.shape), f32) if derivatives else None
+        work = np.empty((5, *x.shape), f32)
+        self._ssim(_ptr(x, f32), _ptr(y, f32), B, H, W, C, _ptr(taps, f32), taps.shape[0], c1, c2,
+                   _ptr(work, f32), _ptr(mean, np.float64), None if d is None else _ptr(d, f32),
+                   threads)
+        return mean, d
+
+    def ssim_backward(self, x: np.ndarray, y: np.ndarray, d: np.ndarray, taps: np.ndarray,
+                      grad: np.ndarray, threads: int) -> np.ndarray:
+        """The gradient with respect to x of sum_b grad[b] * (mean SSIM of image b), from the
+        forward's maps ``d``."""
+        f32, (B, H, W, C) = np.float32, x.shape
+        g = np.empty(x.shape, f32)
+        work = np.empty((3, *x.shape), f32)
+        self._ssim_vjp(_ptr(x, f32), _ptr(y, f32), _ptr(d, f32), B, H, W, C, _ptr(taps, f32),
+                       taps.shape[0], _ptr(grad, f32), _ptr(work, f32), _ptr(g, f32), threads)
+        return g
 
     def sum_by_gaussian(self, grads: np.ndarray, ids: np.ndarray, n: int,
                         threads: int) -> np.ndarray:

@@ -109,7 +109,8 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
             feats = colors.expand(C, N, colors.shape[-1]) if colors.dim() == 2 else colors
         else:
             campos = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
-            feats = shade(sh_degree, means, colors, campos, (radii_xy > 0).all(dim=-1))
+            # both projections zero both half-sizes of a culled Gaussian, so one tells
+            feats = shade(sh_degree, means, colors, campos, radii_xy[..., 0] > 0)
         D = feats.shape[-1]
         if render_mode != "RGB":
             feats = torch.cat([feats, depths[..., None]], dim=-1)
@@ -130,7 +131,7 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
 
     if render_mode in ("ED", "RGB+ED"):
         renders = torch.cat([renders[..., :-1], renders[..., -1:] / alphas.clamp_min(1e-10)], -1)
-    radii = radii_xy.max(dim=-1).values
+    radii = torch.maximum(radii_xy[..., 0], radii_xy[..., 1])
     info = {
         "means2d": means2d, "radii": radii, "radii_xy": radii_xy, "depths": depths,
         "conics": conics, "width": width, "height": height, "n_cameras": C,
