@@ -99,3 +99,34 @@ def test_truncated_jpeg_is_a_scene_error(tmp_path):
 def test_write_image_leaves_no_temporary_on_success(tmp_path):
     write_image(tmp_path / "a.png", np.zeros((4, 4, 3), np.uint8))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]
+
+
+def _png_scanline_filters(path) -> tuple[int, bytes]:
+    """(width, the filter byte of each scanline) of an 8-bit RGB PNG, from its IDAT stream."""
+    import struct
+    import zlib
+
+    data = path.read_bytes()
+    pos, width, idat = 8, 0, b""
+    while pos < len(data):
+        (length,), kind = struct.unpack(">I", data[pos:pos + 4]), data[pos + 4:pos + 8]
+        body = data[pos + 8:pos + 8 + length]
+        if kind == b"IHDR":
+            width = struct.unpack(">I", body[:4])[0]
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + length
+    raw = zlib.decompress(idat)
+    return width, raw[::1 + 3 * width]
+
+
+def test_png_frames_are_written_lossless_with_the_fast_up_filter(tmp_path):
+    rng = np.random.default_rng(0)
+    pixels = np.clip(np.linspace(0, 255, 40)[None, :, None] + rng.normal(0, 8, (30, 40, 3)),
+                     0, 255).astype(np.uint8)
+    write_image(tmp_path / "frame.png", pixels)
+    assert np.array_equal(read_image(tmp_path / "frame.png"), pixels)
+    width, filters = _png_scanline_filters(tmp_path / "frame.png")
+    assert width == 40 and len(filters) == 30
+    # libpng's "up" filter (type 2) on every row: the encoder does not try the others per row
+    assert set(filters) == {2}, sorted(set(filters))
