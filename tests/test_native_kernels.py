@@ -141,3 +141,21 @@ def test_sh_coefficients_in_two_parts_render_as_the_concatenated_tensor(monkeypa
     with pytest.raises(ValueError, match="set sh_degree"):
         rasterize(means, quats, scales, opac, (colors[:, :1], colors[:, 1:]), *cams, W, H,
                   backend="cpu")
+
+
+def test_arrays_of_the_wrong_dtype_or_layout_never_reach_the_library():
+    """The library takes raw addresses, so the dtype and layout are checked before each call."""
+    import numpy as np
+
+    kernels = _native.load()
+    if kernels is None:
+        pytest.skip("PARADRIVE_KERNELS=numba: no library")
+    depths = np.ones(4, np.float32)
+    radii = np.ones((4, 2), np.float32)
+    means2d = np.zeros((4, 2), np.float32)
+    with pytest.raises(TypeError, match="C-contiguous float32 array, got float64"):
+        kernels.bin_lists(depths.astype(np.float64), means2d, radii, 4, 16, 2, 2, 4)
+    with pytest.raises(TypeError, match="C-contiguous float32 array, got float32 strided"):
+        kernels.bin_lists(depths, np.zeros((4, 4), np.float32)[:, ::2], radii, 4, 16, 2, 2, 4)
+    ids, offsets, counts = kernels.bin_lists(depths, means2d, radii, 4, 16, 2, 2, 4)
+    assert counts.sum() == len(ids) == 4   # each Gaussian at the origin touches the first tile
