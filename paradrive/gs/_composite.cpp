@@ -999,8 +999,7 @@ void pd_sh_backward(int degree, const float* means, const float* c0, const float
 // bytes do not depend on the number of threads.
 namespace {
 
-struct Plane {
-    int64_t B;
+struct Plane {  // one image's rows: H of W * C floats
     int H, W, C;
     int64_t row() const { return static_cast<int64_t>(W) * C; }
     int64_t image() const { return row() * H; }
@@ -1117,7 +1116,7 @@ extern "C" {
 void pd_ssim_forward(const float* x, const float* y, int64_t B, int H, int W, int C,
                      const float* taps, int K, float c1, float c2, float* work, double* mean,
                      float* d, int threads) {
-    const Plane p{B, H, W, C};
+    const Plane p{H, W, C};
     const int64_t n = p.row(), rows = B * H, size = B * p.image();
     float* cols[5] = {work, work + size, work + 2 * size, work + 3 * size, work + 4 * size};
     parallel_tiles(rows, threads, [&](int64_t q) {
@@ -1174,7 +1173,7 @@ void pd_ssim_forward(const float* x, const float* y, int64_t B, int H, int W, in
 void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B, int H, int W,
                       int C, const float* taps, int K, const float* grad, float* work, float* g,
                       int threads) {
-    const Plane p{B, H, W, C};
+    const Plane p{H, W, C};
     const int64_t n = p.row(), rows = B * H, size = B * p.image();
     float* cols[3] = {work, work + size, work + 2 * size};
     parallel_tiles(rows, threads, [&](int64_t q) {
