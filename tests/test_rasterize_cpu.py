@@ -197,3 +197,46 @@ def test_with_the_fused_kernels_torch_runs_on_one_thread_and_the_kernels_on_the_
             assert torch.get_num_threads() == 3 and cpu_kernel_threads() == 3
     finally:
         torch.set_num_threads(old)
+
+
+def _graph(fn) -> set[str]:
+    """The names of the autograd nodes behind a tensor's grad_fn."""
+    names, todo = set(), [fn]
+    while todo:
+        node = todo.pop()
+        if node is not None and type(node).__name__ not in names:
+            names.add(type(node).__name__)
+            todo.extend(f for f, _ in node.next_functions)
+    return names
+
+
+@pytest.mark.parametrize("render_mode", ["RGB", "RGB+ED"])
+def test_the_fit_s_render_is_one_node_with_the_bytes_of_the_kernels_run_one_by_one(
+        kernels, render_mode, monkeypatch):
+    """The fit's render (SH coefficients in two parts, float32, the native library) runs
+    projection, colour, binning and compositing as one autograd node with no torch operation
+    between them; its images, alphas, gradients and the projected means' gradient (what
+    densification reads) are the bytes of the same kernels run as separate nodes."""
+    import paradrive.gs.rasterize as R
+
+    if kernels != "native":
+        pytest.skip("one node needs the native library")
+    means, quats, scales, opac, sh = make_scene(n=300, seed=31, sh_k=16)
+    weights = _loss_weights(3 if render_mode == "RGB" else 4, seed=32)
+    results = []
+    for one_node in (True, False):
+        if not one_node:
+            monkeypatch.setattr(R, "_fit_case", lambda *a: False)
+        leaves = _leaves([means, quats, scales, opac, sh[:, :1], sh[:, 1:]])
+        out, alphas, info = rasterize(*leaves[:4], (leaves[4], leaves[5]), *make_cameras(), W, H,
+                                      sh_degree=3, backend="cpu", render_mode=render_mode,
+                                      backgrounds=BG)
+        nodes = _graph(out.grad_fn)
+        assert ("FusedRasterizeBackward" in nodes) == one_node
+        assert ("FusedCompositeBackward" in nodes) != one_node
+        ((out * weights[0]).sum() + (alphas * weights[1]).sum()).backward()
+        results.append([out, alphas, info["means2d"].grad, info["radii"]]
+                       + [t.grad for t in leaves])
+    assert results[0][1].max() > 0.5 and info["n_isects"] > 100
+    for a, b in zip(*results, strict=True):
+        assert a is not None and a.dtype == b.dtype and torch.equal(a, b)

@@ -17,12 +17,18 @@
 //
 // Built by _native.py with the machine's C++ compiler and loaded through ctypes.
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <cstring>
+#include <functional>
+#include <mutex>
 #include <thread>
 #include <vector>
+
+#include <unistd.h>
 
 #if defined(__AVX512F__) || defined(__AVX2__)
 #include <immintrin.h>
@@ -200,19 +206,89 @@ inline void entry_alphas(const Entry& g, const TileBox& box, int chunks, int ya,
     }
 }
 
+// Worker threads kept between calls (starting threads for every call cost tens of
+// microseconds each, and a fit iteration makes about a dozen calls). One job at a time: a
+// caller that finds the pool busy (another Python thread in a kernel) starts its own threads.
+class Pool {
+  public:
+    // Runs fn on the calling thread and on `extra` workers; returns when all have finished.
+    bool try_run(int extra, const std::function<void()>& fn) {
+        std::unique_lock<std::mutex> busy(job_mu_, std::try_to_lock);
+        if (!busy.owns_lock()) return false;
+        std::unique_lock<std::mutex> lk(mu_);
+        for (; size_ < extra; ++size_) std::thread(&Pool::worker, this, generation_).detach();
+        job_ = &fn;
+        taking_ = running_ = extra;
+        ++generation_;
+        lk.unlock();
+        wake_.notify_all();
+        fn();
+        lk.lock();
+        finished_.wait(lk, [&] { return running_ == 0; });
+        job_ = nullptr;
+        return true;
+    }
+
+  private:
+    void worker(uint64_t seen) {
+        std::unique_lock<std::mutex> lk(mu_);
+        for (;;) {
+            wake_.wait(lk, [&] { return generation_ != seen; });
+            seen = generation_;
+            if (taking_ == 0) continue;  // enough workers on this job already
+            --taking_;
+            const std::function<void()>* fn = job_;
+            lk.unlock();
+            (*fn)();
+            lk.lock();
+            if (--running_ == 0) finished_.notify_one();
+        }
+    }
+
+    std::mutex job_mu_, mu_;
+    std::condition_variable wake_, finished_;
+    const std::function<void()>* job_ = nullptr;
+    uint64_t generation_ = 0;
+    int taking_ = 0, running_ = 0, size_ = 0;
+};
+
+std::atomic<Pool*> the_pool{nullptr};
+std::atomic<pid_t> pool_pid{0};
+
+// The process's pool. A forked child gets a new one: the parent's workers are not in it, and
+// the state of the parent's locks and condition variables is not the child's. Pools are never
+// destroyed (their detached workers outlive static teardown).
+Pool& pool() {
+    Pool* p = the_pool.load();
+    if (p != nullptr && pool_pid.load() == getpid()) return *p;
+    Pool* fresh = new Pool();
+    if (the_pool.compare_exchange_strong(p, fresh)) {
+        pool_pid = getpid();
+        return *fresh;
+    }
+    delete fresh;  // another thread made this process's pool first
+    return *p;
+}
+
+// fn(t) for t in [0, n_tiles) on `threads` threads, which take the next t from a shared counter.
 template <class Fn>
 void parallel_tiles(int64_t n_tiles, int threads, Fn fn) {
     std::atomic<int64_t> next{0};
-    auto work = [&]() {
+    const std::function<void()> work = [&]() {
         for (int64_t t = next.fetch_add(1); t < n_tiles; t = next.fetch_add(1)) fn(t);
     };
     int extra = threads > 1 ? threads - 1 : 0;
-    if (extra > n_tiles) extra = static_cast<int>(n_tiles);
-    std::vector<std::thread> pool;
-    pool.reserve(extra);
-    for (int i = 0; i < extra; ++i) pool.emplace_back(work);
+    if (extra > n_tiles - 1) extra = n_tiles > 1 ? static_cast<int>(n_tiles - 1) : 0;
+    if (extra == 0) {
+        work();
+        return;
+    }
+    if (pool().try_run(extra, work)) return;
+    std::vector<std::thread> threads_;
+    threads_.reserve(extra);
+    for (int i = 0; i < extra; ++i) threads_.emplace_back(work);
     work();
-    for (auto& th : pool) th.join();
+    for (auto& th : threads_) th.join();
 }
 
 void forward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,
@@ -1190,6 +1266,88 @@ void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B,
         float* gr = g + q * n;
         for (int64_t j = 0; j < n; ++j)
             gr[j] = (m[0][j] + 2.0f * xr[j] * m[1][j] + yr[j] * m[2][j]) * scale;
+    });
+}
+
+}  // extern "C"
+
+// ---- Adam (torch.optim.Adam without weight decay, amsgrad or maximize) over several tensors
+// in one call: every element takes the same vector arithmetic (a tensor's last partial vector
+// is padded), so the bytes do not depend on how the blocks fall to the threads.
+
+namespace {
+
+constexpr int64_t ADAM_BLOCK = 64 * L;  // floats per unit of work
+
+struct AdamTensor {
+    float *param, *exp_avg, *exp_avg_sq;
+    const float* grad;
+    int64_t size;
+    vf b1, c1, b2, c2, step_size, bc2_sqrt, eps;
+};
+
+inline void adam_lanes(const AdamTensor& t, vf* p, vf* m, vf* v, vf g) {
+    *m = *m * t.b1 + g * t.c1;
+    *v = *v * t.b2 + g * g * t.c2;
+    *p = *p - t.step_size * *m / (vsqrt(*v) / t.bc2_sqrt + t.eps);
+}
+
+void adam_block(const AdamTensor& t, int64_t lo, int64_t hi) {
+    int64_t i = lo;
+    for (; i + L <= hi; i += L) {
+        vf p, m, v, g;
+        std::memcpy(&p, t.param + i, sizeof p);
+        std::memcpy(&m, t.exp_avg + i, sizeof m);
+        std::memcpy(&v, t.exp_avg_sq + i, sizeof v);
+        std::memcpy(&g, t.grad + i, sizeof g);
+        adam_lanes(t, &p, &m, &v, g);
+        std::memcpy(t.param + i, &p, sizeof p);
+        std::memcpy(t.exp_avg + i, &m, sizeof m);
+        std::memcpy(t.exp_avg_sq + i, &v, sizeof v);
+    }
+    if (i < hi) {  // the tensor's last partial vector, padded with zeros
+        const size_t bytes = sizeof(float) * static_cast<size_t>(hi - i);
+        vf p{}, m{}, v{}, g{};
+        std::memcpy(&p, t.param + i, bytes);
+        std::memcpy(&m, t.exp_avg + i, bytes);
+        std::memcpy(&v, t.exp_avg_sq + i, bytes);
+        std::memcpy(&g, t.grad + i, bytes);
+        adam_lanes(t, &p, &m, &v, g);
+        std::memcpy(t.param + i, &p, bytes);
+        std::memcpy(t.exp_avg + i, &m, bytes);
+        std::memcpy(t.exp_avg_sq + i, &v, bytes);
+    }
+}
+
+}  // namespace
+
+extern "C" {
+
+// One Adam step of n float32 tensors. addresses (n, 4): param, grad, exp_avg, exp_avg_sq of
+// each; sizes (n,) elements; settings (n, 5): lr, the step count after this step, beta1, beta2
+// and eps (the bias corrections in double, as torch computes them, the rest in float).
+void pd_adam_step(int n, const int64_t* addresses, const int64_t* sizes, const double* settings,
+                  int threads) {
+    std::vector<AdamTensor> ts(n);
+    std::vector<int64_t> first(n + 1, 0);  // the tensors' first units
+    for (int k = 0; k < n; ++k) {
+        const int64_t* a = addresses + 4 * k;
+        const double *h = settings + 5 * k, lr = h[0], step = h[1], beta1 = h[2], beta2 = h[3];
+        const double eps = h[4];
+        const double bc1 = 1.0 - std::pow(beta1, step), bc2 = 1.0 - std::pow(beta2, step);
+        ts[k] = {reinterpret_cast<float*>(a[0]), reinterpret_cast<float*>(a[2]),
+                 reinterpret_cast<float*>(a[3]), reinterpret_cast<const float*>(a[1]), sizes[k],
+                 splat(static_cast<float>(beta1)), splat(static_cast<float>(1.0 - beta1)),
+                 splat(static_cast<float>(beta2)), splat(static_cast<float>(1.0 - beta2)),
+                 splat(static_cast<float>(lr / bc1)),
+                 splat(static_cast<float>(std::sqrt(bc2))), splat(static_cast<float>(eps))};
+        first[k + 1] = first[k] + (sizes[k] + ADAM_BLOCK - 1) / ADAM_BLOCK;
+    }
+    parallel_tiles(first[n], threads, [&](int64_t u) {
+        int k = 0;
+        while (first[k + 1] <= u) ++k;
+        const int64_t lo = (u - first[k]) * ADAM_BLOCK;
+        adam_block(ts[k], lo, std::min(lo + ADAM_BLOCK, ts[k].size));
     });
 }
 

@@ -25,7 +25,8 @@ from paradrive.gs import _native
 from paradrive.gs._tiles import TileBins, composite
 from paradrive.gs.sh import shade
 
-__all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "shade_fused"]
+__all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "rasterize_fit",
+           "shade_fused"]
 
 
 @contextmanager
@@ -256,3 +257,122 @@ def _check_sh(degree: int, n: int, k: int) -> None:
     if k < (degree + 1) ** 2:
         raise ValueError(f"sh_degree={degree} needs {(degree + 1) ** 2} coefficients per Gaussian, "
                          f"got colors of shape {(n, k, 3)}")
+
+
+class FusedRasterize(torch.autograd.Function):
+    """The fit's case (SH colours in the fit's two parts, RGB with or without a depth channel)
+    as one autograd node: projection, SH colour, binning and compositing forward, and their
+    backward, in the native kernels with no torch operations between them.
+
+    Inputs: means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), c0 (N, 1, 3),
+    cN (N, K - 1, 3), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds (C, 3) or None (no
+    gradient), settings, and ``screen`` (C, N, 2) float32: gets the projected means, and from the
+    backward their gradient as its ``grad`` (what densification reads).
+    Outputs: renders (C, H, W, 3 or 4: the 4th the accumulated depth), alphas (C, H, W, 1),
+    conics (C, N, 3), depths (C, N), radii_xy (C, N, 2) int32 and the number of list entries;
+    only the first two are differentiable.
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, c0, cN, viewmats, Ks, backgrounds,
+                settings: tuple, screen: Tensor):
+        native = _native.load()
+        if native is None:
+            raise RuntimeError("the one-node fit render needs the native kernels (rasterize "
+                               "checks _fit_case first)")
+        width, height, near, far, eps2d, radius_clip, degree, with_depth, ts = settings
+        C, N, threads = viewmats.shape[0], means.shape[0], cpu_kernel_threads()
+        arrays = [_f32(t) for t in (means, quats, scales, opacities, viewmats, Ks, c0, cN)]
+        m, q, s, op, vm, Ks_, c0_, cN_ = arrays
+        means2d = screen.numpy()  # the projected means, written in place
+        conics = np.empty((C, N, 3), dtype=np.float32)
+        depths = np.empty((C, N, 1), dtype=np.float32)
+        radii = np.empty((C, N, 2), dtype=np.int32)
+        native.project_forward(m, q, s, op, vm, Ks_, width, height, near, far, eps2d, radius_clip,
+                               means2d, conics, depths, radii, threads)
+        campos = -np.einsum("cji,cj->ci", vm[:, :3, :3], vm[:, :3, 3]).astype(np.float32)
+        colors = np.empty((C, N, 3), dtype=np.float32)
+        native.sh_forward(degree, m, c0_, cN_, campos, radii[..., 0] > 0, colors, threads)
+        D = 3 + int(with_depth)
+        table = np.empty((C, N, 6 + D), dtype=np.float32)
+        table[..., 0:2], table[..., 2:5], table[..., 5] = means2d, conics, op
+        table[..., 6:9] = colors
+        if with_depth:
+            table[..., 9] = depths[..., 0]
+        table = table.reshape(C * N, 6 + D)
+        tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+        ids, offsets, counts = native.bin_lists(
+            depths.reshape(-1), means2d.reshape(-1, 2), radii.reshape(-1, 2).astype(np.float32),
+            max(N, 1), ts, tiles_x, tiles_y, C * tiles_x * tiles_y)
+        bg = np.zeros((C, D), dtype=np.float32)
+        if backgrounds is not None:
+            bg[:, :3] = _f32(backgrounds)
+        render = np.empty((C, height, width, D), dtype=np.float32)
+        trans = np.empty((C, height, width), dtype=np.float32)
+        last = np.empty((C, height, width), dtype=np.int64)
+        native.composite_forward(table, ids, offsets, counts, ts, tiles_x, tiles_y, bg, render,
+                                 trans, last, threads)
+        ctx.native, ctx.settings, ctx.screen = native, settings, screen
+        ctx.arrays = (arrays, campos, colors, table, ids, offsets, counts, bg, trans, last)
+        radii_t = torch.from_numpy(radii)
+        conics_t, depths_t = torch.from_numpy(conics), torch.from_numpy(depths[..., 0])
+        ctx.mark_non_differentiable(conics_t, depths_t, radii_t)
+        alphas = 1.0 - torch.from_numpy(trans)[..., None]
+        return (torch.from_numpy(render), alphas, conics_t, depths_t, radii_t,
+                torch.tensor(ids.shape[0]))
+
+    @staticmethod
+    def backward(ctx, v_render, v_alphas, *_):
+        native, threads = ctx.native, cpu_kernel_threads()
+        width, height, near, far, eps2d, _, degree, with_depth, ts = ctx.settings
+        arrays, campos, colors, table, ids, offsets, counts, bg, trans, last = ctx.arrays
+        m, q, s, _, vm, Ks_, c0_, cN_ = arrays
+        C, N = vm.shape[0], m.shape[0]
+        tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+        per_entry = native.composite_backward(table, ids, offsets, counts, ts, tiles_x, tiles_y,
+                                              bg, trans, last, _f32(v_render),
+                                              _f32(v_alphas[..., 0]), threads)
+        total = native.sum_by_gaussian(per_entry, ids, C * N, threads).reshape(C, N, -1)
+        v_means2d = np.ascontiguousarray(total[..., 0:2])
+        v_depths = (np.ascontiguousarray(total[..., 9:10]) if with_depth
+                    else np.zeros((C, N, 1), dtype=np.float32))
+        v_means, v_quats, v_scales = native.project_backward(
+            m, q, s, vm, Ks_, width, height, near, far, eps2d, v_means2d,
+            np.ascontiguousarray(total[..., 2:5]), v_depths, threads)
+        sh = (np.empty_like(m), np.empty_like(c0_), np.empty_like(cN_))
+        native.sh_backward(degree, m, c0_, cN_, campos, colors,
+                           np.ascontiguousarray(total[..., 6:9]), *sh, threads)
+        v_means += sh[0]
+        ctx.screen.grad = torch.from_numpy(v_means2d)
+        v_op = total[..., 5].sum(axis=0)
+        g_bg = None
+        if ctx.needs_input_grad[8]:
+            g_bg = (v_render[..., :3] * torch.from_numpy(trans)[..., None]).sum(dim=(1, 2))
+        return (*(torch.from_numpy(a) for a in (v_means, v_quats, v_scales, v_op, *sh[1:])),
+                None, None, g_bg, None, None)
+
+
+def rasterize_fit(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                  c0: Tensor, cN: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+                  sh_degree: int, backgrounds: Tensor | None, near_plane: float, far_plane: float,
+                  with_depth: bool, eps2d: float, radius_clip: float, tile_size: int
+                  ) -> tuple[Tensor, Tensor, dict]:
+    """``_torch_rasterize``'s result for SH colours (c0, cN) through FusedRasterize: renders
+    (C, H, W, 3 or 4, the 4th the accumulated depth), alphas (C, H, W, 1) and the info dict,
+    whose ``means2d`` gets its ``grad`` from the backward."""
+    _check_sh(sh_degree, c0.shape[0], 1 + cN.shape[1])
+    C, N = viewmats.shape[0], means.shape[0]
+    screen = torch.empty(C, N, 2, device="cpu")
+    settings = (width, height, float(near_plane), float(far_plane), float(eps2d),
+                float(radius_clip), int(sh_degree), bool(with_depth), tile_size)
+    renders, alphas, conics, depths, radii_xy, n_isects = FusedRasterize.apply(
+        means, quats, scales, opacities, c0, cN, viewmats.detach(), Ks.detach(), backgrounds,
+        settings, screen)
+    info = {
+        "means2d": screen, "radii": torch.maximum(radii_xy[..., 0], radii_xy[..., 1]),
+        "radii_xy": radii_xy, "depths": depths, "conics": conics, "width": width,
+        "height": height, "n_cameras": C, "tile_size": tile_size,
+        "tile_width": math.ceil(width / tile_size), "tile_height": math.ceil(height / tile_size),
+        "n_isects": int(n_isects), "backend": "cpu",
+    }
+    return renders, alphas, info

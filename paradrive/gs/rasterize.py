@@ -98,6 +98,15 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height,
 def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                      sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
                      radius_clip, tile_size, backend="torch"):
+    if backend == "cpu" and _fit_case(means, colors, sh_degree, render_mode):
+        from paradrive.gs._fused import rasterize_fit
+
+        c0, cN = colors if isinstance(colors, tuple) else (colors[:, :1], colors[:, 1:])
+        renders, alphas, info = rasterize_fit(
+            means, quats, scales, opacities, c0, cN, viewmats, Ks, width, height, sh_degree,
+            backgrounds, near_plane, far_plane, render_mode != "RGB", eps2d, radius_clip,
+            tile_size)
+        return _expected_depth(renders, alphas, render_mode), alphas, info
     C, N = viewmats.shape[0], means.shape[0]
     project, shade, binner, compositor = _stages(backend)
     means2d, conics, depths, radii_xy = project(
@@ -129,8 +138,7 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         means2d.reshape(C * N, 2), conics.reshape(C * N, 3), op,
         feats.reshape(C * N, feats.shape[-1]).contiguous(), bg.to(means.dtype), bins)
 
-    if render_mode in ("ED", "RGB+ED"):
-        renders = torch.cat([renders[..., :-1], renders[..., -1:] / alphas.clamp_min(1e-10)], -1)
+    renders = _expected_depth(renders, alphas, render_mode)
     radii = torch.maximum(radii_xy[..., 0], radii_xy[..., 1])
     info = {
         "means2d": means2d, "radii": radii, "radii_xy": radii_xy, "depths": depths,
@@ -139,6 +147,28 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         "n_isects": int(bins.flat_ids.numel()), "backend": backend,
     }
     return renders, alphas, info
+
+
+def _expected_depth(renders: Tensor, alphas: Tensor, render_mode: str) -> Tensor:
+    """The last channel divided by the alpha in the expected-depth modes ('ED', 'RGB+ED')."""
+    if render_mode not in ("ED", "RGB+ED"):
+        return renders
+    return torch.cat([renders[..., :-1], renders[..., -1:] / alphas.clamp_min(1e-10)], -1)
+
+
+def _fit_case(means: Tensor, colors, sh_degree, render_mode: str) -> bool:
+    """Whether the fused kernels run this render as one node (``_fused.rasterize_fit``): SH
+    coefficients (in two parts or (N, K, 3)), an RGB mode, float32 and the native library."""
+    from paradrive.gs import _native
+
+    if sh_degree is None or render_mode not in ("RGB", "RGB+D", "RGB+ED"):
+        return False
+    parts = colors if isinstance(colors, tuple) else (colors,)
+    if not isinstance(colors, tuple) and colors.dim() != 3:
+        return False
+    if means.dtype != torch.float32 or any(t.dtype != torch.float32 for t in parts):
+        return False
+    return _native.load() is not None
 
 
 def _stages(backend: str):
