@@ -161,67 +161,6 @@ def test_arrays_of_the_wrong_dtype_or_layout_never_reach_the_library():
     assert counts.sum() == len(ids) == 4   # each Gaussian at the origin touches the first tile
 
 
-def _adams(fused: bool = True) -> tuple[list[torch.nn.Parameter], list[torch.optim.Adam]]:
-    """Three parameters of the fit's kinds (one longer than a work unit, one shorter than a
-    vector), each with its own Adam and learning rate, as the fit keeps them."""
-    g = torch.Generator().manual_seed(11)
-    params = [torch.nn.Parameter(torch.randn(*shape, generator=g))
-              for shape in ((1500, 15, 3), (37, 3), (5,))]
-    opts = [torch.optim.Adam([p], lr=lr, eps=1e-15, fused=fused)
-            for p, lr in zip(params, (2.5e-3, 1.6e-4, 0.05), strict=True)]
-    return params, opts
-
-
-def _adam_steps(params, opts, steps: int = 6, **kwargs) -> None:
-    from paradrive.gs import optim
-
-    g = torch.Generator().manual_seed(12)
-    for _ in range(steps):
-        for p in params:
-            p.grad = torch.randn(p.shape, generator=g) * 10.0 ** torch.randn(p.shape, generator=g)
-        optim.step(opts, **kwargs)
-
-
-def test_the_native_adam_steps_the_fit_s_optimizers_as_torch_does_with_the_same_bytes_at_any_thread_count():
-    """optim.step on the fused kernels: one call for all parameters follows torch's Adam (to
-    float32 rounding) over several steps, keeps torch's state layout (the step count, both
-    moments) and clears the gradients; its bytes do not depend on the thread count. Without the
-    kernels, and for Adams it cannot step (not fused), it is torch's own step, byte for byte."""
-    from paradrive.devices import set_cpu_kernel_threads
-
-    if _native.load() is None:
-        pytest.skip("no C++ compiler here")
-    results = []
-    for threads in (1, 2, 3):
-        old = set_cpu_kernel_threads(threads)
-        try:
-            params, opts = _adams()
-            _adam_steps(params, opts)
-        finally:
-            set_cpu_kernel_threads(old)
-        results.append((params, opts))
-    torch_params, torch_opts = _adams()
-    _adam_steps(torch_params, torch_opts, kernels=False)
-    params, opts = results[0]
-    for p, q, o, ref, start in zip(params, torch_params, opts, torch_opts, _adams()[0],
-                                   strict=True):
-        assert p.grad is None
-        assert not torch.equal(p, start)   # it moved
-        torch.testing.assert_close(p.detach(), q.detach(), rtol=1e-5, atol=1e-6)
-        state, ref_state = o.state_dict()["state"][0], ref.state_dict()["state"][0]
-        assert sorted(state) == sorted(ref_state) == ["exp_avg", "exp_avg_sq", "step"]
-        assert float(state["step"]) == float(ref_state["step"]) == 6.0
-        assert state["step"].dtype == ref_state["step"].dtype
-        torch.testing.assert_close(state["exp_avg_sq"], ref_state["exp_avg_sq"], rtol=1e-5, atol=0)
-    for other, _ in results[1:]:
-        assert all(torch.equal(a, b) for a, b in zip(params, other, strict=True))
-    plain, plain_opts = _adams(fused=False)
-    _adam_steps(plain, plain_opts)
-    reference, reference_opts = _adams(fused=False)
-    _adam_steps(reference, reference_opts, kernels=False)
-    assert all(torch.equal(a, b) for a, b in zip(plain, reference, strict=True))
-
-
 def test_kernels_run_in_a_child_forked_after_the_parent_started_its_worker_threads():
     """The kernels keep their worker threads between calls; a child forked afterwards (a
     process pool on Linux) has none of them and starts its own instead of waiting forever."""

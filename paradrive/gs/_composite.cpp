@@ -17,7 +17,6 @@
 //
 // Built by _native.py with the machine's C++ compiler and loaded through ctypes.
 
-#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <condition_variable>
@@ -1271,84 +1270,3 @@ void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B,
 
 }  // extern "C"
 
-// ---- Adam (torch.optim.Adam without weight decay, amsgrad or maximize) over several tensors
-// in one call: every element takes the same vector arithmetic (a tensor's last partial vector
-// is padded), so the bytes do not depend on how the blocks fall to the threads.
-
-namespace {
-
-constexpr int64_t ADAM_BLOCK = 64 * L;  // floats per unit of work
-
-struct AdamTensor {
-    float *param, *exp_avg, *exp_avg_sq;
-    const float* grad;
-    int64_t size;
-    vf b1, c1, b2, c2, step_size, bc2_sqrt, eps;
-};
-
-inline void adam_lanes(const AdamTensor& t, vf* p, vf* m, vf* v, vf g) {
-    *m = *m * t.b1 + g * t.c1;
-    *v = *v * t.b2 + g * g * t.c2;
-    *p = *p - t.step_size * *m / (vsqrt(*v) / t.bc2_sqrt + t.eps);
-}
-
-void adam_block(const AdamTensor& t, int64_t lo, int64_t hi) {
-    int64_t i = lo;
-    for (; i + L <= hi; i += L) {
-        vf p, m, v, g;
-        std::memcpy(&p, t.param + i, sizeof p);
-        std::memcpy(&m, t.exp_avg + i, sizeof m);
-        std::memcpy(&v, t.exp_avg_sq + i, sizeof v);
-        std::memcpy(&g, t.grad + i, sizeof g);
-        adam_lanes(t, &p, &m, &v, g);
-        std::memcpy(t.param + i, &p, sizeof p);
-        std::memcpy(t.exp_avg + i, &m, sizeof m);
-        std::memcpy(t.exp_avg_sq + i, &v, sizeof v);
-    }
-    if (i < hi) {  // the tensor's last partial vector, padded with zeros
-        const size_t bytes = sizeof(float) * static_cast<size_t>(hi - i);
-        vf p{}, m{}, v{}, g{};
-        std::memcpy(&p, t.param + i, bytes);
-        std::memcpy(&m, t.exp_avg + i, bytes);
-        std::memcpy(&v, t.exp_avg_sq + i, bytes);
-        std::memcpy(&g, t.grad + i, bytes);
-        adam_lanes(t, &p, &m, &v, g);
-        std::memcpy(t.param + i, &p, bytes);
-        std::memcpy(t.exp_avg + i, &m, bytes);
-        std::memcpy(t.exp_avg_sq + i, &v, bytes);
-    }
-}
-
-}  // namespace
-
-extern "C" {
-
-// One Adam step of n float32 tensors. addresses (n, 4): param, grad, exp_avg, exp_avg_sq of
-// each; sizes (n,) elements; settings (n, 5): lr, the step count after this step, beta1, beta2
-// and eps (the bias corrections in double, as torch computes them, the rest in float).
-void pd_adam_step(int n, const int64_t* addresses, const int64_t* sizes, const double* settings,
-                  int threads) {
-    std::vector<AdamTensor> ts(n);
-    std::vector<int64_t> first(n + 1, 0);  // the tensors' first units
-    for (int k = 0; k < n; ++k) {
-        const int64_t* a = addresses + 4 * k;
-        const double *h = settings + 5 * k, lr = h[0], step = h[1], beta1 = h[2], beta2 = h[3];
-        const double eps = h[4];
-        const double bc1 = 1.0 - std::pow(beta1, step), bc2 = 1.0 - std::pow(beta2, step);
-        ts[k] = {reinterpret_cast<float*>(a[0]), reinterpret_cast<float*>(a[2]),
-                 reinterpret_cast<float*>(a[3]), reinterpret_cast<const float*>(a[1]), sizes[k],
-                 splat(static_cast<float>(beta1)), splat(static_cast<float>(1.0 - beta1)),
-                 splat(static_cast<float>(beta2)), splat(static_cast<float>(1.0 - beta2)),
-                 splat(static_cast<float>(lr / bc1)),
-                 splat(static_cast<float>(std::sqrt(bc2))), splat(static_cast<float>(eps))};
-        first[k + 1] = first[k] + (sizes[k] + ADAM_BLOCK - 1) / ADAM_BLOCK;
-    }
-    parallel_tiles(first[n], threads, [&](int64_t u) {
-        int k = 0;
-        while (first[k + 1] <= u) ++k;
-        const int64_t lo = (u - first[k]) * ADAM_BLOCK;
-        adam_block(ts[k], lo, std::min(lo + ADAM_BLOCK, ts[k].size));
-    });
-}
-
-}  // extern "C"

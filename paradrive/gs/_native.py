@@ -137,9 +137,6 @@ class Kernels:
         self._sh_vjp.restype = None
         self._sh_vjp.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _f32, _f32,
                                  _f32, _f32, _f32, _int]
-        self._adam = lib.pd_adam_step
-        self._adam.restype = None
-        self._adam.argtypes = [_int, _i64, _i64, _f64, _int]
         self._project_vjp = lib.pd_project_backward
         self._project_vjp.restype = None
         self._project_vjp.argtypes = [_f32] * 5 + [_long, _int, _int, _int, _flt, _flt, _flt,
@@ -285,19 +282,6 @@ class Kernels:
         self._sum(_ptr(grads, np.float32), _ptr(ids, np.int64), ids.shape[0], grads.shape[1], n,
                   _ptr(out, np.float32), threads)
         return out
-
-    def adam_step(self, addresses: np.ndarray, sizes: np.ndarray, settings: np.ndarray,
-                  threads: int) -> None:
-        """One Adam step of n float32 tensors in place: ``addresses`` (n, 4) int64 holds the
-        data addresses of each one's parameter, gradient, first and second moments (contiguous,
-        ``sizes`` (n,) elements each); ``settings`` (n, 5) float64 its learning rate, step count
-        after this step, beta1, beta2 and eps."""
-        n = sizes.shape[0]
-        if addresses.shape != (n, 4) or settings.shape != (n, 5):
-            raise ValueError(f"adam_step: addresses {addresses.shape} and settings "
-                             f"{settings.shape} for {n} tensors")
-        self._adam(n, _ptr(addresses, np.int64), _ptr(sizes, np.int64),
-                   _ptr(settings, np.float64), threads)
 
 
 def _ptr(a: np.ndarray, dtype: type) -> int:

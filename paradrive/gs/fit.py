@@ -47,7 +47,6 @@ from paradrive.stages.layout import SceneLayout, actor_files
 from paradrive.stages.records import FitRecord
 
 from . import init as gsinit
-from . import optim
 from .graph import (BACKGROUND, FittedModel, actor_points_init, boxes_containing, node_poses, place,
                     save_model)
 from .init import View
@@ -517,7 +516,9 @@ class _Fit:
             group["lr"] = self.lr0 * self.gamma**step
         loss, info = self._loss(vi, min(step // max(p.sh_degree_interval, 1), p.sh_degree))
         loss.backward()
-        optim.step(self.optimizers.values(), kernels=self.backend == "cpu")
+        for o in self.optimizers.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
         changed = self.strategy.step_post_backward(self.params, self.optimizers, self.strat_state,
                                                    step, info, self.gen)
         for key, count in changed.items():

@@ -104,20 +104,20 @@ class DensifyStrategy:
         m2d = info["means2d"]
         if m2d.grad is None:
             return
-        grads, c = m2d.grad.detach(), info["n_cameras"]
-        norms = torch.hypot(grads[..., 0] * (info["width"] / 2.0 * c),
-                            grads[..., 1] * (info["height"] / 2.0 * c))   # (C, N)
+        grads = m2d.grad.detach().clone()
+        c = info["n_cameras"]
+        grads[..., 0] *= info["width"] / 2.0 * c
+        grads[..., 1] *= info["height"] / 2.0 * c
         radii = info["radii"]
         visible = radii > 0 if radii.dim() == 2 else (radii > 0).all(-1)   # (C, N)
-        norms = torch.where(visible, norms, 0.0).sum(0)
-        counts = visible.sum(0, dtype=norms.dtype)
+        norms = torch.where(visible, grads.norm(dim=-1), torch.zeros_like(grads[..., 0]))
         ids = info.get("gaussian_ids")
         if ids is None:
-            state["grad2d"] += norms
-            state["count"] += counts
+            state["grad2d"] += norms.sum(0)
+            state["count"] += visible.float().sum(0)
         else:
-            state["grad2d"].index_add_(0, ids, norms)
-            state["count"].index_add_(0, ids, counts)
+            state["grad2d"].index_add_(0, ids, norms.sum(0))
+            state["count"].index_add_(0, ids, visible.float().sum(0))
 
     @torch.no_grad()
     def step_post_backward(self, params, optimizers, state: dict[str, Any], step: int,
