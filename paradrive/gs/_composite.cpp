@@ -283,11 +283,11 @@ void parallel_tiles(int64_t n_tiles, int threads, Fn fn) {
         return;
     }
     if (pool().try_run(extra, work)) return;
-    std::vector<std::thread> threads_;
-    threads_.reserve(extra);
-    for (int i = 0; i < extra; ++i) threads_.emplace_back(work);
+    std::vector<std::thread> spawned;
+    spawned.reserve(extra);
+    for (int i = 0; i < extra; ++i) spawned.emplace_back(work);
     work();
-    for (auto& th : threads_) th.join();
+    for (auto& th : spawned) th.join();
 }
 
 void forward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,

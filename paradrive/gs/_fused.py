@@ -319,7 +319,7 @@ class FusedRasterize(torch.autograd.Function):
         ctx.mark_non_differentiable(conics_t, depths_t, radii_t)
         alphas = 1.0 - torch.from_numpy(trans)[..., None]
         return (torch.from_numpy(render), alphas, conics_t, depths_t, radii_t,
-                torch.tensor(ids.shape[0]))
+                torch.tensor(ids.shape[0], device="cpu"))
 
     @staticmethod
     def backward(ctx, v_render, v_alphas, *_):
