@@ -313,6 +313,7 @@ class FusedRasterize(torch.autograd.Function):
         native.composite_forward(table, ids, offsets, counts, ts, tiles_x, tiles_y, bg, render,
                                  trans, last, threads)
         ctx.native, ctx.settings, ctx.screen = native, settings, screen
+        ctx.tiles = (tiles_x, tiles_y)
         ctx.arrays = (arrays, campos, colors, table, ids, offsets, counts, bg, trans, last)
         radii_t = torch.from_numpy(radii)
         conics_t, depths_t = torch.from_numpy(conics), torch.from_numpy(depths[..., 0])
@@ -328,7 +329,7 @@ class FusedRasterize(torch.autograd.Function):
         arrays, campos, colors, table, ids, offsets, counts, bg, trans, last = ctx.arrays
         m, q, s, _, vm, Ks_, c0_, cN_ = arrays
         C, N = vm.shape[0], m.shape[0]
-        tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+        tiles_x, tiles_y = ctx.tiles
         per_entry = native.composite_backward(table, ids, offsets, counts, ts, tiles_x, tiles_y,
                                               bg, trans, last, _f32(v_render),
                                               _f32(v_alphas[..., 0]), threads)
