@@ -267,6 +267,59 @@ def test_densification_grows_and_prunes():
         assert o.state[params[key]]["exp_avg"].shape[0] == n
 
 
+def test_the_fit_s_adam_step_gives_the_bytes_of_the_optimizers_own_steps():
+    """The fit steps its fused Adams with their kernel directly once they hold their state: the
+    same parameters and moments, byte for byte, as their own step() over iterations that start
+    with no state, remap it in densification, skip a parameter without a gradient and change
+    the learning rate; other optimizers step themselves."""
+    from paradrive.gs.fit import _make_optimizers, _plain_fused_adam, _step
+
+    fp = fit_params("smoke")
+    runs = []
+    for direct in (True, False):
+        gen = torch.Generator().manual_seed(5)
+        means = torch.randn(40, 3, generator=gen)
+        params = {k: torch.nn.Parameter(v) for k, v in
+                  new_params(means, torch.rand(40, 3, generator=gen), torch.full((40, 3), 0.05),
+                             opacity=0.3).items()}
+        opts = _make_optimizers(params, fp, scene_scale=2.0)
+        extra = torch.nn.Parameter(torch.zeros(4))
+        opts["boxes"] = torch.optim.Adam([extra], lr=1e-2)   # not fused: steps itself
+        strat = DensifyStrategy(refine_start_iter=0, refine_every=2, reset_every=10_000,
+                                grow_grad2d=0.0, grow_scale3d=0.1)
+        state = strat.initialize_state(40, scene_scale=1.0, is_sky=torch.zeros(40, dtype=torch.bool))
+        seen = []
+        for it in range(6):
+            opts["means"].param_groups[0]["lr"] = 1e-3 * 0.9**it
+            w = torch.randn(params["means"].shape[0], generator=gen)
+            loss = sum((p * w.reshape(-1, *[1] * (p.dim() - 1))).square().sum()
+                       for k, p in params.items() if not (k == "shN" and it == 3)) + extra.sum()
+            loss.backward()
+            seen.append(_plain_fused_adam(opts["means"]))
+            if direct:
+                _step(list(opts.values()))
+            else:
+                for o in opts.values():
+                    o.step()
+                    o.zero_grad(set_to_none=True)
+            assert all(p.grad is None for p in params.values())
+            n = params["means"].shape[0]
+            strat.step_post_backward(params, opts, state, it + 1,
+                                     _info(n, torch.linspace(0.0, 1.0, n)),
+                                     torch.Generator().manual_seed(it))
+        runs.append(([p.detach().clone() for p in params.values()] + [extra.detach().clone()],
+                     [t.clone() for o in opts.values() for st in o.state.values()
+                      for t in (st["exp_avg"], st["exp_avg_sq"], st["step"])]))
+        if direct:
+            assert seen == [False] + [True] * 5   # the first step makes the state
+            assert not _plain_fused_adam(opts["boxes"])
+    (p1, s1), (p2, s2) = runs
+    assert params["means"].shape[0] > 40                     # densification remapped the state
+    assert len(p1) == len(p2) and all(torch.equal(a, b) for a, b in zip(p1, p2))
+    assert len(s1) == len(s2) and all(torch.equal(a, b) for a, b in zip(s1, s2))
+    assert not torch.equal(p1[0], means)
+
+
 def test_max_gaussians_cap_holds_and_keeps_the_largest_gradients():
     params, opts = _toy(6)
     strat = DensifyStrategy(refine_start_iter=0, refine_every=1, reset_every=10_000, grow_scale3d=0.1,

@@ -194,3 +194,41 @@ def test_kernels_run_in_a_child_forked_after_the_parent_started_its_worker_threa
     finally:
         set_cpu_kernel_threads(old)
     assert answer == b"same", "the forked child hung or rendered other bytes"
+
+
+@pytest.mark.parametrize("cameras", [1, 3])
+def test_densification_sums_in_the_library_keep_the_bytes_of_the_torch_operations(
+        cameras, monkeypatch):
+    """The densification's running sums of projected-gradient norms and counts, taken by the
+    library from the gradients where the fit's render leaves them (two columns of its table),
+    are the bytes of the torch operations, over several steps, for one camera and three."""
+    import numpy as np
+
+    from paradrive.gs import strategy as S
+
+    if _native.load() is None:
+        pytest.skip("no C++ compiler here")
+    n, gen = 5000, torch.Generator().manual_seed(cameras)
+    strat = S.DensifyStrategy()
+    states, calls = [], []
+    for native in (True, False):
+        if not native:
+            monkeypatch.setattr(S, "_native_sums", lambda *a: False)
+        state = strat.initialize_state(n, 1.0, torch.zeros(n, dtype=torch.bool))
+        gen.manual_seed(cameras)
+        for _ in range(4):
+            table = torch.randn(cameras, n, 10, generator=gen) * torch.exp(
+                4.0 * torch.randn(cameras, n, 1, generator=gen))
+            table[:, : n // 10] = 0.0                              # no gradient
+            radii = torch.randint(0, 3, (cameras, n), generator=gen, dtype=torch.int32)
+            m2d = torch.zeros(cameras, n, 2, requires_grad=True)
+            m2d.grad = table[..., 3:5]                              # a view, as the fit's render sets it
+            calls.append(S._native_sums(m2d.grad, (80.0, 48.0), radii, {
+                "grad2d": torch.zeros(n), "count": torch.zeros(n)}) if native else False)
+            strat.update_state(state, {"means2d": m2d, "radii": radii, "width": 160,
+                                       "height": 96, "n_cameras": cameras})
+        states.append((state["grad2d"].numpy().copy(), state["count"].numpy().copy()))
+    assert any(calls)   # the library took the sums
+    (g1, c1), (g2, c2) = states
+    assert g1.tobytes() == g2.tobytes() and c1.tobytes() == c2.tobytes()
+    assert np.count_nonzero(g1) > n // 2 and c1.max() >= 2 * (cameras > 1)

@@ -96,7 +96,17 @@ inline vf exp_neg(vf s) {
 struct Entry {
     float mx, my, a, b, c, op;
     float col[MAX_CHANNELS];
+    float cut;  // the sigma beyond which its alpha is below ALPHA_MIN
 };
+
+// The sigma beyond which opacity * exp(-sigma) < ALPHA_MIN: log(opacity / ALPHA_MIN), at most
+// SIGMA_CUT (which is that of opacity 1), widened by 0.01 (1 % in alpha, far above float32's
+// rounding of sigma and of the exp polynomial). Pixels past it fail the alpha test anyway, so
+// leaving their rows out changes no byte; a faint Gaussian's rows are fewer.
+inline float sigma_cut(float op) {
+    const float cut = std::log(op > ALPHA_MIN ? op / ALPHA_MIN : 1.0f) + 0.01f;
+    return cut < static_cast<float>(SIGMA_CUT) ? cut : static_cast<float>(SIGMA_CUT);
+}
 
 // Rows of the table a list walks ahead of the one it reads: they are scattered over the table,
 // so they are fetched into the cache early.
@@ -108,13 +118,13 @@ inline void prefetch(const float* table, const int64_t* ids, int64_t e, int F) {
 
 inline Entry entry(const float* table, const int64_t* ids, int64_t e, int F, int D) {
     const float* g = table + ids[e] * F;
-    Entry r{g[0], g[1], g[2], g[3], g[4], g[5], {0.0f, 0.0f, 0.0f, 0.0f}};
+    Entry r{g[0], g[1], g[2], g[3], g[4], g[5], {0.0f, 0.0f, 0.0f, 0.0f}, sigma_cut(g[5])};
     for (int k = 0; k < D; ++k) r.col[k] = g[6 + k];
     return r;
 }
 
-// Rows [y0, y1) of [y_lo, y_hi) that the entry's ellipse sigma <= SIGMA_CUT reaches, as
-// _row_range computes them (axis 1), and likewise its columns (axis 0).
+// Rows [y0, y1) of [y_lo, y_hi) that the entry's ellipse sigma <= g.cut reaches, as
+// _row_range computes them for SIGMA_CUT (axis 1), and likewise its columns (axis 0).
 inline void extent(const Entry& g, int axis, int lo, int hi, int* i0, int* i1) {
     const float det = g.a * g.c - g.b * g.b;
     if (!(g.a > 0.0f && det > 0.0f)) {
@@ -124,7 +134,7 @@ inline void extent(const Entry& g, int axis, int lo, int hi, int* i0, int* i1) {
     }
     // in float, widened a little more than _row_range's margin for the rounding: a row it adds
     // is skipped by the alpha test anyway
-    const float half = std::sqrt(2.0f * static_cast<float>(SIGMA_CUT) * (axis == 1 ? g.a : g.c) / det) *
+    const float half = std::sqrt(2.0f * g.cut * (axis == 1 ? g.a : g.c) / det) *
                            1.0001f + 2e-3f;
     const float m = axis == 1 ? g.my : g.mx;
     float l = std::ceil(m - half - 0.5f), h = std::floor(m + half - 0.5f) + 1.0f;
@@ -618,8 +628,16 @@ struct ProjectArgs {
     float near, far, eps2d, radius_clip;
 };
 
+// Rows of the compositing table (C*N, F) the projection fills besides its own outputs: the
+// mean, the conic and the opacity in columns 0..5, and the depth in column depth_col (none if
+// < 0); the colours are the SH kernel's.
+struct TableOut {
+    float* rows;
+    int F, depth_col;
+};
+
 void project_block(const ProjectArgs& a, int64_t b, float* means2d, float* conics, float* depths,
-                   int32_t* radii) {
+                   int32_t* radii, const TableOut& table) {
     const Lanes g = block_rows(nullptr, a.N, b);
     vf cov[9], M[9], R[9], mean[3];
     Quat q;
@@ -655,22 +673,33 @@ void project_block(const ProjectArgs& a, int64_t b, float* means2d, float* conic
             depths[o] = v.mc[2][i];
             radii[2 * o] = ok[i] ? static_cast<int32_t>(rx[i]) : 0;
             radii[2 * o + 1] = ok[i] ? static_cast<int32_t>(ry[i]) : 0;
+            if (table.rows == nullptr) continue;
+            float* row = table.rows + o * table.F;
+            row[0] = u[i], row[1] = w[i], row[2] = conic0[i], row[3] = conic1[i];
+            row[4] = conic2[i], row[5] = op[i];
+            if (table.depth_col >= 0) row[table.depth_col] = v.mc[2][i];
         }
     }
 }
 
-// Lanes where a camera passes a gradient (Numba's _no_gradient negated).
-// Whether row o (camera * N + Gaussian) of the projection's output gradients is not all zero.
-inline bool gets_gradient(const float* v2d, const float* v_conic, const float* v_depth,
-                          int64_t o) {
-    return v2d[2 * o] != 0.0f || v2d[2 * o + 1] != 0.0f || v_conic[3 * o] != 0.0f ||
-           v_conic[3 * o + 1] != 0.0f || v_conic[3 * o + 2] != 0.0f || v_depth[o] != 0.0f;
+// The gradients of the projection's outputs, row o = camera * N + Gaussian at o * stride of
+// each: (C, N, 2), (C, N, 3) and (C, N) arrays, or columns of one (C*N, F) table.
+struct ProjectGrads {
+    const float *v2d, *v_conic, *v_depth;
+    int s2d, s_conic, s_depth;
+};
+
+// Whether row o of the projection's output gradients is not all zero.
+inline bool gets_gradient(const ProjectGrads& v, int64_t o) {
+    const float *p = v.v2d + o * v.s2d, *q = v.v_conic + o * v.s_conic;
+    return p[0] != 0.0f || p[1] != 0.0f || q[0] != 0.0f || q[1] != 0.0f || q[2] != 0.0f ||
+           v.v_depth[o * v.s_depth] != 0.0f;
 }
 
-inline vi has_gradient(const float* v2d, const float* v_conic, const float* v_depth, int64_t N,
-                       int c, const Lanes& g) {
+// Lanes where a camera passes a gradient (Numba's _no_gradient negated).
+inline vi has_gradient(const ProjectGrads& v, int64_t N, int c, const Lanes& g) {
     vi r = splat_i(0);
-    for (int i = 0; i < L; ++i) r[i] = gets_gradient(v2d, v_conic, v_depth, c * N + g.rows[i]) ? -1 : 0;
+    for (int i = 0; i < L; ++i) r[i] = gets_gradient(v, c * N + g.rows[i]) ? -1 : 0;
     return r;
 }
 
@@ -682,8 +711,8 @@ inline vf lane_field(const float* a, int stride, int k, int64_t N, int c, const 
 // Gradients of the lanes listed in block b of ids (Gaussians some camera passes a gradient to):
 // cameras summed in order, as _cpu_project._gaussian_vjp.
 void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m, int64_t b,
-                            const float* v2d, const float* v_conic, const float* v_depth,
-                            float* v_means, float* v_quats, float* v_scales) {
+                            const ProjectGrads& vg, float* v_means, float* v_quats,
+                            float* v_scales) {
     const Lanes g = block_rows(ids, m, b);
     vf cov[9], M[9], R[9], mean[3];
     Quat q;
@@ -694,7 +723,7 @@ void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m,
     vf vc[9];
     for (auto& x : vc) x = zero;
     for (int c = 0; c < a.C; ++c) {
-        const vi used = has_gradient(v2d, v_conic, v_depth, a.N, c, g);
+        const vi used = has_gradient(vg, a.N, c, g);
         if (!any(used)) continue;
         const Camera cam = camera(a.viewmats, a.Ks, c);
         const View v = view(cam, mean, cov, a.width, a.height, a.near, a.far);
@@ -706,8 +735,9 @@ void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m,
         const vf c00 = c2[0] + a.eps2d, c11 = c2[1] + a.eps2d, c01 = c2[2];
         const vf det = c00 * c11 - c01 * c01;
         const vf d = det > 1e-10f ? det : splat(1e-10f);
-        const vf va = lane_field(v_conic, 3, 0, a.N, c, g), vb = lane_field(v_conic, 3, 1, a.N, c, g),
-                 vcn = lane_field(v_conic, 3, 2, a.N, c, g);
+        const vf va = lane_field(vg.v_conic, vg.s_conic, 0, a.N, c, g),
+                 vb = lane_field(vg.v_conic, vg.s_conic, 1, a.N, c, g),
+                 vcn = lane_field(vg.v_conic, vg.s_conic, 2, a.N, c, g);
         vf g00 = vcn / d, g11 = va / d, g01 = -vb / d;
         const vf v_d = (det > 1e-10f) ? -(va * c11 - vb * c01 + vcn * c00) / (d * d) : zero;
         g00 += v_d * c11;
@@ -728,7 +758,8 @@ void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m,
         const vf vj00 = 2.0f * (g00 * u0[0] + g01 * u1[0]), vj02 = 2.0f * (g00 * u0[2] + g01 * u1[2]);
         const vf vj11 = 2.0f * (g01 * u0[1] + g11 * u1[1]), vj12 = 2.0f * (g01 * u0[2] + g11 * u1[2]);
         const vf z2 = v.zs * v.zs;
-        const vf v2x = lane_field(v2d, 2, 0, a.N, c, g), v2y = lane_field(v2d, 2, 1, a.N, c, g);
+        const vf v2x = lane_field(vg.v2d, vg.s2d, 0, a.N, c, g),
+                 v2y = lane_field(vg.v2d, vg.s2d, 1, a.N, c, g);
         vf v_x = v2x * fx / v.zs, v_y = v2y * fy / v.zs;
         vf v_zs = -(v2x * fx * v.mc[0] + v2y * fy * v.mc[1]) / z2;
         v_zs += (-vj00 * fx - vj11 * fy + vj02 * fx * v.tx + vj12 * fy * v.ty) / z2;
@@ -736,7 +767,7 @@ void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m,
         v_zs = v.clx ? v_zs : v_zs + vj02 * fx * v.tx / z2;
         v_y = v.cly ? v_y : v_y - vj12 * fy / z2;
         v_zs = v.cly ? v_zs : v_zs + vj12 * fy * v.ty / z2;
-        const vf v_z = lane_field(v_depth, 1, 0, a.N, c, g) + (v.in_depth ? v_zs : zero);
+        const vf v_z = lane_field(vg.v_depth, vg.s_depth, 0, a.N, c, g) + (v.in_depth ? v_zs : zero);
         const vf vmc[3] = {v_x, v_y, v_z};
         const float* Rv = cam.Rv;
         for (int k = 0; k < 3; ++k)  // Rv^T vmc
@@ -951,47 +982,76 @@ void pd_sum_by_gaussian(const float* grads, const int64_t* ids, int64_t n_isects
     });
 }
 
+// The densification's statistics (strategy.update_state) from the projected means' gradients
+// (C, N, 2), row o = camera * N + Gaussian at o * stride: for the Gaussians a camera draws
+// (radii (C, N) > 0), grad2d[n] += the norm of (g_x * sx, g_y * sy) and count[n] += 1, the
+// cameras summed in order first. The norm is sqrt(fma(y, y, x * x)) in float32, as torch's
+// vector norm over the last axis computes it, so the statistics keep their bytes.
+void pd_grad_norms(const float* grads, int64_t stride, int C, int64_t N, float sx, float sy,
+                   const int32_t* radii, float* grad2d, float* count, int threads) {
+    const int64_t chunk = 4096;
+    parallel_tiles((N + chunk - 1) / chunk, threads, [&](int64_t part) {
+        const int64_t hi = (part + 1) * chunk < N ? (part + 1) * chunk : N;
+        for (int64_t n = part * chunk; n < hi; ++n) {
+            float norms = 0.0f, seen = 0.0f;
+            for (int c = 0; c < C; ++c) {
+                const int64_t o = c * N + n;
+                if (radii[o] <= 0) continue;
+                const float x = grads[o * stride] * sx, y = grads[o * stride + 1] * sy;
+                norms += std::sqrt(std::fma(y, y, x * x));
+                seen += 1.0f;
+            }
+            grad2d[n] += norms;
+            count[n] += seen;
+        }
+    });
+}
+
 }  // extern "C"
 
 extern "C" {
 
 // means2d (C, N, 2), conics (C, N, 3), depths (C, N) and radii (C, N, 2) as
-// _cpu_project.project_forward fills them, in float32.
+// _cpu_project.project_forward fills them, in float32; and, when table is not null, columns
+// 0..5 and depth_col (if >= 0) of the compositing table (C*N, F) (see TableOut).
 void pd_project_forward(const float* means, const float* quats, const float* scales,
                         const float* opacities, const float* viewmats, const float* Ks, int64_t N,
                         int C, int width, int height, float near, float far, float eps2d,
                         float radius_clip, float* means2d, float* conics, float* depths,
-                        int32_t* radii, int threads) {
+                        int32_t* radii, float* table, int F, int depth_col, int threads) {
     const ProjectArgs a{means, quats, scales, opacities, viewmats, Ks, N, C, width, height,
                         near, far, eps2d, radius_clip};
+    const TableOut out{table, F, depth_col};
     const int64_t blocks = (N + L - 1) / L;
     parallel_tiles(blocks, threads, [&](int64_t b) {
-        project_block(a, b, means2d, conics, depths, radii);
+        project_block(a, b, means2d, conics, depths, radii, out);
     });
 }
 
 // v_means (N, 3), v_quats (N, 4), v_scales (N, 3), zero-filled by the caller, get the gradients
 // of the Gaussians some camera passes a gradient to (v_means2d (C, N, 2), v_conics (C, N, 3),
-// v_depths (C, N)), as _cpu_project.project_backward computes them.
+// v_depths (C, N), row o of each at o * its stride), as _cpu_project.project_backward computes
+// them.
 void pd_project_backward(const float* means, const float* quats, const float* scales,
                          const float* viewmats, const float* Ks, int64_t N, int C, int width,
                          int height, float near, float far, float eps2d, const float* v2d,
-                         const float* v_conic, const float* v_depth, float* v_means,
-                         float* v_quats, float* v_scales, int threads) {
+                         int s2d, const float* v_conic, int s_conic, const float* v_depth,
+                         int s_depth, float* v_means, float* v_quats, float* v_scales,
+                         int threads) {
     const ProjectArgs a{means, quats, scales, nullptr, viewmats, Ks, N, C, width, height,
                         near, far, eps2d, 0.0f};
+    const ProjectGrads vg{v2d, v_conic, v_depth, s2d, s_conic, s_depth};
     std::vector<int64_t> ids;
     for (int64_t n = 0; n < N; ++n)
         for (int c = 0; c < C; ++c)
-            if (gets_gradient(v2d, v_conic, v_depth, c * N + n)) {
+            if (gets_gradient(vg, c * N + n)) {
                 ids.push_back(n);
                 break;
             }
     const int64_t m = static_cast<int64_t>(ids.size());
     const int64_t blocks = (m + L - 1) / L;
     parallel_tiles(blocks, threads, [&](int64_t b) {
-        project_backward_block(a, ids.data(), m, b, v2d, v_conic, v_depth, v_means, v_quats,
-                               v_scales);
+        project_backward_block(a, ids.data(), m, b, vg, v_means, v_quats, v_scales);
     });
 }
 
@@ -999,16 +1059,17 @@ void pd_project_backward(const float* means, const float* quats, const float* sc
 
 extern "C" {
 
-// colors (C, N, 3) = max(SH + 0.5, 0) where visible (C, N) is set, 0 elsewhere.
+// colors (C, N, 3) = max(SH + 0.5, 0) where visible (C, N) is set, 0 elsewhere; row o of
+// colors at o * stride (3, or a table's row length).
 void pd_sh_forward(int degree, const float* means, const float* c0, const float* cN, int KN,
                    const float* campos, int64_t N, int C, const uint8_t* visible, float* colors,
-                   int threads) {
+                   int stride, int threads) {
     parallel_tiles((N + SH_CHUNK - 1) / SH_CHUNK, threads, [&](int64_t chunk) {
         float b[16], d[3];
         const int64_t hi = (chunk + 1) * SH_CHUNK < N ? (chunk + 1) * SH_CHUNK : N;
         for (int64_t n = chunk * SH_CHUNK; n < hi; ++n)
             for (int c = 0; c < C; ++c) {
-                float* out = colors + (c * N + n) * 3;
+                float* out = colors + (c * N + n) * stride;
                 if (!visible[c * N + n]) {
                     out[0] = out[1] = out[2] = 0.0f;
                     continue;
@@ -1027,10 +1088,11 @@ void pd_sh_forward(int degree, const float* means, const float* c0, const float*
 
 // v_means (N, 3), v_c0 (N, 1, 3) and v_cN (N, KN, 3) are filled with the gradients from
 // v_colors (C, N, 3) (every row written, zero where no camera passes one); colors are the
-// forward's (the clamp at 0 passes none).
+// forward's (the clamp at 0 passes none). Row o of colors is at o * s_colors, of v_colors at
+// o * s_v.
 void pd_sh_backward(int degree, const float* means, const float* c0, const float* cN, int KN,
-                    const float* campos, int64_t N, int C, const float* colors,
-                    const float* v_colors, float* v_means, float* v_c0, float* v_cN,
+                    const float* campos, int64_t N, int C, const float* colors, int s_colors,
+                    const float* v_colors, int s_v, float* v_means, float* v_c0, float* v_cN,
                     int threads) {
     parallel_tiles((N + SH_CHUNK - 1) / SH_CHUNK, threads, [&](int64_t chunk) {
         float b[16], w[16], d[3], g[3];
@@ -1041,9 +1103,9 @@ void pd_sh_backward(int degree, const float* means, const float* c0, const float
         std::memset(v_cN + lo * KN * 3, 0, sizeof(float) * KN * 3 * (hi - lo));
         for (int64_t n = lo; n < hi; ++n)
             for (int c = 0; c < C; ++c) {
-                const float* vc = v_colors + (c * N + n) * 3;
+                const float* vc = v_colors + (c * N + n) * s_v;
                 if (vc[0] == 0.0f && vc[1] == 0.0f && vc[2] == 0.0f) continue;  // outside the view
-                const float* col = colors + (c * N + n) * 3;
+                const float* col = colors + (c * N + n) * s_colors;
                 const float gc[3] = {col[0] > 0.0f ? vc[0] : 0.0f, col[1] > 0.0f ? vc[1] : 0.0f,
                                      col[2] > 0.0f ? vc[2] : 0.0f};
                 const float norm = sh_dir(means + 3 * n, campos + 3 * c, d);

@@ -288,18 +288,16 @@ class FusedRasterize(torch.autograd.Function):
         conics = np.empty((C, N, 3), dtype=np.float32)
         depths = np.empty((C, N, 1), dtype=np.float32)
         radii = np.empty((C, N, 2), dtype=np.int32)
-        native.project_forward(m, q, s, op, vm, Ks_, width, height, near, far, eps2d, radius_clip,
-                               means2d, conics, depths, radii, threads)
-        campos = -np.einsum("cji,cj->ci", vm[:, :3, :3], vm[:, :3, 3]).astype(np.float32)
-        colors = np.empty((C, N, 3), dtype=np.float32)
-        native.sh_forward(degree, m, c0_, cN_, campos, radii[..., 0] > 0, colors, threads)
+        # the compositing table's rows, written by the projection (mean, conic, opacity, depth)
+        # and the SH colours in place
         D = 3 + int(with_depth)
-        table = np.empty((C, N, 6 + D), dtype=np.float32)
-        table[..., 0:2], table[..., 2:5], table[..., 5] = means2d, conics, op
-        table[..., 6:9] = colors
-        if with_depth:
-            table[..., 9] = depths[..., 0]
-        table = table.reshape(C * N, 6 + D)
+        table = np.empty((C * N, 6 + D), dtype=np.float32)
+        native.project_forward(m, q, s, op, vm, Ks_, width, height, near, far, eps2d, radius_clip,
+                               means2d, conics, depths, radii, threads, table=table,
+                               depth_column=9 if with_depth else -1)
+        campos = -np.einsum("cji,cj->ci", vm[:, :3, :3], vm[:, :3, 3]).astype(np.float32)
+        colors = table[:, 6:9]
+        native.sh_forward(degree, m, c0_, cN_, campos, radii[..., 0] > 0, colors, threads)
         tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
         ids, offsets, counts = native.bin_lists(
             depths.reshape(-1), means2d.reshape(-1, 2), radii.reshape(-1, 2).astype(np.float32),
@@ -318,6 +316,7 @@ class FusedRasterize(torch.autograd.Function):
         radii_t = torch.from_numpy(radii)
         conics_t, depths_t = torch.from_numpy(conics), torch.from_numpy(depths[..., 0])
         ctx.mark_non_differentiable(conics_t, depths_t, radii_t)
+        ctx.set_materialize_grads(False)  # no zero-filled gradients of the outputs left unused
         alphas = 1.0 - torch.from_numpy(trans)[..., None]
         return (torch.from_numpy(render), alphas, conics_t, depths_t, radii_t,
                 torch.tensor(ids.shape[0], device="cpu"))
@@ -330,24 +329,29 @@ class FusedRasterize(torch.autograd.Function):
         m, q, s, _, vm, Ks_, c0_, cN_ = arrays
         C, N = vm.shape[0], m.shape[0]
         tiles_x, tiles_y = ctx.tiles
+        D = table.shape[1] - 6
+        d_render = (np.zeros((C, height, width, D), np.float32) if v_render is None
+                    else _f32(v_render))
+        d_alpha = (np.zeros((C, height, width), np.float32) if v_alphas is None
+                   else _f32(v_alphas[..., 0]))
         per_entry = native.composite_backward(table, ids, offsets, counts, ts, tiles_x, tiles_y,
-                                              bg, trans, last, _f32(v_render),
-                                              _f32(v_alphas[..., 0]), threads)
-        total = native.sum_by_gaussian(per_entry, ids, C * N, threads).reshape(C, N, -1)
-        v_means2d = np.ascontiguousarray(total[..., 0:2])
-        v_depths = (np.ascontiguousarray(total[..., 9:10]) if with_depth
+                                              bg, trans, last, d_render, d_alpha, threads)
+        # the table's gradients, read in place (column slices) by the projection's and SH's backward
+        total = native.sum_by_gaussian(per_entry, ids, C * N, threads)
+        v_depths = (total[:, 9:10] if with_depth
                     else np.zeros((C, N, 1), dtype=np.float32))
         v_means, v_quats, v_scales = native.project_backward(
-            m, q, s, vm, Ks_, width, height, near, far, eps2d, v_means2d,
-            np.ascontiguousarray(total[..., 2:5]), v_depths, threads)
+            m, q, s, vm, Ks_, width, height, near, far, eps2d, total[:, 0:2],
+            total[:, 2:5], v_depths, threads)
         sh = (np.empty_like(m), np.empty_like(c0_), np.empty_like(cN_))
-        native.sh_backward(degree, m, c0_, cN_, campos, colors,
-                           np.ascontiguousarray(total[..., 6:9]), *sh, threads)
+        native.sh_backward(degree, m, c0_, cN_, campos, colors, total[:, 6:9], *sh,
+                           threads)
         v_means += sh[0]
-        ctx.screen.grad = torch.from_numpy(v_means2d)
+        total = total.reshape(C, N, -1)
+        ctx.screen.grad = torch.from_numpy(total)[..., 0:2]  # a view: densification copies it
         v_op = total[..., 5].sum(axis=0)
         g_bg = None
-        if ctx.needs_input_grad[8]:
+        if ctx.needs_input_grad[8] and v_render is not None:
             g_bg = (v_render[..., :3] * torch.from_numpy(trans)[..., None]).sum(dim=(1, 2))
         return (*(torch.from_numpy(a) for a in (v_means, v_quats, v_scales, v_op, *sh[1:])),
                 None, None, g_bg, None, None)

@@ -46,6 +46,7 @@ class NativeBuildError(RuntimeError):
     """The kernel library could not be built or loaded."""
 
 
+
 def kernel_choice() -> str:
     """``PARADRIVE_KERNELS``, checked."""
     choice = os.environ.get("PARADRIVE_KERNELS", "auto").strip().lower() or "auto"
@@ -129,18 +130,23 @@ class Kernels:
         self._project = lib.pd_project_forward
         self._project.restype = None
         self._project.argtypes = [_f32] * 6 + [_long, _int, _int, _int, _flt, _flt, _flt, _flt,
-                                               _f32, _f32, _f32, _i32, _int]
+                                               _f32, _f32, _f32, _i32, _f32, _int, _int, _int]
         self._sh = lib.pd_sh_forward
         self._sh.restype = None
-        self._sh.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _u8, _f32, _int]
+        self._sh.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _u8, _f32, _int,
+                             _int]
         self._sh_vjp = lib.pd_sh_backward
         self._sh_vjp.restype = None
-        self._sh_vjp.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _f32, _f32,
-                                 _f32, _f32, _f32, _int]
+        self._sh_vjp.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _f32, _int,
+                                 _f32, _int, _f32, _f32, _f32, _int]
         self._project_vjp = lib.pd_project_backward
         self._project_vjp.restype = None
         self._project_vjp.argtypes = [_f32] * 5 + [_long, _int, _int, _int, _flt, _flt, _flt,
-                                                   _f32, _f32, _f32, _f32, _f32, _f32, _int]
+                                                   _f32, _int, _f32, _int, _f32, _int, _f32, _f32,
+                                                   _f32, _int]
+        self._grad_norms = lib.pd_grad_norms
+        self._grad_norms.restype = None
+        self._grad_norms.argtypes = [_f32, _long, _int, _long, _flt, _flt, _i32, _f32, _f32, _int]
         self._ssim = lib.pd_ssim_forward
         self._ssim.restype = None
         self._ssim.argtypes = [_f32, _f32, _long, _int, _int, _int, _f32, _int, _flt, _flt, _f32,
@@ -205,49 +211,68 @@ class Kernels:
                         opacities: np.ndarray, viewmats: np.ndarray, Ks: np.ndarray, width: int,
                         height: int, near: float, far: float, eps2d: float, radius_clip: float,
                         means2d: np.ndarray, conics: np.ndarray, depths: np.ndarray,
-                        radii: np.ndarray, threads: int) -> None:
-        """``_cpu_project.project_forward`` in float32, on ``threads`` threads."""
+                        radii: np.ndarray, threads: int, *, table: np.ndarray | None = None,
+                        depth_column: int = -1) -> None:
+        """``_cpu_project.project_forward`` in float32, on ``threads`` threads. With ``table``
+        (C*N, F), the compositing table's columns 0..5 (mean, conic, opacity) and
+        ``depth_column`` (the depth, if >= 0) are written too."""
         f32 = np.float32
+        if table is not None and (table.shape[0] != means2d.shape[0] * means2d.shape[1]
+                                  or not 6 <= table.shape[1] or depth_column >= table.shape[1]):
+            raise ValueError(f"project_forward: a table of shape {table.shape} for "
+                             f"{means2d.shape[:2]} projections (depth column {depth_column})")
         self._project(_ptr(means, f32), _ptr(quats, f32), _ptr(scales, f32),
                       _ptr(opacities, f32), _ptr(viewmats, f32), _ptr(Ks, f32), means.shape[0],
                       viewmats.shape[0], width, height, near, far, eps2d, radius_clip,
                       _ptr(means2d, f32), _ptr(conics, f32), _ptr(depths, f32),
-                      _ptr(radii, np.int32), threads)
+                      _ptr(radii, np.int32), None if table is None else _ptr(table, f32),
+                      0 if table is None else table.shape[1], depth_column, threads)
 
     def project_backward(self, means: np.ndarray, quats: np.ndarray, scales: np.ndarray,
                          viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
                          near: float, far: float, eps2d: float, v_means2d: np.ndarray,
                          v_conics: np.ndarray, v_depths: np.ndarray, threads: int
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``_cpu_project.project_backward`` in float32 (v_means, v_quats, v_scales)."""
-        f32, N = np.float32, means.shape[0]
+        """``_cpu_project.project_backward`` in float32 (v_means, v_quats, v_scales); the
+        output gradients (C, N, 2), (C, N, 3) and (C, N, 1), or column slices of one table."""
+        f32, N, C = np.float32, means.shape[0], viewmats.shape[0]
         out = (np.zeros((N, 3), f32), np.zeros((N, 4), f32), np.zeros((N, 3), f32))
         self._project_vjp(_ptr(means, f32), _ptr(quats, f32), _ptr(scales, f32),
-                          _ptr(viewmats, f32), _ptr(Ks, f32), N, viewmats.shape[0], width, height,
-                          near, far, eps2d, _ptr(v_means2d, f32), _ptr(v_conics, f32),
-                          _ptr(v_depths, f32), *(_ptr(a, f32) for a in out), threads)
+                          _ptr(viewmats, f32), _ptr(Ks, f32), N, C, width, height, near, far,
+                          eps2d, *_rows(v_means2d, 2, C * N), *_rows(v_conics, 3, C * N),
+                          *_rows(v_depths, 1, C * N), *(_ptr(a, f32) for a in out), threads)
         return out
 
     def sh_forward(self, degree: int, means: np.ndarray, c0: np.ndarray, cN: np.ndarray,
                    campos: np.ndarray, visible: np.ndarray, colors: np.ndarray,
                    threads: int) -> None:
-        """``_cpu_sh.sh_forward``: visible (C, N) bool, colors (C, N, 3) filled."""
-        f32 = np.float32
+        """``_cpu_sh.sh_forward``: visible (C, N) bool, colors (C, N, 3) (or three columns of a
+        table) filled."""
+        f32, N, C = np.float32, means.shape[0], campos.shape[0]
         self._sh(degree, _ptr(means, f32), _ptr(c0, f32), _ptr(cN, f32), cN.shape[1],
-                 _ptr(campos, f32), means.shape[0], campos.shape[0],
-                 _ptr(visible.view(np.uint8), np.uint8), _ptr(colors, f32), threads)
+                 _ptr(campos, f32), N, C, _ptr(visible.view(np.uint8), np.uint8),
+                 *_rows(colors, 3, C * N), threads)
 
     def sh_backward(self, degree: int, means: np.ndarray, c0: np.ndarray, cN: np.ndarray,
                     campos: np.ndarray, colors: np.ndarray, v_colors: np.ndarray,
                     v_means: np.ndarray, v_c0: np.ndarray, v_cN: np.ndarray,
                     threads: int) -> None:
         """``_cpu_sh.sh_backward``, filling v_means, v_c0 and v_cN (float32; need not be
-        zeroed)."""
-        f32 = np.float32
+        zeroed); colors and v_colors (C, N, 3), or three columns of tables."""
+        f32, N, C = np.float32, means.shape[0], campos.shape[0]
         self._sh_vjp(degree, _ptr(means, f32), _ptr(c0, f32), _ptr(cN, f32), cN.shape[1],
-                     _ptr(campos, f32), means.shape[0], campos.shape[0], _ptr(colors, f32),
-                     _ptr(v_colors, f32), _ptr(v_means, f32), _ptr(v_c0, f32), _ptr(v_cN, f32),
-                     threads)
+                     _ptr(campos, f32), N, C, *_rows(colors, 3, C * N),
+                     *_rows(v_colors, 3, C * N), _ptr(v_means, f32), _ptr(v_c0, f32),
+                     _ptr(v_cN, f32), threads)
+
+    def grad_norms(self, grads: np.ndarray, scale: tuple[float, float], radii: np.ndarray,
+                   grad2d: np.ndarray, count: np.ndarray, threads: int) -> None:
+        """``DensifyStrategy.update_state``'s sums in place (the same bytes): for each camera's
+        drawn Gaussians (radii (C, N) > 0), grad2d (N,) += the norm of grads (C, N, 2) (or two
+        columns of a table) scaled by ``scale``, and count (N,) += 1."""
+        C, N = radii.shape
+        self._grad_norms(*_rows(grads, 2, C * N), C, N, scale[0], scale[1], _ptr(radii, np.int32),
+                         _ptr(grad2d, np.float32), _ptr(count, np.float32), threads)
 
     def ssim_forward(self, x: np.ndarray, y: np.ndarray, taps: np.ndarray, c1: float, c2: float,
                      derivatives: bool, threads: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -291,6 +316,25 @@ def _ptr(a: np.ndarray, dtype: type) -> int:
         raise TypeError(f"expected a C-contiguous {np.dtype(dtype).name} array, got "
                         f"{a.dtype} {'contiguous' if a.flags.c_contiguous else 'strided'}")
     return a.ctypes.data
+
+
+def _rows(a: np.ndarray, width: int, rows: int) -> tuple[int, int]:
+    """(address, distance between rows in floats) of ``rows`` rows of ``width`` float32 values:
+    a C-contiguous array, or a slice of columns of a wider table (``table[:, 6:9]``), whose
+    rows are evenly spaced; the kernels read and write it in place, without a strided copy."""
+    ok = (a.dtype == np.float32 and a.ndim >= 1 and a.shape[-1] == width and a.size == rows * width
+          and a.strides[-1] == 4)
+    step = a.strides[-2] if a.ndim > 1 and a.shape[-2] > 1 else 4 * width
+    ok = ok and step >= 4 * width and step % 4 == 0
+    inner = step  # bytes from one row to the next, across the leading axes too
+    for axis in range(a.ndim - 2, -1, -1):
+        if a.shape[axis] > 1 and a.strides[axis] != inner:
+            ok = False
+        inner *= a.shape[axis]
+    if not ok:
+        raise TypeError(f"expected {rows} evenly spaced rows of {width} float32 values, got an "
+                        f"array of shape {a.shape}, {a.dtype}, strides {a.strides}")
+    return a.ctypes.data, step // 4
 
 
 @functools.lru_cache(maxsize=1)
