@@ -348,7 +348,7 @@ class FusedRasterize(torch.autograd.Function):
                            threads)
         v_means += sh[0]
         total = total.reshape(C, N, -1)
-        ctx.screen.grad = torch.from_numpy(total)[..., 0:2]  # a view: densification copies it
+        ctx.screen.grad = torch.from_numpy(total)[..., 0:2]  # a view of the table's gradients
         v_op = total[..., 5].sum(axis=0)
         g_bg = None
         if ctx.needs_input_grad[8] and v_render is not None:

@@ -46,7 +46,6 @@ class NativeBuildError(RuntimeError):
     """The kernel library could not be built or loaded."""
 
 
-
 def kernel_choice() -> str:
     """``PARADRIVE_KERNELS``, checked."""
     choice = os.environ.get("PARADRIVE_KERNELS", "auto").strip().lower() or "auto"
