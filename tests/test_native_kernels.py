@@ -232,3 +232,65 @@ def test_densification_sums_in_the_library_keep_the_bytes_of_the_torch_operation
     (g1, c1), (g2, c2) = states
     assert g1.tobytes() == g2.tobytes() and c1.tobytes() == c2.tobytes()
     assert np.count_nonzero(g1) > n // 2 and c1.max() >= 2 * (cameras > 1)
+
+
+def _loss_inputs(seed: int, H: int = 24, W: int = 40):
+    """A render (1, H, W, 4) with its accumulated depth and alphas, a target image, a sky mask and
+    LiDAR pixels (not on the sky), with the edge cases of each term: pixels equal to the target
+    (a zero L1 sign), alphas at and below the 1e-10 clamp, expected depths below the 1e-3 clamp
+    and sky pixels on both sides of the sky term's hinge."""
+    from paradrive.gs.losses import DepthTarget
+
+    g = torch.Generator().manual_seed(seed)
+    gt = torch.rand(H, W, 3, generator=g)
+    rgb = torch.rand(H, W, 3, generator=g)
+    same = torch.rand(H, W, generator=g) < 0.1
+    rgb[same] = gt[same]
+    alphas = torch.rand(1, H, W, 1, generator=g)
+    alphas.view(-1)[:7] = torch.tensor([0.0, 1e-12, 1e-10, 2e-10, 1.0, 0.999, 1e-3])
+    ed = torch.rand(H, W, generator=g) * 60.0
+    ed.view(-1)[7:12] = torch.tensor([0.0, 1e-4, 1e-3, 2e-3, 800.0])
+    ed[: H // 3] = torch.rand(H // 3, W, generator=g) * 1500.0  # the sky rows: past 500 m or not
+    render = torch.cat([rgb, (ed * alphas[0, ..., 0])[..., None]], -1)[None]
+    sky = torch.zeros(H, W, dtype=torch.bool)
+    sky[: H // 3] = torch.rand(H // 3, W, generator=g) < 0.7
+    free = torch.nonzero(~sky.reshape(-1)).squeeze(1)
+    pixels = free[torch.randperm(free.numel(), generator=g)[: free.numel() // 2]].sort().values
+    target = DepthTarget(pixels, torch.rand(pixels.numel(), generator=g) * 50.0 + 0.5)
+    return render, alphas, gt, sky, target
+
+
+@pytest.mark.parametrize("terms", ["sky+depth", "sky", "depth", "neither", "rgb"])
+def test_the_fit_loss_node_gives_the_torch_expression_s_gradient_bytes(terms):
+    from paradrive.gs._fit_loss import FitLossTerms, fit_loss, fit_loss_kernels, fit_loss_torch
+    from paradrive.gs.rasterize import _expected_depth
+
+    render, alphas, gt, sky, target = _loss_inputs(seed=len(terms))
+    if terms == "rgb":
+        render = render[..., :3].contiguous()
+    sky = sky if "sky" in terms else None
+    target = target if "depth" in terms else None
+    weights = FitLossTerms(ssim_lambda=0.2, sky_weight=0.1, sky_scale=500.0, depth_weight=1.0)
+    kernels = fit_loss_kernels(render)
+    assert kernels is not None
+
+    def grads(node: bool):
+        r, a = render.clone().requires_grad_(True), alphas.clone().requires_grad_(True)
+        if node:
+            loss = fit_loss(r, a, gt, sky, target, weights, kernels)
+        else:
+            out = _expected_depth(r, a, "RGB" if terms == "rgb" else "RGB+ED")
+            loss = fit_loss_torch(out, gt, sky, target, weights)
+        loss.backward()
+        return loss.detach(), r.grad, a.grad
+
+    (l_node, r_node, a_node), (l_torch, r_torch, a_torch) = grads(True), grads(False)
+    assert float(l_node) == pytest.approx(float(l_torch), rel=1e-5)
+    assert r_node.numpy().tobytes() == r_torch.numpy().tobytes()
+    if terms == "rgb":
+        assert a_node is None and a_torch is None
+    else:
+        assert a_node.numpy().tobytes() == a_torch.numpy().tobytes()
+        assert bool((a_node != 0).any()) == (terms != "neither")
+    if target is not None:  # the depth term reaches the render's last channel
+        assert bool((r_node[0, ..., 3].reshape(-1)[target.pixels] != 0).any())

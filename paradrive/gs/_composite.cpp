@@ -18,6 +18,7 @@
 // Built by _native.py with the machine's C++ compiler and loaded through ctypes.
 
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <condition_variable>
 #include <cstdint>
@@ -93,49 +94,103 @@ inline vf exp_neg(vf s) {
     return p * scale;
 }
 
+inline vf vsqrt(vf x) {
+#if defined(__AVX512F__)
+    __m512 m;
+    std::memcpy(&m, &x, sizeof m);
+    m = _mm512_sqrt_ps(m);
+    std::memcpy(&x, &m, sizeof m);
+#else
+    for (int i = 0; i < L; ++i) x[i] = std::sqrt(x[i]);
+#endif
+    return x;
+}
+
 struct Entry {
     float mx, my, a, b, c, op;
     float col[MAX_CHANNELS];
-    float cut;  // the sigma beyond which its alpha is below ALPHA_MIN
+    float half_y, half_x;  // see Reach
 };
 
 // The sigma beyond which opacity * exp(-sigma) < ALPHA_MIN: log(opacity / ALPHA_MIN), at most
 // SIGMA_CUT (which is that of opacity 1), widened by 0.01 (1 % in alpha, far above float32's
 // rounding of sigma and of the exp polynomial). Pixels past it fail the alpha test anyway, so
 // leaving their rows out changes no byte; a faint Gaussian's rows are fewer.
-inline float sigma_cut(float op) {
-    const float cut = std::log(op > ALPHA_MIN ? op / ALPHA_MIN : 1.0f) + 0.01f;
-    return cut < static_cast<float>(SIGMA_CUT) ? cut : static_cast<float>(SIGMA_CUT);
+//
+// Per row of the table, the half-extents of its ellipse sigma <= that cut in rows (y) and
+// columns (x), widened a little more than _row_range's margin for the rounding (a row or column
+// they add is skipped by the alpha test anyway); +inf where the conic is not positive definite
+// (every row and column of a tile). Computed once per row before the tiles, not per entry.
+struct Reach {
+    float half_y, half_x;
+};
+
+// log(x) for x >= 1 (Cephes' logf polynomial on the mantissa; about 1e-7 relative, far inside
+// the cut's margin).
+inline vf log_ge1(vf x) {
+    vi bits;
+    std::memcpy(&bits, &x, sizeof bits);
+    vi e = ((bits >> 23) & 0xff) - 126;
+    bits = (bits & 0x007fffff) | 0x3f000000;  // the mantissa in [0.5, 1)
+    vf m;
+    std::memcpy(&m, &bits, sizeof m);
+    const vi small = m < 0.707106781186547524f;
+    e = small ? e - 1 : e;
+    m = small ? m + m - 1.0f : m - 1.0f;
+    const vf ef = __builtin_convertvector(e, vf), z = m * m;
+    vf y = splat(7.0376836292e-2f);
+    y = y * m - 1.1514610310e-1f;
+    y = y * m + 1.1676998740e-1f;
+    y = y * m - 1.2420140846e-1f;
+    y = y * m + 1.4249322787e-1f;
+    y = y * m - 1.6668057665e-1f;
+    y = y * m + 2.0000714765e-1f;
+    y = y * m - 2.4999993993e-1f;
+    y = y * m + 3.3333331174e-1f;
+    y = y * m * z + ef * -2.12194440e-4f - 0.5f * z;
+    return m + y + ef * 0.693359375f;
+}
+
+void reach_block(const float* table, int F, int64_t rows, int64_t b, Reach* out) {
+    vf a, bb, c, op;
+    for (int i = 0; i < L; ++i) {
+        const int64_t r = b * L + i < rows ? b * L + i : rows - 1;
+        a[i] = table[r * F + 2], bb[i] = table[r * F + 3], c[i] = table[r * F + 4];
+        op[i] = table[r * F + 5];
+    }
+    vf cut = log_ge1(op > ALPHA_MIN ? op / ALPHA_MIN : splat(1.0f)) + 0.01f;
+    cut = cut < static_cast<float>(SIGMA_CUT) ? cut : splat(static_cast<float>(SIGMA_CUT));
+    const vf det = a * c - bb * bb;
+    const vi pd = (a > 0.0f) & (det > 0.0f);
+    const vf inf = splat(__builtin_inff());
+    const vf hy = pd ? vsqrt(pd ? 2.0f * cut * a / det : splat(0.0f)) * 1.0001f + 2e-3f : inf;
+    const vf hx = pd ? vsqrt(pd ? 2.0f * cut * c / det : splat(0.0f)) * 1.0001f + 2e-3f : inf;
+    for (int i = 0; i < L && b * L + i < rows; ++i) out[b * L + i] = {hy[i], hx[i]};
 }
 
 // Rows of the table a list walks ahead of the one it reads: they are scattered over the table,
 // so they are fetched into the cache early.
 constexpr int PREFETCH = 4;
 
-inline void prefetch(const float* table, const int64_t* ids, int64_t e, int F) {
+inline void prefetch(const float* table, const Reach* reach, const int64_t* ids, int64_t e,
+                     int F) {
     __builtin_prefetch(table + ids[e] * F);
+    __builtin_prefetch(reach + ids[e]);
 }
 
-inline Entry entry(const float* table, const int64_t* ids, int64_t e, int F, int D) {
+inline Entry entry(const float* table, const Reach* reach, const int64_t* ids, int64_t e, int F,
+                   int D) {
     const float* g = table + ids[e] * F;
-    Entry r{g[0], g[1], g[2], g[3], g[4], g[5], {0.0f, 0.0f, 0.0f, 0.0f}, sigma_cut(g[5])};
+    const Reach& h = reach[ids[e]];
+    Entry r{g[0], g[1], g[2], g[3], g[4], g[5], {0.0f, 0.0f, 0.0f, 0.0f}, h.half_y, h.half_x};
     for (int k = 0; k < D; ++k) r.col[k] = g[6 + k];
     return r;
 }
 
-// Rows [y0, y1) of [y_lo, y_hi) that the entry's ellipse sigma <= g.cut reaches, as
+// Rows [y0, y1) of [y_lo, y_hi) that the entry's ellipse sigma <= its cut reaches, as
 // _row_range computes them for SIGMA_CUT (axis 1), and likewise its columns (axis 0).
 inline void extent(const Entry& g, int axis, int lo, int hi, int* i0, int* i1) {
-    const float det = g.a * g.c - g.b * g.b;
-    if (!(g.a > 0.0f && det > 0.0f)) {
-        *i0 = lo;
-        *i1 = hi;
-        return;
-    }
-    // in float, widened a little more than _row_range's margin for the rounding: a row it adds
-    // is skipped by the alpha test anyway
-    const float half = std::sqrt(2.0f * g.cut * (axis == 1 ? g.a : g.c) / det) *
-                           1.0001f + 2e-3f;
+    const float half = axis == 1 ? g.half_y : g.half_x;
     const float m = axis == 1 ? g.my : g.mx;
     float l = std::ceil(m - half - 0.5f), h = std::floor(m + half - 0.5f) + 1.0f;
     l = l > lo ? l : static_cast<float>(lo);  // clamped before the conversion (and NaN to lo)
@@ -218,6 +273,11 @@ inline void entry_alphas(const Entry& g, const TileBox& box, int chunks, int ya,
 // Worker threads kept between calls (starting threads for every call cost tens of
 // microseconds each, and a fit iteration makes about a dozen calls). One job at a time: a
 // caller that finds the pool busy (another Python thread in a kernel) starts its own threads.
+//
+// Waking a sleeping thread through the kernel takes 30 to 80 microseconds on a virtual machine,
+// longer than many of the jobs. So a worker that finished a job watches for the next one for
+// SPIN before it sleeps, and the caller watches for the workers to finish for as long before it
+// sleeps; a fit's calls come closer together than that, so they wake nobody.
 class Pool {
   public:
     // Runs fn on the calling thread and on `extra` workers; returns when all have finished.
@@ -225,40 +285,64 @@ class Pool {
         std::unique_lock<std::mutex> busy(job_mu_, std::try_to_lock);
         if (!busy.owns_lock()) return false;
         std::unique_lock<std::mutex> lk(mu_);
-        for (; size_ < extra; ++size_) std::thread(&Pool::worker, this, generation_).detach();
+        for (; size_ < extra; ++size_) std::thread(&Pool::worker, this, generation_.load()).detach();
         job_ = &fn;
-        taking_ = running_ = extra;
-        ++generation_;
+        taking_ = extra;
+        running_ = extra;
+        generation_.fetch_add(1);
+        const bool sleepers = sleeping_ > 0;
         lk.unlock();
-        wake_.notify_all();
+        if (sleepers) wake_.notify_all();
         fn();
-        lk.lock();
-        finished_.wait(lk, [&] { return running_ == 0; });
+        if (!spin_until([&] { return running_.load() == 0; })) {
+            lk.lock();
+            finished_.wait(lk, [&] { return running_.load() == 0; });
+            lk.unlock();
+        }
         job_ = nullptr;
         return true;
     }
 
   private:
+    static constexpr std::chrono::microseconds SPIN{300};
+
+    // Whether done() held within SPIN (checked between pauses).
+    template <class Done>
+    static bool spin_until(Done done) {
+        const auto end = std::chrono::steady_clock::now() + SPIN;
+        for (int i = 0;; ++i) {
+            if (done()) return true;
+            if ((i & 63) == 63 && std::chrono::steady_clock::now() > end) return false;
+#if defined(__x86_64__) || defined(__i386__)
+            __builtin_ia32_pause();
+#endif
+        }
+    }
+
     void worker(uint64_t seen) {
-        std::unique_lock<std::mutex> lk(mu_);
         for (;;) {
-            wake_.wait(lk, [&] { return generation_ != seen; });
-            seen = generation_;
-            if (taking_ == 0) continue;  // enough workers on this job already
-            --taking_;
-            const std::function<void()>* fn = job_;
-            lk.unlock();
-            (*fn)();
-            lk.lock();
-            if (--running_ == 0) finished_.notify_one();
+            if (!spin_until([&] { return generation_.load() != seen; })) {
+                std::unique_lock<std::mutex> lk(mu_);
+                ++sleeping_;
+                wake_.wait(lk, [&] { return generation_.load() != seen; });
+                --sleeping_;
+            }
+            seen = generation_.load();
+            if (taking_.fetch_sub(1) <= 0) continue;  // enough workers on this job already
+            (*job_.load())();
+            if (running_.fetch_sub(1) == 1) {
+                std::lock_guard<std::mutex> lk(mu_);
+                finished_.notify_one();
+            }
         }
     }
 
     std::mutex job_mu_, mu_;
     std::condition_variable wake_, finished_;
-    const std::function<void()>* job_ = nullptr;
-    uint64_t generation_ = 0;
-    int taking_ = 0, running_ = 0, size_ = 0;
+    std::atomic<const std::function<void()>*> job_{nullptr};
+    std::atomic<uint64_t> generation_{0};
+    std::atomic<int> taking_{0}, running_{0};
+    int size_ = 0, sleeping_ = 0;
 };
 
 std::atomic<Pool*> the_pool{nullptr};
@@ -300,9 +384,22 @@ void parallel_tiles(int64_t n_tiles, int threads, Fn fn) {
     for (auto& th : spawned) th.join();
 }
 
-void forward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,
-                  int64_t n, const Shape& s,
-                  const float* bg, float* render, float* trans, int64_t* last) {
+// The Reach of every row of the table, in a buffer of the calling thread (kept between calls).
+const Reach* reaches(const float* table, int64_t rows, int F, int threads) {
+    thread_local std::vector<Reach> buf;
+    if (static_cast<int64_t>(buf.size()) < rows) buf.resize(static_cast<size_t>(rows));
+    Reach* out = buf.data();
+    const int64_t per_part = 64 * L;
+    parallel_tiles((rows + per_part - 1) / per_part, threads, [&](int64_t part) {
+        const int64_t b1 = ((part + 1) * per_part < rows ? (part + 1) * per_part : rows);
+        for (int64_t b = part * 64; b * L < b1; ++b) reach_block(table, F, rows, b, out);
+    });
+    return out;
+}
+
+void forward_tile(int64_t t, const float* table, const Reach* reach, const int64_t* ids, int F,
+                  int64_t start, int64_t n, const Shape& s, const float* bg, float* render,
+                  float* trans, int64_t* last) {
     TileBox box = tile_box(t, s);
     const int P = s.ts * s.chunks;
     std::vector<vf> T(P, splat(1.0f)), acc(P * MAX_CHANNELS, splat(0.0f));
@@ -319,8 +416,8 @@ void forward_tile(int64_t t, const float* table, const int64_t* ids, int F, int6
             active += L - count(outside);
         }
     for (int64_t j = 0; j < n && active > 0; ++j) {
-        if (j + PREFETCH < n) prefetch(table, ids, start + j + PREFETCH, F);
-        const Entry g = entry(table, ids, start + j, F, s.D);
+        if (j + PREFETCH < n) prefetch(table, reach, ids, start + j + PREFETCH, F);
+        const Entry g = entry(table, reach, ids, start + j, F, s.D);
         int ya, yb, ca, cb;
         extent(g, 1, box.y_lo, box.y_hi, &ya, &yb);
         chunk_range(g, box.x_lo, box.x_hi, &ca, &cb);
@@ -371,8 +468,8 @@ inline float hsum(vf v) {
     return r;
 }
 
-void backward_tile(int64_t t, const float* table, const int64_t* ids, int F, int64_t start,
-                   int64_t n, const Shape& s, const float* bg, const float* trans,
+void backward_tile(int64_t t, const float* table, const Reach* reach, const int64_t* ids, int F,
+                   int64_t start, int64_t n, const Shape& s, const float* bg, const float* trans,
                    const int64_t* last, const float* d_render, const float* d_alpha,
                    float* grads) {
     TileBox box = tile_box(t, s);
@@ -401,8 +498,8 @@ void backward_tile(int64_t t, const float* table, const int64_t* ids, int F, int
         std::memset(grads + (start + walked) * F, 0, sizeof(float) * F * (n - walked));
     for (int64_t j = walked - 1; j >= 0; --j) {
         const int64_t e = start + j;
-        if (j >= PREFETCH) prefetch(table, ids, e - PREFETCH, F);
-        const Entry g = entry(table, ids, e, F, s.D);
+        if (j >= PREFETCH) prefetch(table, reach, ids, e - PREFETCH, F);
+        const Entry g = entry(table, reach, ids, e, F, s.D);
         const vi jj = splat_i(static_cast<int32_t>(j));
         vf g0 = splat(0.0f), g1 = g0, g2 = g0, g3 = g0, g4 = g0, g5 = g0;
         vf h[MAX_CHANNELS] = {g0, g0, g0, g0};
@@ -493,18 +590,6 @@ inline vf load_lanes(const float* a, int stride, int k, const int64_t* rows) {
     vf v;
     for (int i = 0; i < L; ++i) v[i] = a[rows[i] * stride + k];
     return v;
-}
-
-inline vf vsqrt(vf x) {
-#if defined(__AVX512F__)
-    __m512 m;
-    std::memcpy(&m, &x, sizeof m);
-    m = _mm512_sqrt_ps(m);
-    std::memcpy(&x, &m, sizeof m);
-#else
-    for (int i = 0; i < L; ++i) x[i] = std::sqrt(x[i]);
-#endif
-    return x;
 }
 
 struct Lanes {
@@ -878,30 +963,32 @@ extern "C" {
 
 // render (C, H, W, D), trans (C, H, W) and last (C, H, W) as composite_forward fills them;
 // list entry e is row ids[e] of table (C*N, 6 + D).
-int pd_composite_forward(const float* table, int F, const int64_t* ids, const int64_t* offsets,
-                         const int64_t* counts, int64_t n_tiles, int ts, int tiles_x,
-                         int tiles_y, int C, int H, int W, int D, const float* bg, float* render,
-                         float* trans, int64_t* last, int threads) {
+int pd_composite_forward(const float* table, int64_t rows, int F, const int64_t* ids,
+                         const int64_t* offsets, const int64_t* counts, int64_t n_tiles, int ts,
+                         int tiles_x, int tiles_y, int C, int H, int W, int D, const float* bg,
+                         float* render, float* trans, int64_t* last, int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
+    const Reach* reach = reaches(table, rows, F, threads);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
-        forward_tile(t, table, ids, F, offsets[t], counts[t], s, bg, render, trans, last);
+        forward_tile(t, table, reach, ids, F, offsets[t], counts[t], s, bg, render, trans, last);
     });
     return 0;
 }
 
 // grads (n_isects, F) per list entry, as composite_backward returns them (every row written:
 // zeros where no pixel reached the entry).
-int pd_composite_backward(const float* table, int F, const int64_t* ids, const int64_t* offsets,
-                          const int64_t* counts, int64_t n_tiles, int ts, int tiles_x, int tiles_y, int C, int H,
-                          int W, int D, const float* bg, const float* trans, const int64_t* last,
-                          const float* d_render, const float* d_alpha, float* grads,
-                          int threads) {
+int pd_composite_backward(const float* table, int64_t rows, int F, const int64_t* ids,
+                          const int64_t* offsets, const int64_t* counts, int64_t n_tiles, int ts,
+                          int tiles_x, int tiles_y, int C, int H, int W, int D, const float* bg,
+                          const float* trans, const int64_t* last, const float* d_render,
+                          const float* d_alpha, float* grads, int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
+    const Reach* reach = reaches(table, rows, F, threads);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
-        backward_tile(t, table, ids, F, offsets[t], counts[t], s, bg, trans, last, d_render,
-                      d_alpha, grads);
+        backward_tile(t, table, reach, ids, F, offsets[t], counts[t], s, bg, trans, last,
+                      d_render, d_alpha, grads);
     });
     return 0;
 }
@@ -1332,3 +1419,82 @@ void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B,
 
 }  // extern "C"
 
+// ---- The fit's loss (gs/fit.py, _Fit._loss) past the render: its gradient with respect to the
+// render in closed form, with the operations and their order that torch's autograd takes for
+// the same expression, so the bytes are the same.
+namespace {
+
+// torch.sgn of a float: 1, -1, or +0 (for zeros and NaN).
+inline float sgn(float x) { return static_cast<float>((x > 0.0f) - (x < 0.0f)); }
+
+// clamp_min(x, m) as torch computes it (NaN stays NaN).
+inline float clamp_min(float x, float m) { return x < m ? m : x; }
+
+}  // namespace
+
+extern "C" {
+
+// The loss terms' sums, in double: sum |render_rgb - gt| over the P * 3 values; over the sky
+// pixels, relu(1 - ed / sky_scale); over the K LiDAR pixels, |1 / clamp_min(ed, 1e-3) -
+// target_inv|. terms gets the three sums.
+void pd_fit_loss_terms(const float* render, const float* alphas, const float* gt, int64_t P,
+                       int D, const uint8_t* sky, float sky_scale, const int64_t* pixels,
+                       const float* target_inv, int64_t K, double* terms) {
+    double l1 = 0.0, sky_sum = 0.0, depth_sum = 0.0;
+    for (int64_t p = 0; p < P; ++p)
+        for (int k = 0; k < 3; ++k) l1 += std::fabs(render[p * D + k] - gt[p * 3 + k]);
+    for (int64_t p = 0; D == 4 && sky != nullptr && p < P; ++p) {
+        if (!sky[p]) continue;
+        const float r = 1.0f - render[p * 4 + 3] / clamp_min(alphas[p], 1e-10f) / sky_scale;
+        sky_sum += r > 0.0f ? r : 0.0f;
+    }
+    for (int64_t k = 0; D == 4 && k < K; ++k) {
+        const int64_t p = pixels[k];
+        const float ed = render[p * 4 + 3] / clamp_min(alphas[p], 1e-10f);
+        depth_sum += std::fabs(1.0f / clamp_min(ed, 1e-3f) - target_inv[k]);
+    }
+    terms[0] = l1, terms[1] = sky_sum, terms[2] = depth_sum;
+}
+
+// render (P, D): RGB and, when D == 4, the accumulated depth; alphas (P,); gt (P, 3);
+// g_ssim (P, 3): the SSIM term's gradient; c_l1: the L1 term's per-element gradient. The
+// expected depth is depth / clamp_min(alpha, 1e-10). Sky pixels (sky, or null) pull it to the
+// sky: the gradient g_sky / sky_scale where 1 - ed / sky_scale > 0, negated. LiDAR pixels
+// (pixels, K of them; target_inv = 1 / depth) pull its inverse (clamped at 1e-3) to the
+// target: g_depth * sgn(1 / ed - target_inv) through the reciprocal. Writes d_render (P, D)
+// and, when D == 4, d_alpha (P,). (Where autograd sums full-size gradients it adds zeros to
+// values that are never -0 here, so those sums are left out.)
+void pd_fit_loss_backward(const float* render, const float* alphas, const float* gt,
+                          const float* g_ssim, int64_t P, int D, float c_l1,
+                          const uint8_t* sky, float g_sky, float sky_scale,
+                          const int64_t* pixels, const float* target_inv, int64_t K,
+                          float g_depth, float* d_render, float* d_alpha) {
+    for (int64_t p = 0; p < P; ++p)
+        for (int k = 0; k < 3; ++k) {
+            const int64_t i = p * 3 + k;
+            d_render[p * D + k] = c_l1 * sgn(render[p * D + k] - gt[i]) + g_ssim[i];
+        }
+    if (D != 4) return;
+    std::vector<float> d_ed(P, 0.0f);
+    for (int64_t p = 0; sky != nullptr && p < P; ++p) {
+        if (!sky[p]) continue;
+        const float ed = render[p * 4 + 3] / clamp_min(alphas[p], 1e-10f);
+        const float r = 1.0f - ed / sky_scale;
+        const float g = (r > 0.0f || r != r) ? g_sky : 0.0f;  // relu's backward: 0 where r <= 0
+        d_ed[p] += -g / sky_scale;
+    }
+    for (int64_t k = 0; k < K; ++k) {
+        const int64_t p = pixels[k];
+        const float ed = render[p * 4 + 3] / clamp_min(alphas[p], 1e-10f);
+        const float inv = 1.0f / clamp_min(ed, 1e-3f);
+        const float g = -(g_depth * sgn(inv - target_inv[k])) * (inv * inv);
+        d_ed[p] += ed >= 1e-3f ? g : 0.0f;
+    }
+    for (int64_t p = 0; p < P; ++p) {
+        const float e = d_ed[p], a = alphas[p], ac = clamp_min(a, 1e-10f);
+        d_render[p * 4 + 3] = e / ac;
+        d_alpha[p] = a >= 1e-10f ? -e * ((render[p * 4 + 3] / ac) / ac) : 0.0f;
+    }
+}
+
+}  // extern "C"

@@ -110,12 +110,13 @@ class Kernels:
         self.path = path
         self._forward = lib.pd_composite_forward
         self._forward.restype = _int
-        self._forward.argtypes = [_f32, _int, _i64, _i64, _i64, _long, _int, _int, _int, _int,
-                                  _int, _int, _int, _f32, _f32, _f32, _i64, _int]
+        self._forward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
+                                  _int, _int, _int, _int, _f32, _f32, _f32, _i64, _int]
         self._backward = lib.pd_composite_backward
         self._backward.restype = _int
-        self._backward.argtypes = [_f32, _int, _i64, _i64, _i64, _long, _int, _int, _int, _int,
-                                   _int, _int, _int, _f32, _f32, _i64, _f32, _f32, _f32, _int]
+        self._backward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
+                                   _int, _int, _int, _int, _f32, _f32, _i64, _f32, _f32, _f32,
+                                   _int]
         self._bin_count = lib.pd_bin_count
         self._bin_count.restype = _long
         self._bin_count.argtypes = [_f32, _f32, _f32, _long, _long, _int, _int, _int, _i64, _i64]
@@ -150,6 +151,14 @@ class Kernels:
         self._ssim.restype = None
         self._ssim.argtypes = [_f32, _f32, _long, _int, _int, _int, _f32, _int, _flt, _flt, _f32,
                                _f64, _f32, _int]
+        self._loss_terms = lib.pd_fit_loss_terms
+        self._loss_terms.restype = None
+        self._loss_terms.argtypes = [_f32, _f32, _f32, _long, _int, _u8, _flt, _i64, _f32, _long,
+                                     _f64]
+        self._loss_vjp = lib.pd_fit_loss_backward
+        self._loss_vjp.restype = None
+        self._loss_vjp.argtypes = [_f32, _f32, _f32, _f32, _long, _int, _flt, _u8, _flt, _flt,
+                                   _i64, _f32, _long, _flt, _f32, _f32]
         self._ssim_vjp = lib.pd_ssim_backward
         self._ssim_vjp.restype = None
         self._ssim_vjp.argtypes = [_f32, _f32, _f32, _long, _int, _int, _int, _f32, _int, _f32,
@@ -161,7 +170,8 @@ class Kernels:
                           threads: int) -> None:
         """``_cpu_kernels.composite_forward``, on ``threads`` threads."""
         C, H, W, D = render.shape
-        rc = self._forward(_ptr(table, np.float32), table.shape[1], _ptr(ids, np.int64),
+        rc = self._forward(_ptr(table, np.float32), table.shape[0], table.shape[1],
+                           _ptr(ids, np.int64),
                            _ptr(offsets, np.int64), _ptr(counts, np.int64), offsets.shape[0], ts,
                            tiles_x, tiles_y, C, H, W, D, _ptr(bg, np.float32),
                            _ptr(render, np.float32), _ptr(trans, np.float32),
@@ -177,7 +187,8 @@ class Kernels:
         sums), on ``threads`` threads."""
         C, H, W, D = d_render.shape
         grads = np.empty((ids.shape[0], table.shape[1]), dtype=np.float32)
-        rc = self._backward(_ptr(table, np.float32), table.shape[1], _ptr(ids, np.int64),
+        rc = self._backward(_ptr(table, np.float32), table.shape[0], table.shape[1],
+                            _ptr(ids, np.int64),
                             _ptr(offsets, np.int64), _ptr(counts, np.int64), offsets.shape[0], ts,
                             tiles_x, tiles_y, C, H, W, D, _ptr(bg, np.float32),
                             _ptr(trans, np.float32), _ptr(last, np.int64),
@@ -297,6 +308,36 @@ class Kernels:
         self._ssim_vjp(_ptr(x, f32), _ptr(y, f32), _ptr(d, f32), B, H, W, C, _ptr(taps, f32),
                        taps.shape[0], _ptr(grad, f32), _ptr(work, f32), _ptr(g, f32), threads)
         return g
+
+    def fit_loss_terms(self, render: np.ndarray, alphas: np.ndarray, gt: np.ndarray,
+                       sky: np.ndarray | None, sky_scale: float, pixels: np.ndarray,
+                       target_inv: np.ndarray) -> np.ndarray:
+        """The sums of the fit loss's terms, float64 (3,): L1 over the RGB values, the sky term
+        over the sky pixels, the inverse-depth L1 over the LiDAR pixels. render (P, D) float32
+        (RGB and, when D is 4, the accumulated depth), alphas (P,), gt (P, 3), sky (P,) bool or
+        None, pixels (K,) int64 and target_inv (K,) float32."""
+        f32 = np.float32
+        terms = np.zeros(3, np.float64)
+        self._loss_terms(_ptr(render, f32), _ptr(alphas, f32), _ptr(gt, f32), render.shape[0],
+                         render.shape[1], None if sky is None else _ptr(sky, np.bool_), sky_scale,
+                         _ptr(pixels, np.int64), _ptr(target_inv, f32), pixels.shape[0],
+                         _ptr(terms, np.float64))
+        return terms
+
+    def fit_loss_backward(self, render: np.ndarray, alphas: np.ndarray, gt: np.ndarray,
+                          g_ssim: np.ndarray, c_l1: float, sky: np.ndarray | None, g_sky: float,
+                          sky_scale: float, pixels: np.ndarray, target_inv: np.ndarray,
+                          g_depth: float) -> tuple[np.ndarray, np.ndarray]:
+        """(d_render (P, D), d_alpha (P,)) of the fit loss; see pd_fit_loss_backward."""
+        f32 = np.float32
+        d_render = np.empty(render.shape, f32)
+        d_alpha = np.empty(render.shape[0], f32)
+        self._loss_vjp(_ptr(render, f32), _ptr(alphas, f32), _ptr(gt, f32), _ptr(g_ssim, f32),
+                       render.shape[0], render.shape[1], c_l1,
+                       None if sky is None else _ptr(sky, np.bool_), g_sky, sky_scale,
+                       _ptr(pixels, np.int64), _ptr(target_inv, f32), pixels.shape[0], g_depth,
+                       _ptr(d_render, f32), _ptr(d_alpha, f32))
+        return d_render, d_alpha
 
     def sum_by_gaussian(self, grads: np.ndarray, ids: np.ndarray, n: int,
                         threads: int) -> np.ndarray:

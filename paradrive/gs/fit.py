@@ -47,10 +47,11 @@ from paradrive.stages.layout import SceneLayout, actor_files
 from paradrive.stages.records import FitRecord
 
 from . import init as gsinit
+from ._fit_loss import FitLossTerms, fit_loss, fit_loss_kernels, fit_loss_torch
 from .graph import (BACKGROUND, FittedModel, actor_points_init, boxes_containing, node_poses, place,
                     save_model)
 from .init import View
-from .losses import DepthTarget, depth_loss, flatten_loss, lidar_depth_target, shape_ratio_loss
+from .losses import DepthTarget, flatten_loss, lidar_depth_target, shape_ratio_loss
 from .model import (PARAM_KEYS, Gaussians, Params, cat_params, deterministic_torch, new_params, render_gaussians,
                     scene_scale_of, sh_degree_of)
 from .ply import load_ply
@@ -514,6 +515,8 @@ class _Fit:
         self.depth_targets = (lidar_depth_targets(scene, views, device) if p.depth_weight > 0
                               else [None] * len(views))
         self.loss_masks = _loss_masks(graph.masked, views, device)
+        self.loss_terms = FitLossTerms(p.ssim_lambda, p.sky_depth_weight, 0.5 * p.sky_radius,
+                                       p.depth_weight)
         self.eval_idx = _eval_indices(len(views), p.eval_views)
         self.gpu_views = [(v.viewmat()[None].to(device), v.K[None].to(device)) for v in views]
         self.t_start, self.c_start = time.perf_counter(), time.process_time()
@@ -575,29 +578,38 @@ class _Fit:
         use_sky = self.has_sky and view.sky is not None and p.sky_depth_weight > 0
         target = self.depth_targets[vi]
         gaussians = place(self.params, self.strat_state.get("node"), self.poses, view.frame, self.boxes)
-        out, _, info = render_gaussians(gaussians, viewmat, K, view.width, view.height,
-                                        sh_degree=deg, backend=self.backend,
-                                        render_mode="RGB+ED" if use_sky or target is not None else "RGB")
-        pred = out[0, ..., :3]
-        gt = view.rgb().to(device)
+        with_depth = use_sky or target is not None
         masked = self.loss_masks[vi]
-        if masked is not None:   # non-rigid actors left out: their pixels cost nothing
-            pred = torch.where(masked[..., None], gt, pred)
-        lam = p.ssim_lambda
-        loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
-        if use_sky and view.sky is not None:
-            sky = view.sky.to(device)
-            if sky.any():
-                depth = out[0, ..., 3][sky]
-                loss = loss + p.sky_depth_weight * F.relu(1.0 - depth / (0.5 * p.sky_radius)).mean()
-        if target is not None:
-            loss = loss + p.depth_weight * depth_loss(out[0, ..., 3], target, p.depth_inverse)
+        gt = view.rgb().to(device)
+        kernels = fit_loss_kernels(gaussians["means"]) if masked is None and p.depth_inverse else None
+        if kernels is not None:  # the same loss and gradient bytes as below, as one node
+            raw, alphas, info = render_gaussians(gaussians, viewmat, K, view.width, view.height,
+                                                 sh_degree=deg, backend=self.backend,
+                                                 render_mode="RGB+D" if with_depth else "RGB")
+            loss = fit_loss(raw, alphas, gt, view.sky if use_sky else None, target,
+                            self.loss_terms, kernels)
+        else:
+            loss, info = self._loss_torch(gaussians, vi, deg, gt, with_depth, use_sky, target)
         solid = ~self.strat_state["is_sky"]
         if p.flatten_weight > 0:
             loss = loss + p.flatten_weight * flatten_loss(self.params["scales"], solid)
         if p.shape_ratio_weight > 0 and self.step % max(p.shape_ratio_every, 1) == 0:
             loss = loss + p.shape_ratio_weight * shape_ratio_loss(self.params["scales"],
                                                                  p.shape_ratio_max, solid)
+        return loss, info
+
+    def _loss_torch(self, gaussians: Gaussians, vi: int, deg: int, gt: torch.Tensor,
+                    with_depth: bool, use_sky: bool, target: DepthTarget | None
+                    ) -> tuple[torch.Tensor, dict]:
+        """The photometric, sky and depth terms of :meth:`_loss` as torch operations."""
+        p, view = self.p, self.views[vi]
+        viewmat, K = self.gpu_views[vi]
+        out, _, info = render_gaussians(gaussians, viewmat, K, view.width, view.height,
+                                        sh_degree=deg, backend=self.backend,
+                                        render_mode="RGB+ED" if with_depth else "RGB")
+        sky = view.sky.to(self.device) if use_sky and view.sky is not None else None
+        loss = fit_loss_torch(out, gt, sky, target, self.loss_terms, p.depth_inverse,
+                              self.loss_masks[vi])
         return loss, info
 
     def checkpoint(self) -> None:

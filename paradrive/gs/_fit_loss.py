@@ -1,0 +1,148 @@
+"""The fit's loss past the render as one autograd node in the native kernels: L1 and SSIM on RGB,
+the sky term and the LiDAR inverse-depth term on the expected depth (``_Fit._loss``'s
+expression), with the gradient of the render and its alpha in closed form.
+
+The torch expression is some eighty small operations and their backward a fit iteration; the
+node gives the same gradient bytes (it takes torch's operations in torch's order: each Python
+float a float32, each mean's backward a division by the count), so a fit keeps its bytes either
+way. The loss value is summed in double (it is only shown in the progress lines).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from paradrive.devices import cpu_kernel_threads
+from paradrive.gs import _native
+from paradrive.gs.losses import DepthTarget, depth_loss
+from paradrive import metrics
+from paradrive.metrics import _gauss_taps, ssim
+
+__all__ = ["FitLossTerms", "fit_loss", "fit_loss_kernels", "fit_loss_torch"]
+
+_f32 = np.float32
+
+
+@cache
+def _ssim_window() -> tuple[np.ndarray, float, float]:
+    """metrics.ssim's defaults: the taps of its 11-pixel window (sigma 1.5), C1 and C2."""
+    return _gauss_taps(11, 1.5).numpy(), 0.01**2, 0.03**2
+
+
+@dataclass(frozen=True)
+class FitLossTerms:
+    """The loss's weights: ssim_lambda (SSIM against L1), the sky term's weight and scale (half
+    the sky radius, m) and the LiDAR depth term's weight (inverse depth)."""
+
+    ssim_lambda: float
+    sky_weight: float
+    sky_scale: float
+    depth_weight: float
+
+
+def fit_loss_kernels(render: Tensor) -> _native.Kernels | None:
+    """The native kernels where the node takes this render: where metrics.ssim runs natively
+    (float32 on the CPU, the library built), as the node computes its SSIM term there; else
+    None, and the torch expression runs."""
+    return metrics._native_kernels(render)
+
+
+class _FitLoss(torch.autograd.Function):
+    """Inputs: render (1, H, W, D) (RGB, and when D is 4 the accumulated depth), alphas
+    (1, H, W, 1), gt (H, W, 3), sky (H, W) bool or None, target (LiDAR pixels and their inverse
+    depths) or None, terms, kernels. Output: the loss, a float32 scalar."""
+
+    @staticmethod
+    def forward(ctx, render, alphas, gt, sky, target, terms: FitLossTerms, kernels):
+        _, H, W, D = render.shape
+        P = H * W
+        r = render.detach().contiguous().numpy().reshape(P, D)
+        a = alphas.detach().contiguous().numpy().reshape(P)
+        g = gt.detach().to(torch.float32).contiguous().numpy().reshape(P, 3)
+        rgb = np.ascontiguousarray(r[:, :3]).reshape(1, H, W, 3)
+        taps, c1, c2 = _ssim_window()
+        mean, d = kernels.ssim_forward(rgb, g.reshape(1, H, W, 3), taps, c1, c2, True,
+                                       cpu_kernel_threads())
+        sky_np = None if sky is None else sky.contiguous().numpy().reshape(P)
+        pixels, target_inv = target if target is not None else (_NO_PIXELS, _NO_DEPTHS)
+        sums = kernels.fit_loss_terms(r, a, g, sky_np, terms.sky_scale, pixels, target_inv)
+        lam = terms.ssim_lambda
+        loss = (1.0 - lam) * sums[0] / (3 * P) + lam * (1.0 - float(mean[0]))
+        if sky_np is not None:
+            loss += terms.sky_weight * sums[1] / int(sky_np.sum())
+        if target is not None:
+            loss += terms.depth_weight * sums[2] / pixels.shape[0]
+        ctx.saved = (r, a, g, rgb, d, taps, sky_np, pixels, target_inv, terms, kernels)
+        ctx.shape = render.shape
+        return torch.tensor(loss, dtype=torch.float32, device="cpu")
+
+    @staticmethod
+    def backward(ctx, grad):
+        r, a, g, rgb, d, taps, sky_np, pixels, target_inv, terms, kernels = ctx.saved
+        P, D = r.shape
+        g0 = _f32(grad.item())
+        # torch's constants: each Python float taken as float32, each mean's backward a division
+        # of the incoming gradient by the element count
+        c_l1 = _f32(g0 * _f32(1.0 - terms.ssim_lambda)) / _f32(3 * P)
+        scale = np.array([-_f32(g0 * _f32(terms.ssim_lambda))], dtype=_f32)
+        g_ssim = kernels.ssim_backward(rgb, g.reshape(rgb.shape), d, taps, scale,
+                                       cpu_kernel_threads())
+        g_sky = (_f32(g0 * _f32(terms.sky_weight)) / _f32(int(sky_np.sum()))
+                 if sky_np is not None else _f32(0.0))
+        g_depth = (_f32(g0 * _f32(terms.depth_weight)) / _f32(pixels.shape[0])
+                   if target_inv.shape[0] else _f32(0.0))
+        d_render, d_alpha = kernels.fit_loss_backward(
+            r, a, g, g_ssim.reshape(P, 3), float(c_l1), sky_np, float(g_sky),
+            float(_f32(terms.sky_scale)), pixels, target_inv, float(g_depth))
+        d_render_t = torch.from_numpy(d_render).reshape(ctx.shape)
+        d_alpha_t = (torch.from_numpy(d_alpha).reshape(*ctx.shape[:3], 1) if D == 4 else None)
+        return d_render_t, d_alpha_t, None, None, None, None, None
+
+
+_NO_PIXELS = np.zeros(0, np.int64)
+_NO_DEPTHS = np.zeros(0, np.float32)
+
+
+def fit_loss(render: Tensor, alphas: Tensor, gt: Tensor, sky: Tensor | None,
+             target: DepthTarget | None, terms: FitLossTerms,
+             kernels: _native.Kernels) -> Tensor:
+    """The fit's loss (see ``_Fit._loss``) of a render (1, H, W, D) with the accumulated depth
+    as its 4th channel when there is a sky or depth term, its alphas (1, H, W, 1) and the
+    target image gt (H, W, 3); sky (H, W) bool selects the sky term's pixels (None or none
+    selected: no sky term). Same value (to rounding) and same gradient bytes as the torch
+    expression."""
+    if sky is not None and not bool(sky.any()):
+        sky = None
+    if (sky is not None or target is not None) and render.shape[-1] != 4:
+        raise ValueError("the sky and depth terms need the render's accumulated depth channel")
+    packed = None
+    if target is not None:
+        packed = (target.pixels.to(torch.int64).contiguous().numpy(),
+                  (1.0 / target.depth).to(torch.float32).contiguous().numpy())
+    return _FitLoss.apply(render, alphas, gt, sky, packed, terms, kernels)
+
+
+def fit_loss_torch(out: Tensor, gt: Tensor, sky: Tensor | None, target: DepthTarget | None,
+                   terms: FitLossTerms, inverse: bool = True,
+                   masked: Tensor | None = None) -> Tensor:
+    """The same loss as torch operations, on any device: out (1, H, W, D) the render with the
+    expected depth (not the accumulated one) as its 4th channel when there is a sky or depth
+    term; ``inverse`` False takes the depth term in metres; ``masked`` (H, W) bool pixels (moving
+    actors without a node) cost nothing."""
+    pred = out[0, ..., :3]
+    if masked is not None:
+        pred = torch.where(masked[..., None], gt, pred)
+    lam = terms.ssim_lambda
+    loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
+    if sky is not None and sky.any():
+        depth = out[0, ..., 3][sky]
+        loss = loss + terms.sky_weight * F.relu(1.0 - depth / terms.sky_scale).mean()
+    if target is not None:
+        loss = loss + terms.depth_weight * depth_loss(out[0, ..., 3], target, inverse)
+    return loss
