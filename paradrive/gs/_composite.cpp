@@ -1238,25 +1238,25 @@ inline vf loadu(const float* p) {
 inline void storeu(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
 
 // out[j] (a row of n = W * C floats) = sum over taps of taps[i] * in[j + (i - K / 2) * C],
-// terms outside the row left out; 16 outputs at a time away from the ends.
+// terms outside the row left out (taken as zeros from a padded copy: adding taps[i] * 0 leaves
+// a sum as it is), 16 outputs at a time.
 inline void row_blur(const float* in, int64_t n, int C, const float* taps, int K, float* out) {
     const int64_t reach = static_cast<int64_t>(K / 2) * C;
-    auto one = [&](int64_t j) {
-        float sum = 0.0f;
-        for (int i = 0; i < K; ++i) {
-            const int64_t o = j + (i - K / 2) * static_cast<int64_t>(C);
-            if (o >= 0 && o < n) sum += taps[i] * in[o];
-        }
-        out[j] = sum;
-    };
+    thread_local std::vector<float> padded;
+    padded.assign(static_cast<size_t>(n + 2 * reach + L), 0.0f);
+    std::memcpy(padded.data() + reach, in, sizeof(float) * n);
+    const float* src = padded.data();  // src[j + i * C] is in[j + (i - K / 2) * C] or a zero
     int64_t j = 0;
-    for (; j < reach && j < n; ++j) one(j);
-    for (; j + L <= n - reach; j += L) {
+    for (; j + L <= n; j += L) {
         vf sum{};
-        for (int i = 0; i < K; ++i) sum += splat(taps[i]) * loadu(in + j + (i - K / 2) * C);
+        for (int i = 0; i < K; ++i) sum += splat(taps[i]) * loadu(src + j + i * C);
         storeu(out + j, sum);
     }
-    for (; j < n; ++j) one(j);
+    for (; j < n; ++j) {
+        float sum = 0.0f;
+        for (int i = 0; i < K; ++i) sum += taps[i] * src[j + i * C];
+        out[j] = sum;
+    }
 }
 
 // Row pass of image row q of M column-blurred maps (map k's rows at cols[k]): m[k] points at
@@ -1360,26 +1360,27 @@ void pd_ssim_forward(const float* x, const float* y, int64_t B, int H, int W, in
         const float* __restrict__ yy = m[3];
         const float* __restrict__ xy = m[4];
         float* __restrict__ smap = buf.data() + 5 * n;
-        for (int64_t j = 0; j < n; ++j) {
-            const float A = 2.0f * mx[j] * my[j] + c1, Bv = 2.0f * (xy[j] - mx[j] * my[j]) + c2;
-            const float Cv = mx[j] * mx[j] + my[j] * my[j] + c1;
-            const float D = (xx[j] - mx[j] * mx[j]) + (yy[j] - my[j] * my[j]) + c2;
-            smap[j] = A * Bv / (Cv * D);
-        }
-        if (d != nullptr) {
-            float* __restrict__ d_mu = d + q * n;
-            float* __restrict__ d_xx = d + size + q * n;
-            float* __restrict__ d_xy = d + 2 * size + q * n;
-            for (int64_t j = 0; j < n; ++j) {
-                const float A = 2.0f * mx[j] * my[j] + c1, Bv = 2.0f * (xy[j] - mx[j] * my[j]) + c2;
-                const float Cv = mx[j] * mx[j] + my[j] * my[j] + c1;
-                const float D = (xx[j] - mx[j] * mx[j]) + (yy[j] - my[j] * my[j]) + c2;
-                const float CD = Cv * D, s = smap[j];
-                d_mu[j] = (2.0f * my[j] * (Bv - A) / CD - 2.0f * mx[j] * s * (1.0f / Cv - 1.0f / D)) * inv;
-                d_xx[j] = -s / D * inv;
-                d_xy[j] = 2.0f * A / CD * inv;
-            }
-        }
+        float* __restrict__ d_mu = d != nullptr ? d + q * n : nullptr;
+        float* __restrict__ d_xx = d != nullptr ? d + size + q * n : nullptr;
+        float* __restrict__ d_xy = d != nullptr ? d + 2 * size + q * n : nullptr;
+        // the map and its derivatives, 16 pixels at a time (the same arithmetic per lane)
+        auto lanes = [&](auto load, auto store, int64_t j) {
+            const auto ux = load(mx + j), uy = load(my + j);
+            const auto A = 2.0f * ux * uy + c1, Bv = 2.0f * (load(xy + j) - ux * uy) + c2;
+            const auto Cv = ux * ux + uy * uy + c1;
+            const auto D = (load(xx + j) - ux * ux) + (load(yy + j) - uy * uy) + c2;
+            const auto sm = A * Bv / (Cv * D);
+            store(smap + j, sm);
+            if (d_mu == nullptr) return;
+            const auto CD = Cv * D;
+            store(d_mu + j, (2.0f * uy * (Bv - A) / CD - 2.0f * ux * sm * (1.0f / Cv - 1.0f / D)) * inv);
+            store(d_xx + j, -sm / D * inv);
+            store(d_xy + j, 2.0f * A / CD * inv);
+        };
+        int64_t j = 0;
+        for (; j + L <= n; j += L) lanes(loadu, storeu, j);
+        for (; j < n; ++j)
+            lanes([](const float* p) { return *p; }, [](float* p, float v) { *p = v; }, j);
         double sum = 0.0;
         for (int64_t j = 0; j < n; ++j) sum += smap[j];
         row_sums[q] = sum;
@@ -1412,8 +1413,14 @@ void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B,
         const float* xr = x + q * n;
         const float* yr = y + q * n;
         float* gr = g + q * n;
-        for (int64_t j = 0; j < n; ++j)
-            gr[j] = (m[0][j] + 2.0f * xr[j] * m[1][j] + yr[j] * m[2][j]) * scale;
+        auto lanes = [&](auto load, auto store, int64_t j) {
+            store(gr + j, (load(m[0] + j) + 2.0f * load(xr + j) * load(m[1] + j) +
+                           load(yr + j) * load(m[2] + j)) * scale);
+        };
+        int64_t j = 0;
+        for (; j + L <= n; j += L) lanes(loadu, storeu, j);
+        for (; j < n; ++j)
+            lanes([](const float* p) { return *p; }, [](float* p, float v) { *p = v; }, j);
     });
 }
 
