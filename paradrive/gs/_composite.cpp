@@ -384,11 +384,15 @@ void parallel_tiles(int64_t n_tiles, int threads, Fn fn) {
     for (auto& th : spawned) th.join();
 }
 
-// The Reach of every row of the table, in a buffer of the calling thread (kept between calls).
-const Reach* reaches(const float* table, int64_t rows, int F, int threads) {
+// The Reach of every row of the table, into out (rows of 2 floats) or, where out is null, a
+// buffer of the calling thread (kept between calls).
+const Reach* reaches(const float* table, int64_t rows, int F, float* into, int threads) {
     thread_local std::vector<Reach> buf;
-    if (static_cast<int64_t>(buf.size()) < rows) buf.resize(static_cast<size_t>(rows));
-    Reach* out = buf.data();
+    Reach* out = reinterpret_cast<Reach*>(into);
+    if (out == nullptr) {
+        if (static_cast<int64_t>(buf.size()) < rows) buf.resize(static_cast<size_t>(rows));
+        out = buf.data();
+    }
     const int64_t per_part = 64 * L;
     parallel_tiles((rows + per_part - 1) / per_part, threads, [&](int64_t part) {
         const int64_t b1 = ((part + 1) * per_part < rows ? (part + 1) * per_part : rows);
@@ -966,10 +970,11 @@ extern "C" {
 int pd_composite_forward(const float* table, int64_t rows, int F, const int64_t* ids,
                          const int64_t* offsets, const int64_t* counts, int64_t n_tiles, int ts,
                          int tiles_x, int tiles_y, int C, int H, int W, int D, const float* bg,
-                         float* render, float* trans, int64_t* last, int threads) {
+                         float* render, float* trans, int64_t* last, float* reach_out,
+                         int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
-    const Reach* reach = reaches(table, rows, F, threads);
+    const Reach* reach = reaches(table, rows, F, reach_out, threads);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
         forward_tile(t, table, reach, ids, F, offsets[t], counts[t], s, bg, render, trans, last);
     });
@@ -982,10 +987,12 @@ int pd_composite_backward(const float* table, int64_t rows, int F, const int64_t
                           const int64_t* offsets, const int64_t* counts, int64_t n_tiles, int ts,
                           int tiles_x, int tiles_y, int C, int H, int W, int D, const float* bg,
                           const float* trans, const int64_t* last, const float* d_render,
-                          const float* d_alpha, float* grads, int threads) {
+                          const float* d_alpha, const float* reach_in, float* grads,
+                          int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
-    const Reach* reach = reaches(table, rows, F, threads);
+    const Reach* reach = reach_in != nullptr ? reinterpret_cast<const Reach*>(reach_in)
+                                             : reaches(table, rows, F, nullptr, threads);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
         backward_tile(t, table, reach, ids, F, offsets[t], counts[t], s, bg, trans, last,
                       d_render, d_alpha, grads);

@@ -106,15 +106,17 @@ class FusedComposite(torch.autograd.Function):
         tail = (bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size, bins.tiles_x,
                 bins.tiles_y, bg, render, trans, last)
         native = _native.load()
+        reach = None
         if native is not None:  # the table and the ids: no gathered copy
-            native.composite_forward(table, ids, *tail, cpu_kernel_threads())
+            reach = np.empty((table.shape[0], 2), dtype=np.float32)
+            native.composite_forward(table, ids, *tail, cpu_kernel_threads(), reach=reach)
             gauss = table
         else:
             gauss = table[ids]
             with _kernel_threads():
                 K.composite_forward(gauss, *tail)
         ctx.bins, ctx.arrays, ctx.n_flat = bins, (gauss, bg, trans, last), means2d.shape[0]
-        ctx.native = native
+        ctx.native, ctx.reach = native, reach
         ctx.save_for_backward(backgrounds)
         dtype = means2d.dtype
         renders = torch.from_numpy(render).to(dtype)
@@ -131,7 +133,7 @@ class FusedComposite(torch.autograd.Function):
                 _f32(grad_renders), _f32(grad_alphas[..., 0]))
         if ctx.native is not None:  # the backward of the kernels that ran the forward
             per_isect = ctx.native.composite_backward(gauss, ids, tail[0], bins.counts.numpy(),
-                                                      *tail[1:], threads)
+                                                      *tail[1:], threads, reach=ctx.reach)
             summed = ctx.native.sum_by_gaussian(per_isect, ids, ctx.n_flat, threads)
         else:
             with _kernel_threads():
@@ -308,11 +310,12 @@ class FusedRasterize(torch.autograd.Function):
         render = np.empty((C, height, width, D), dtype=np.float32)
         trans = np.empty((C, height, width), dtype=np.float32)
         last = np.empty((C, height, width), dtype=np.int64)
+        reach = np.empty((C * N, 2), dtype=np.float32)  # each row's ellipse, for the backward too
         native.composite_forward(table, ids, offsets, counts, ts, tiles_x, tiles_y, bg, render,
-                                 trans, last, threads)
+                                 trans, last, threads, reach=reach)
         ctx.native, ctx.settings, ctx.screen = native, settings, screen
         ctx.tiles = (tiles_x, tiles_y)
-        ctx.arrays = (arrays, campos, colors, table, ids, offsets, counts, bg, trans, last)
+        ctx.arrays = (arrays, campos, colors, table, ids, offsets, counts, bg, trans, last, reach)
         radii_t = torch.from_numpy(radii)
         conics_t, depths_t = torch.from_numpy(conics), torch.from_numpy(depths[..., 0])
         ctx.mark_non_differentiable(conics_t, depths_t, radii_t)
@@ -325,7 +328,7 @@ class FusedRasterize(torch.autograd.Function):
     def backward(ctx, v_render, v_alphas, *_):
         native, threads = ctx.native, cpu_kernel_threads()
         width, height, near, far, eps2d, _, degree, with_depth, ts = ctx.settings
-        arrays, campos, colors, table, ids, offsets, counts, bg, trans, last = ctx.arrays
+        arrays, campos, colors, table, ids, offsets, counts, bg, trans, last, reach = ctx.arrays
         m, q, s, _, vm, Ks_, c0_, cN_ = arrays
         C, N = vm.shape[0], m.shape[0]
         tiles_x, tiles_y = ctx.tiles
@@ -335,7 +338,8 @@ class FusedRasterize(torch.autograd.Function):
         d_alpha = (np.zeros((C, height, width), np.float32) if v_alphas is None
                    else _f32(v_alphas[..., 0]))
         per_entry = native.composite_backward(table, ids, offsets, counts, ts, tiles_x, tiles_y,
-                                              bg, trans, last, d_render, d_alpha, threads)
+                                              bg, trans, last, d_render, d_alpha, threads,
+                                              reach=reach)
         # the table's gradients, read in place (column slices) by the projection's and SH's backward
         total = native.sum_by_gaussian(per_entry, ids, C * N, threads)
         v_depths = (total[:, 9:10] if with_depth

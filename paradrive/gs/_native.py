@@ -111,12 +111,12 @@ class Kernels:
         self._forward = lib.pd_composite_forward
         self._forward.restype = _int
         self._forward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
-                                  _int, _int, _int, _int, _f32, _f32, _f32, _i64, _int]
+                                  _int, _int, _int, _int, _f32, _f32, _f32, _i64, _f32, _int]
         self._backward = lib.pd_composite_backward
         self._backward.restype = _int
         self._backward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
                                    _int, _int, _int, _int, _f32, _f32, _i64, _f32, _f32, _f32,
-                                   _int]
+                                   _f32, _int]
         self._bin_count = lib.pd_bin_count
         self._bin_count.restype = _long
         self._bin_count.argtypes = [_f32, _f32, _f32, _long, _long, _int, _int, _int, _i64, _i64]
@@ -167,24 +167,27 @@ class Kernels:
     def composite_forward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
                           counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
                           bg: np.ndarray, render: np.ndarray, trans: np.ndarray, last: np.ndarray,
-                          threads: int) -> None:
-        """``_cpu_kernels.composite_forward``, on ``threads`` threads."""
+                          threads: int, reach: np.ndarray | None = None) -> None:
+        """``_cpu_kernels.composite_forward``, on ``threads`` threads. ``reach`` (C*N, 2)
+        float32, where given, gets each row's ellipse half-extents for the backward."""
         C, H, W, D = render.shape
         rc = self._forward(_ptr(table, np.float32), table.shape[0], table.shape[1],
                            _ptr(ids, np.int64),
                            _ptr(offsets, np.int64), _ptr(counts, np.int64), offsets.shape[0], ts,
                            tiles_x, tiles_y, C, H, W, D, _ptr(bg, np.float32),
                            _ptr(render, np.float32), _ptr(trans, np.float32),
-                           _ptr(last, np.int64), threads)
+                           _ptr(last, np.int64), _reach(reach, table), threads)
         if rc != 0:
             raise ValueError(f"composite_forward: {D} channels; the kernels carry 1 to 4")
 
     def composite_backward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
                            counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
                            bg: np.ndarray, trans: np.ndarray, last: np.ndarray,
-                           d_render: np.ndarray, d_alpha: np.ndarray, threads: int) -> np.ndarray:
+                           d_render: np.ndarray, d_alpha: np.ndarray, threads: int,
+                           reach: np.ndarray | None = None) -> np.ndarray:
         """``_cpu_kernels.composite_backward`` (one row per list entry; float32, the lanes'
-        sums), on ``threads`` threads."""
+        sums), on ``threads`` threads; ``reach`` as the forward filled it (else computed
+        again)."""
         C, H, W, D = d_render.shape
         grads = np.empty((ids.shape[0], table.shape[1]), dtype=np.float32)
         rc = self._backward(_ptr(table, np.float32), table.shape[0], table.shape[1],
@@ -193,7 +196,7 @@ class Kernels:
                             tiles_x, tiles_y, C, H, W, D, _ptr(bg, np.float32),
                             _ptr(trans, np.float32), _ptr(last, np.int64),
                             _ptr(d_render, np.float32), _ptr(d_alpha, np.float32),
-                            _ptr(grads, np.float32), threads)
+                            _reach(reach, table), _ptr(grads, np.float32), threads)
         if rc != 0:
             raise ValueError(f"composite_backward: {D} channels; the kernels carry 1 to 4")
         return grads
@@ -347,6 +350,15 @@ class Kernels:
         self._sum(_ptr(grads, np.float32), _ptr(ids, np.int64), ids.shape[0], grads.shape[1], n,
                   _ptr(out, np.float32), threads)
         return out
+
+
+def _reach(reach: np.ndarray | None, table: np.ndarray) -> int | None:
+    """The address of a compositing call's per-row reach array (table rows, 2), or None."""
+    if reach is None:
+        return None
+    if reach.shape != (table.shape[0], 2):
+        raise ValueError(f"reach {reach.shape} does not match the table's {table.shape[0]} rows")
+    return _ptr(reach, np.float32)
 
 
 def _ptr(a: np.ndarray, dtype: type) -> int:
