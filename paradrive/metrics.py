@@ -141,6 +141,12 @@ def _native_kernels(x: torch.Tensor):
     return _native.load()
 
 
+def ssim_window(window: int = 11, sigma: float = 1.5,
+                max_val: float = 1.0) -> tuple[torch.Tensor, float, float]:
+    """The SSIM's separable window taps (window,) on the CPU and its constants C1, C2."""
+    return _gauss_taps(window, sigma), (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
          max_val: float = 1.0, reduce: bool = True) -> torch.Tensor:
     """Structural similarity, 11x11 Gaussian window (sigma 1.5), C1=(0.01L)^2, C2=(0.03L)^2.
@@ -151,16 +157,15 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
     against its target; the gradient is in closed form), the map with respect to both.
     """
     single = a.dim() == 3
-    c1 = (0.01 * max_val) ** 2
-    c2 = (0.03 * max_val) ** 2
+    taps, c1, c2 = ssim_window(window, sigma, max_val)
     xb, yb = _batch(a).float(), _batch(b).float()
     kernels = _native_kernels(xb) if reduce and window <= NATIVE_MAX_WINDOW else None
     if kernels is not None:
-        out = _NativeMeanSSIM.apply(xb.contiguous(), yb.detach().contiguous(), _gauss_taps(window, sigma),
-                                    c1, c2, kernels)
+        out = _NativeMeanSSIM.apply(xb.contiguous(), yb.detach().contiguous(), taps, c1, c2,
+                                    kernels)
         return out[0] if single else out
     x, y = xb.permute(0, 3, 1, 2), yb.permute(0, 3, 1, 2)
-    taps = _gauss_taps(window, sigma).to(x.device, x.dtype)
+    taps = taps.to(x.device, x.dtype)
     if not reduce:
         return _ssim_terms(x, y, taps, c1, c2)[0]
     out = _MeanSSIM.apply(x, y.detach(), taps, c1, c2)

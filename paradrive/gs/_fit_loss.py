@@ -22,7 +22,7 @@ from paradrive.devices import cpu_kernel_threads
 from paradrive.gs import _native
 from paradrive.gs.losses import DepthTarget, depth_loss
 from paradrive import metrics
-from paradrive.metrics import _gauss_taps, ssim
+from paradrive.metrics import ssim
 
 __all__ = ["FitLossTerms", "fit_loss", "fit_loss_kernels", "fit_loss_torch"]
 
@@ -31,8 +31,9 @@ _f32 = np.float32
 
 @cache
 def _ssim_window() -> tuple[np.ndarray, float, float]:
-    """metrics.ssim's defaults: the taps of its 11-pixel window (sigma 1.5), C1 and C2."""
-    return _gauss_taps(11, 1.5).numpy(), 0.01**2, 0.03**2
+    """metrics.ssim's default window (the fit's): taps as an array, C1 and C2."""
+    taps, c1, c2 = metrics.ssim_window()
+    return taps.numpy(), c1, c2
 
 
 @dataclass(frozen=True)
@@ -74,17 +75,18 @@ class _FitLoss(torch.autograd.Function):
         sums = kernels.fit_loss_terms(r, a, g, sky_np, terms.sky_scale, pixels, target_inv)
         lam = terms.ssim_lambda
         loss = (1.0 - lam) * sums[0] / (3 * P) + lam * (1.0 - float(mean[0]))
+        n_sky = int(sky_np.sum()) if sky_np is not None else 0
         if sky_np is not None:
-            loss += terms.sky_weight * sums[1] / int(sky_np.sum())
+            loss += terms.sky_weight * sums[1] / n_sky
         if target is not None:
             loss += terms.depth_weight * sums[2] / pixels.shape[0]
-        ctx.saved = (r, a, g, rgb, d, taps, sky_np, pixels, target_inv, terms, kernels)
+        ctx.saved = (r, a, g, rgb, d, taps, sky_np, n_sky, pixels, target_inv, terms, kernels)
         ctx.shape = render.shape
         return torch.tensor(loss, dtype=torch.float32, device="cpu")
 
     @staticmethod
     def backward(ctx, grad):
-        r, a, g, rgb, d, taps, sky_np, pixels, target_inv, terms, kernels = ctx.saved
+        r, a, g, rgb, d, taps, sky_np, n_sky, pixels, target_inv, terms, kernels = ctx.saved
         P, D = r.shape
         g0 = _f32(grad.item())
         # torch's constants: each Python float taken as float32, each mean's backward a division
@@ -93,8 +95,7 @@ class _FitLoss(torch.autograd.Function):
         scale = np.array([-_f32(g0 * _f32(terms.ssim_lambda))], dtype=_f32)
         g_ssim = kernels.ssim_backward(rgb, g.reshape(rgb.shape), d, taps, scale,
                                        cpu_kernel_threads())
-        g_sky = (_f32(g0 * _f32(terms.sky_weight)) / _f32(int(sky_np.sum()))
-                 if sky_np is not None else _f32(0.0))
+        g_sky = _f32(g0 * _f32(terms.sky_weight)) / _f32(n_sky) if n_sky else _f32(0.0)
         g_depth = (_f32(g0 * _f32(terms.depth_weight)) / _f32(pixels.shape[0])
                    if target_inv.shape[0] else _f32(0.0))
         d_render, d_alpha = kernels.fit_loss_backward(
