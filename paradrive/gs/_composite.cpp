@@ -384,15 +384,9 @@ void parallel_tiles(int64_t n_tiles, int threads, Fn fn) {
     for (auto& th : spawned) th.join();
 }
 
-// The Reach of every row of the table, into out (rows of 2 floats) or, where out is null, a
-// buffer of the calling thread (kept between calls).
+// The Reach of every row of the table, into out (rows of 2 floats).
 const Reach* reaches(const float* table, int64_t rows, int F, float* into, int threads) {
-    thread_local std::vector<Reach> buf;
     Reach* out = reinterpret_cast<Reach*>(into);
-    if (out == nullptr) {
-        if (static_cast<int64_t>(buf.size()) < rows) buf.resize(static_cast<size_t>(rows));
-        out = buf.data();
-    }
     const int64_t per_part = 64 * L;
     parallel_tiles((rows + per_part - 1) / per_part, threads, [&](int64_t part) {
         const int64_t b1 = ((part + 1) * per_part < rows ? (part + 1) * per_part : rows);
@@ -966,7 +960,8 @@ inline float sh_dir(const float* mean, const float* campos, float* d) {
 extern "C" {
 
 // render (C, H, W, D), trans (C, H, W) and last (C, H, W) as composite_forward fills them;
-// list entry e is row ids[e] of table (C*N, 6 + D).
+// list entry e is row ids[e] of table (C*N, 6 + D); reach_out (C*N, 2) gets each row's Reach,
+// which the backward takes.
 int pd_composite_forward(const float* table, int64_t rows, int F, const int64_t* ids,
                          const int64_t* offsets, const int64_t* counts, int64_t n_tiles, int ts,
                          int tiles_x, int tiles_y, int C, int H, int W, int D, const float* bg,
@@ -982,7 +977,7 @@ int pd_composite_forward(const float* table, int64_t rows, int F, const int64_t*
 }
 
 // grads (n_isects, F) per list entry, as composite_backward returns them (every row written:
-// zeros where no pixel reached the entry).
+// zeros where no pixel reached the entry); reach_in as the forward filled it.
 int pd_composite_backward(const float* table, int64_t rows, int F, const int64_t* ids,
                           const int64_t* offsets, const int64_t* counts, int64_t n_tiles, int ts,
                           int tiles_x, int tiles_y, int C, int H, int W, int D, const float* bg,
@@ -991,8 +986,7 @@ int pd_composite_backward(const float* table, int64_t rows, int F, const int64_t
                           int threads) {
     if (D < 1 || D > MAX_CHANNELS || F != 6 + D) return 1;
     const Shape s = shape(ts, tiles_x, tiles_y, C, H, W, D);
-    const Reach* reach = reach_in != nullptr ? reinterpret_cast<const Reach*>(reach_in)
-                                             : reaches(table, rows, F, nullptr, threads);
+    const Reach* reach = reinterpret_cast<const Reach*>(reach_in);
     parallel_tiles(n_tiles, threads, [&](int64_t t) {
         backward_tile(t, table, reach, ids, F, offsets[t], counts[t], s, bg, trans, last,
                       d_render, d_alpha, grads);

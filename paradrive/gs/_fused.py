@@ -106,7 +106,7 @@ class FusedComposite(torch.autograd.Function):
         tail = (bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size, bins.tiles_x,
                 bins.tiles_y, bg, render, trans, last)
         native = _native.load()
-        reach = None
+        reach = None  # each row's ellipse, from the native forward for its backward
         if native is not None:  # the table and the ids: no gathered copy
             reach = np.empty((table.shape[0], 2), dtype=np.float32)
             native.composite_forward(table, ids, *tail, cpu_kernel_threads(), reach=reach)

@@ -167,9 +167,9 @@ class Kernels:
     def composite_forward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
                           counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
                           bg: np.ndarray, render: np.ndarray, trans: np.ndarray, last: np.ndarray,
-                          threads: int, reach: np.ndarray | None = None) -> None:
+                          threads: int, reach: np.ndarray) -> None:
         """``_cpu_kernels.composite_forward``, on ``threads`` threads. ``reach`` (C*N, 2)
-        float32, where given, gets each row's ellipse half-extents for the backward."""
+        float32 gets each row's ellipse half-extents, which the backward takes."""
         C, H, W, D = render.shape
         rc = self._forward(_ptr(table, np.float32), table.shape[0], table.shape[1],
                            _ptr(ids, np.int64),
@@ -184,10 +184,9 @@ class Kernels:
                            counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
                            bg: np.ndarray, trans: np.ndarray, last: np.ndarray,
                            d_render: np.ndarray, d_alpha: np.ndarray, threads: int,
-                           reach: np.ndarray | None = None) -> np.ndarray:
+                           reach: np.ndarray) -> np.ndarray:
         """``_cpu_kernels.composite_backward`` (one row per list entry; float32, the lanes'
-        sums), on ``threads`` threads; ``reach`` as the forward filled it (else computed
-        again)."""
+        sums), on ``threads`` threads; ``reach`` as the forward filled it."""
         C, H, W, D = d_render.shape
         grads = np.empty((ids.shape[0], table.shape[1]), dtype=np.float32)
         rc = self._backward(_ptr(table, np.float32), table.shape[0], table.shape[1],
@@ -352,10 +351,8 @@ class Kernels:
         return out
 
 
-def _reach(reach: np.ndarray | None, table: np.ndarray) -> int | None:
-    """The address of a compositing call's per-row reach array (table rows, 2), or None."""
-    if reach is None:
-        return None
+def _reach(reach: np.ndarray, table: np.ndarray) -> int:
+    """The address of a compositing call's per-row reach array (table rows, 2)."""
     if reach.shape != (table.shape[0], 2):
         raise ValueError(f"reach {reach.shape} does not match the table's {table.shape[0]} rows")
     return _ptr(reach, np.float32)
