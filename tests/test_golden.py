@@ -5,7 +5,8 @@ seed 7, the build's ``index.json`` and its manifest rows (one JSON line per row)
 creation time and the temporary root are masked. On the environment the golden files were made
 on (same CPU vector unit, torch, pyarrow and av), the rest must match byte for byte. Elsewhere,
 values that depend on floating-point summation order or an encoder's version (PSNR, SSIM,
-Gaussian counts, file sizes and hashes) are compared loosely, and everything else exactly.
+Gaussian counts, file sizes and hashes) are compared loosely (within 5 %, counts also within three
+times their square root), and everything else exactly.
 
 Regenerate after an intended contract change: ``PARADRIVE_UPDATE_GOLDEN=1 pytest tests/test_golden.py``.
 """
@@ -81,7 +82,10 @@ def _close(golden, actual, path: str) -> None:
     elif key in MEASURED or key.endswith(("_sha256", "_bytes")):
         assert type(actual) is type(golden), f"{path}: type differs"
         if isinstance(golden, (int, float)) and not isinstance(golden, bool) and golden:
-            assert math.isclose(actual, golden, rel_tol=0.05), f"{path}: {actual} vs {golden}"
+            # a count of events (Gaussians pruned, split) also moves by about its square root
+            counts = 3 * math.sqrt(abs(golden)) if isinstance(golden, int) else 0.0
+            assert math.isclose(actual, golden, rel_tol=0.05, abs_tol=counts), \
+                f"{path}: {actual} vs {golden}"
     else:
         assert actual == golden, f"{path}: {actual!r} != {golden!r}"
 
@@ -109,3 +113,9 @@ def test_golden_comparison_catches_a_renamed_key_and_a_changed_value():
     with pytest.raises(AssertionError, match="iteration"):
         _close(golden, {"a": 1, "checkpoints": [{"iteration": 26, "psnr": 20.0}]}, "fit.json")
     _close(golden, {"a": 1, "checkpoints": [{"iteration": 25, "psnr": 20.1}]}, "fit.json")
+    with pytest.raises(AssertionError, match="psnr"):
+        _close(golden, {"a": 1, "checkpoints": [{"iteration": 25, "psnr": 22.0}]}, "fit.json")
+    pruned = {"densify": {"pruned": 53}}
+    _close(pruned, {"densify": {"pruned": 50}}, "fit.json")  # within 3 sqrt(53) of 53
+    with pytest.raises(AssertionError, match="pruned"):
+        _close(pruned, {"densify": {"pruned": 80}}, "fit.json")

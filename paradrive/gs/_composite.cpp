@@ -1,5 +1,5 @@
-// The fused CPU rasterizer's kernels: forward and backward compositing (16 pixels of a tile row
-// at a time), tile binning, per-Gaussian gradient sums, EWA projection (16 Gaussians at a time)
+// The fused CPU rasterizer's kernels: forward and backward compositing (L pixels of a tile row
+// at a time), tile binning, per-Gaussian gradient sums, EWA projection (L Gaussians at a time)
 // and SH shading, each with the rules of its Numba counterpart (_cpu_kernels.py,
 // _cpu_project.py, _cpu_sh.py) in float32; and the mean SSIM of the fit loss with its gradient
 // (paradrive/metrics.py's closed form).
@@ -8,12 +8,16 @@
 // The same rules and array layouts as the Numba kernels of _cpu_kernels.py (see there): per
 // pixel, the depth-sorted entries of its tile front to back, alpha = min(0.999, opacity *
 // exp(-sigma)), sigma < 0 or alpha < 1/255 skipped, a pixel stops before the entry that would
-// bring its transmittance to <= 1e-4. Arithmetic is float32 in vectors of 16 lanes (one AVX-512
-// register, two AVX2 ones); exp is a polynomial with the exponent put in by integer arithmetic.
+// bring its transmittance to <= 1e-4. Arithmetic is float32 in vectors of L lanes, one register
+// of the machine's widest vector unit: 16 with AVX-512, else 8 (one AVX2 register). Vectors
+// wider than the unit are split by the compiler into halves spilled through the stack, which
+// made every kernel 5 to 10 times slower on AVX2. exp is a polynomial with the exponent put in
+// by integer arithmetic.
 //
 // Each tile is the work of one thread, in a fixed order inside it, and the lanes of a
 // per-entry gradient are summed in a fixed order, so the bytes do not depend on the number of
-// threads. Threads take tiles from a shared counter.
+// threads. Threads take tiles from a shared counter. The lane count sets the order of a
+// per-entry gradient's sum, so machines with different vector units differ in the last bits.
 //
 // Built by _native.py with the machine's C++ compiler and loaded through ctypes.
 
@@ -36,7 +40,11 @@
 
 namespace {
 
+#if defined(__AVX512F__)
 constexpr int L = 16;
+#else
+constexpr int L = 8;  // AVX2; elsewhere the compiler splits it to the unit's width
+#endif
 typedef float vf __attribute__((vector_size(4 * L)));
 typedef int32_t vi __attribute__((vector_size(4 * L)));
 
@@ -55,11 +63,10 @@ inline bool any(vi m) {
     std::memcpy(&v, &m, sizeof v);
     return _mm512_test_epi32_mask(v, v) != 0;
 #elif defined(__AVX2__)
-    __m256i lo, hi;
-    std::memcpy(&lo, &m, sizeof lo);
-    std::memcpy(&hi, reinterpret_cast<const char*>(&m) + sizeof lo, sizeof hi);
-    __m256i o = _mm256_or_si256(lo, hi);
-    return !_mm256_testz_si256(o, o);
+    static_assert(L == 8, "one AVX2 register");
+    __m256i v;
+    std::memcpy(&v, &m, sizeof v);
+    return !_mm256_testz_si256(v, v);
 #else
     int32_t r = 0;
     for (int i = 0; i < L; ++i) r |= m[i];
@@ -99,6 +106,11 @@ inline vf vsqrt(vf x) {
     __m512 m;
     std::memcpy(&m, &x, sizeof m);
     m = _mm512_sqrt_ps(m);
+    std::memcpy(&x, &m, sizeof m);
+#elif defined(__AVX2__)
+    __m256 m;
+    std::memcpy(&m, &x, sizeof m);
+    m = _mm256_sqrt_ps(m);
     std::memcpy(&x, &m, sizeof m);
 #else
     for (int i = 0; i < L; ++i) x[i] = std::sqrt(x[i]);
@@ -578,7 +590,7 @@ inline uint32_t order_key(float f) {
     return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
 }
 
-// ---- EWA projection (rasterize._project; the Numba kernels of _cpu_project.py), 16 Gaussians
+// ---- EWA projection (rasterize._project; the Numba kernels of _cpu_project.py), L Gaussians
 // per vector in float32. Small matrices are arrays of 9 row-major vectors.
 
 constexpr float RADIUS_SIGMAS = 3.33f;
@@ -1364,7 +1376,7 @@ void pd_ssim_forward(const float* x, const float* y, int64_t B, int H, int W, in
         float* __restrict__ d_mu = d != nullptr ? d + q * n : nullptr;
         float* __restrict__ d_xx = d != nullptr ? d + size + q * n : nullptr;
         float* __restrict__ d_xy = d != nullptr ? d + 2 * size + q * n : nullptr;
-        // the map and its derivatives, 16 pixels at a time (the same arithmetic per lane)
+        // the map and its derivatives, L pixels at a time (the same arithmetic per lane)
         auto lanes = [&](auto load, auto store, int64_t j) {
             const auto ux = load(mx + j), uy = load(my + j);
             const auto A = 2.0f * ux * uy + c1, Bv = 2.0f * (load(xy + j) - ux * uy) + c2;
