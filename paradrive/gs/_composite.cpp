@@ -1015,6 +1015,8 @@ int64_t pd_bin_count(const float* depths, const float* means2d, const float* rad
     const int64_t per_cam_tiles = static_cast<int64_t>(tiles_x) * tiles_y;
     std::vector<uint32_t> keys;
     std::vector<int64_t> idx;
+    keys.reserve(static_cast<size_t>(n));
+    idx.reserve(static_cast<size_t>(n));
     for (int64_t cam = 0, g = 0; g < n; ++cam)
         for (int64_t i = 0; i < n_per_cam && g < n; ++i, ++g) {
             if (!(radii[2 * g] > 0.0f && radii[2 * g + 1] > 0.0f)) continue;
@@ -1200,8 +1202,10 @@ void pd_sh_backward(int degree, const float* means, const float* c0, const float
         const int64_t lo = chunk * SH_CHUNK;
         std::memset(v_means + 3 * lo, 0, sizeof(float) * 3 * (hi - lo));
         std::memset(v_c0 + 3 * lo, 0, sizeof(float) * 3 * (hi - lo));
-        std::memset(v_cN + lo * KN * 3, 0, sizeof(float) * KN * 3 * (hi - lo));
-        for (int64_t n = lo; n < hi; ++n)
+        for (int64_t n = lo; n < hi; ++n) {
+            // zeroed here, not with the chunk: the row is in the cache for the sums below, so
+            // the largest gradient (N * KN * 3 floats) goes to memory once
+            std::memset(v_cN + n * KN * 3, 0, sizeof(float) * KN * 3);
             for (int c = 0; c < C; ++c) {
                 const float* vc = v_colors + (c * N + n) * s_v;
                 if (vc[0] == 0.0f && vc[1] == 0.0f && vc[2] == 0.0f) continue;  // outside the view
@@ -1224,6 +1228,7 @@ void pd_sh_backward(int degree, const float* means, const float* c0, const float
                 const float dot = norm > 1e-12f ? d[0] * g[0] + d[1] * g[1] + d[2] * g[2] : 0.0f;
                 for (int k = 0; k < 3; ++k) v_means[3 * n + k] += (g[k] - d[k] * dot) / norm;
             }
+        }
     });
 }
 
