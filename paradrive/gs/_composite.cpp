@@ -971,6 +971,9 @@ inline float sh_dir(const float* mean, const float* campos, float* d) {
 
 extern "C" {
 
+// The float32 lanes of the kernels' vectors (one register of the vector unit built for).
+int pd_lanes() { return L; }
+
 // render (C, H, W, D), trans (C, H, W) and last (C, H, W) as composite_forward fills them;
 // list entry e is row ids[e] of table (C*N, 6 + D); reach_out (C*N, 2) gets each row's Reach,
 // which the backward takes.

@@ -108,6 +108,9 @@ class Kernels:
 
     def __init__(self, lib: ctypes.CDLL, path: Path) -> None:
         self.path = path
+        lanes = lib.pd_lanes
+        lanes.restype = _int
+        self.lanes: int = lanes()  # float32 lanes per vector: 16 with AVX-512, else 8
         self._forward = lib.pd_composite_forward
         self._forward.restype = _int
         self._forward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
