@@ -110,7 +110,7 @@ class Kernels:
         self.path = path
         lanes = lib.pd_lanes
         lanes.restype = _int
-        self.lanes: int = lanes()  # float32 lanes per vector: 16 with AVX-512, else 8
+        self.lanes: int = lanes()  # float32 lanes per vector: 16 with AVX-512, 8 with AVX2, else 4
         self._forward = lib.pd_composite_forward
         self._forward.restype = _int
         self._forward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
