@@ -190,11 +190,21 @@ def test_ffv1_clips_are_lossless_mkv(clipped, copy_tree):
     assert not (scene_dir / "clips" / "front" / "front" / "depth").exists()   # the old set is replaced
 
 
-def test_re_encoding_gives_identical_files(clipped, copy_tree):
+@pytest.mark.parametrize("encoders", [1, 3])
+def test_re_encoding_gives_identical_files(clipped, copy_tree, monkeypatch, encoders):
+    """The same files, checksums, stream order and scores whether the streams are encoded one
+    or several at a time, and the progress counts every stream once."""
+    from paradrive.stages import clip as clip_stage
+
+    monkeypatch.setattr(clip_stage, "ENCODERS", encoders)
     scene_dir = copy_tree(clipped["dir"])
-    write_clips(scene_dir, config_clip(clipped))
+    ticks: list[tuple[int, int]] = []
+    write_clips(scene_dir, config_clip(clipped), progress=lambda done, total: ticks.append((done, total)))
     again = json.loads((scene_dir / "clips" / "clips.json").read_text())
     assert again == clipped["doc"]
+    assert list(again["clips"][0]["streams"]) == list(clipped["doc"]["clips"][0]["streams"])
+    total = sum(len(c["streams"]) for c in again["clips"])
+    assert ticks == [(i, total) for i in range(1, total + 1)]
     assert not list(scene_dir.glob("**/.*.tmp-*"))
 
 
@@ -213,6 +223,9 @@ def test_a_missing_render_names_the_file(clipped, copy_tree):
     (scene_dir / "renders/front/source+1m/000002.png").unlink()
     with pytest.raises(SceneError, match=r"source\+1m/000002.png"):
         write_clips(scene_dir, config_clip(clipped))
+    # raised by an encoder thread: the old clip set stays, nothing half-written beside it
+    assert json.loads((scene_dir / "clips" / "clips.json").read_text()) == clipped["doc"]
+    assert not list(scene_dir.glob("**/.*.tmp-*"))
 
 
 def test_short_scene_writes_no_clips_but_records_why(clipped, copy_tree):

@@ -15,8 +15,10 @@ renamed into place in one step: a reader never sees a half-written clip set.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,10 @@ from paradrive.stages.records import (CameraIntrinsics, CameraSkippedClip, ClipR
 from paradrive.video import container_suffix, encode_video
 
 Progress = Callable[[int, int], None]
+
+# Streams of a clip read, scored and encoded at once (the stage's resources: two cores); the
+# files do not depend on it.
+ENCODERS = min(2, os.cpu_count() or 1)
 
 
 class Params(StageParams):
@@ -92,25 +98,43 @@ class _ClipWriter:
                              f"{window.clip}", scene_id=sid, path=self.layout.renders_json,
                              fix="re-run the render stage with the same clip parameters")
         rows = [frame_rows[p] for p in positions]
-        streams, quality = {}, {}
-        target = None   # kept to score the conditions; one other stream in memory at a time
-        # the target first, so each condition is scored as soon as it is read
-        for name, stream in sorted(cam.streams.items(), key=lambda kv: kv[1].kind != "target"):
+        # the target first, kept to score each condition as soon as that is read
+        ordered = sorted(cam.streams.items(), key=lambda kv: kv[1].kind != "target")
+        target: list[np.ndarray] = []
+
+        def one(name: str, stream: RenderedStream) -> tuple[ClipStream, Quality | None]:
             frames = self.frames(stream, positions)
+            score = None
             if stream.kind == "target":
-                target = frames
-            elif stream.kind == "condition" and target is not None:
-                quality[name] = _quality(frames, target)
-            streams[name] = self.encode(cam_name, window.clip, name, stream, frames, positions, rows)
-            self.done += 1
-            if self.progress:
-                self.progress(self.done, self.total)
+                target.append(frames)
+            elif stream.kind == "condition" and target:
+                score = _quality(frames, target[0])
+            return self.encode(cam_name, window.clip, name, stream, frames, positions, rows), score
+
+        streams, quality = {}, {}
+        results = [one(*ordered[0])] if ordered and ordered[0][1].kind == "target" else []
+        self._advance(len(results))
+        # the other streams ENCODERS at a time (each encoder on one core: at clip sizes x264's
+        # own threads barely help); the results in the streams' order
+        with ThreadPoolExecutor(ENCODERS) as pool:
+            for future in [pool.submit(one, *kv) for kv in ordered[len(results):]]:
+                results.append(future.result())
+                self._advance(1)
+        for (name, _), (encoded, score) in zip(ordered, results, strict=True):
+            streams[name] = encoded
+            if score is not None:
+                quality[name] = score
         return ClipRecord(
             camera=cam_name, clip=window.clip, frame_start=window.frame_start,
             num_frames=window.num_frames,
             frame_indices=[int(self.scene.frames[p].index) for p in positions],
             timestamps_us=[int(self.timestamps[p]) for p in positions],
             c2w=[cam.c2w[r] for r in rows], streams=streams, quality=quality)
+
+    def _advance(self, n: int) -> None:
+        self.done += n
+        if n and self.progress:
+            self.progress(self.done, self.total)
 
     def frames(self, stream: RenderedStream, positions: list[int]) -> np.ndarray:
         folder = self.layout.renders_dir / stream.dir
