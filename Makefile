@@ -66,9 +66,12 @@ lint: setup-test
 test: setup-test lint
 	$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)
 
+# Every benchmark (the nuScenes tables one alone takes about 15 minutes), or those BENCH names:
+# make bench BENCH="bench/bench_fit.py bench/bench_rasterize.py"
+BENCH ?= $(wildcard bench/bench_*.py)
 bench: setup-test
 	@mkdir -p bench/results
-	for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b | tee bench/results/$$(basename $$b .py).json || exit 1; done
+	for b in $(BENCH); do echo "== $$b"; $(PY) $$b | tee bench/results/$$(basename $$b .py).json || exit 1; done
 
 clean:
 	rm -rf $(DATA) $(MANIFESTS)/*/ .pytest_cache
