@@ -98,43 +98,42 @@ class _ClipWriter:
                              f"{window.clip}", scene_id=sid, path=self.layout.renders_json,
                              fix="re-run the render stage with the same clip parameters")
         rows = [frame_rows[p] for p in positions]
-        # the target first, kept to score each condition as soon as that is read
         ordered = sorted(cam.streams.items(), key=lambda kv: kv[1].kind != "target")
-        target: list[np.ndarray] = []
+        # the target's frames, read once and kept to score each condition
+        target = (self.frames(ordered[0][1], positions)
+                  if ordered and ordered[0][1].kind == "target" else None)
 
         def one(name: str, stream: RenderedStream) -> tuple[ClipStream, Quality | None]:
-            frames = self.frames(stream, positions)
-            score = None
-            if stream.kind == "target":
-                target.append(frames)
-            elif stream.kind == "condition" and target:
-                score = _quality(frames, target[0])
+            frames = (target if target is not None and stream.kind == "target"
+                      else self.frames(stream, positions))
+            score = (_quality(frames, target)
+                     if stream.kind == "condition" and target is not None else None)
             return self.encode(cam_name, window.clip, name, stream, frames, positions, rows), score
 
+        # ENCODERS streams at a time (x264's own threads barely help at clip sizes, so two
+        # encoders keep two cores busy); the results in the streams' order, and the streams not
+        # started are dropped when one fails
         streams, quality = {}, {}
-        results = [one(*ordered[0])] if ordered and ordered[0][1].kind == "target" else []
-        self._advance(len(results))
-        # the other streams ENCODERS at a time (each encoder on one core: at clip sizes x264's
-        # own threads barely help); the results in the streams' order
         with ThreadPoolExecutor(ENCODERS) as pool:
-            for future in [pool.submit(one, *kv) for kv in ordered[len(results):]]:
-                results.append(future.result())
-                self._advance(1)
-        for (name, _), (encoded, score) in zip(ordered, results, strict=True):
-            streams[name] = encoded
-            if score is not None:
-                quality[name] = score
+            futures = [pool.submit(one, *kv) for kv in ordered]
+            try:
+                for (name, _), future in zip(ordered, futures, strict=True):
+                    streams[name], score = future.result()
+                    if score is not None:
+                        quality[name] = score
+                    self.done += 1
+                    if self.progress:
+                        self.progress(self.done, self.total)
+            except BaseException:
+                for future in futures:
+                    future.cancel()
+                raise
         return ClipRecord(
             camera=cam_name, clip=window.clip, frame_start=window.frame_start,
             num_frames=window.num_frames,
             frame_indices=[int(self.scene.frames[p].index) for p in positions],
             timestamps_us=[int(self.timestamps[p]) for p in positions],
             c2w=[cam.c2w[r] for r in rows], streams=streams, quality=quality)
-
-    def _advance(self, n: int) -> None:
-        self.done += n
-        if n and self.progress:
-            self.progress(self.done, self.total)
 
     def frames(self, stream: RenderedStream, positions: list[int]) -> np.ndarray:
         folder = self.layout.renders_dir / stream.dir
