@@ -32,11 +32,21 @@ def _render(scene):
 
 
 def test_the_library_is_built_once_into_the_cache_and_reused(fresh_loader, monkeypatch):
+    """Built once, then loaded from the cache; each load marks the build used, and builds no
+    load touched for UNUSED_DAYS (another source version, say) are removed."""
+    import os
+    import time
+
     monkeypatch.setenv("PARADRIVE_KERNELS", "native")
     kernels = _native.load()
     assert kernels is not None and kernels.path.parent == fresh_loader / "native"
-    built = kernels.path.stat().st_mtime_ns
+    built = kernels.path.stat().st_ino
     assert [p.name for p in kernels.path.parent.iterdir()] == [kernels.path.name]  # no temp file
+    day, now = 86400, time.time()
+    stale, recent = (kernels.path.with_name(f"composite-{n}.so") for n in ("stale", "recent"))
+    for path, age_days in ((kernels.path, 40), (stale, _native.UNUSED_DAYS + 1), (recent, 1)):
+        path.touch()
+        os.utime(path, (now - age_days * day, now - age_days * day))
     _native._load.cache_clear()  # a new process: finds the build and loads it without compiling
 
     def no_build(*_):
@@ -44,7 +54,10 @@ def test_the_library_is_built_once_into_the_cache_and_reused(fresh_loader, monke
 
     monkeypatch.setattr(_native, "_build", no_build)
     assert _native.load().path == kernels.path
-    assert kernels.path.stat().st_mtime_ns == built
+    assert kernels.path.stat().st_ino == built  # the same file, not a new one renamed into place
+    assert kernels.path.stat().st_mtime > now - day  # marked used
+    assert sorted(p.name for p in kernels.path.parent.iterdir()) == sorted(
+        [kernels.path.name, recent.name])
 
 
 def test_without_a_compiler_the_numba_kernels_render_and_native_says_how_to_fix(

@@ -9,7 +9,9 @@ concurrent first uses (several fits, several builds) never load a half-written f
 
 ``PARADRIVE_KERNELS`` chooses: ``auto`` (default: this library, the Numba kernels where no
 compiler builds it), ``native`` (this library or an error) or ``numba``. The cache lives in
-``PARADRIVE_CACHE`` (default ``~/.cache/paradrive``).
+``PARADRIVE_CACHE`` (default ``~/.cache/paradrive``). Each load marks its build as used (its
+modification time); builds no process loaded for ``UNUSED_DAYS`` (older versions of the source,
+a compiler or a machine kind gone) are removed then.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import platform
 import shutil
 import subprocess
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +37,7 @@ log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("_composite.cpp")
 FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-shared", "-fPIC", "-pthread")
 CHOICES = ("auto", "native", "numba")
+UNUSED_DAYS = 30
 
 # Arrays go to the library as their addresses (``_ptr`` checks dtype and layout first, which is
 # cheaper than ctypes' typed pointers: a fit iteration passes about 80 of them). The names say
@@ -97,6 +101,20 @@ def _build(cxx: str, target: Path) -> None:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _mark_used(path: Path) -> None:
+    """Touch the build ``path`` and remove the cache's other builds untouched for UNUSED_DAYS (a
+    cache that cannot be written is left as it is)."""
+    cutoff = time.time() - UNUSED_DAYS * 86400
+    for other in [path, *path.parent.glob("composite-*.so")]:
+        try:
+            if other == path:
+                os.utime(path)
+            elif other.stat().st_mtime < cutoff:
+                other.unlink()
+        except OSError as exc:  # another process removed it first, or a read-only cache
+            log.debug("kernel cache: %s left as it is: %s", other, exc)
 
 
 class Kernels:
@@ -398,6 +416,7 @@ def _load() -> Kernels | NativeBuildError:
         path = _library_path(cxx)
         if not path.exists():
             _build(cxx, path)
+        _mark_used(path)
         try:
             return Kernels(ctypes.CDLL(str(path)), path)
         except OSError as exc:
