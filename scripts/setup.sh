@@ -33,10 +33,8 @@ target="."
 # The rest with uv (its parallel downloads halve the install: 17 s against 75 s on a two-core
 # machine); with pip where uv cannot be installed or cannot install them (uv reads its own
 # index settings, UV_INDEX_URL and uv.toml, not pip's). torch stays the one installed above.
-if .venv/bin/python -m pip install -q uv &&
-    .venv/bin/python -m uv pip install -q --python .venv/bin/python -e "$target"; then
-    :
-else
+if ! { .venv/bin/python -m pip install -q uv &&
+        .venv/bin/python -m uv pip install -q --python .venv/bin/python -e "$target"; }; then
     echo "setup: uv did not install the packages; installing them with pip" >&2
     .venv/bin/python -m pip install -q -e "$target"
 fi

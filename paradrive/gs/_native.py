@@ -107,11 +107,13 @@ def _mark_used(path: Path) -> None:
     """Touch the build ``path`` and remove the cache's other builds untouched for UNUSED_DAYS (a
     cache that cannot be written is left as it is)."""
     cutoff = time.time() - UNUSED_DAYS * 86400
-    for other in [path, *path.parent.glob("composite-*.so")]:
+    try:
+        os.utime(path)
+    except OSError as exc:  # a read-only cache
+        log.debug("kernel cache: %s left as it is: %s", path, exc)
+    for other in path.parent.glob("composite-*.so"):
         try:
-            if other == path:
-                os.utime(path)
-            elif other.stat().st_mtime < cutoff:
+            if other != path and other.stat().st_mtime < cutoff:
                 other.unlink()
         except OSError as exc:  # another process removed it first, or a read-only cache
             log.debug("kernel cache: %s left as it is: %s", other, exc)
