@@ -267,6 +267,45 @@ def test_densification_grows_and_prunes():
         assert o.state[params[key]]["exp_avg"].shape[0] == n
 
 
+def test_a_refinement_maps_every_gaussian_to_its_source_once():
+    """Duplicate, split and prune in one refinement: each Gaussian left keeps its source's rows
+    of every parameter, Adam moment and state tensor; the copies and split children start with
+    zero moments; the split children are placed from the parent; the sky flag follows."""
+    params, opts = _toy(6)
+    with torch.no_grad():
+        params["scales"][1] = np.log(2.0)              # large -> split
+        params["opacities"][4] = float(logit(0.001))   # transparent -> pruned
+        params["shN"].copy_(torch.randn(params["shN"].shape, generator=torch.Generator().manual_seed(1)))
+    gen = torch.Generator().manual_seed(2)
+    sum((p * torch.randn(p.shape, generator=gen)).sum() for p in params.values()).backward()
+    for o in opts.values():
+        o.step()
+    before = {k: p.detach().clone() for k, p in params.items()}
+    moments = {k: opts[k].state[p]["exp_avg_sq"].clone() for k, p in params.items()}
+    strat = DensifyStrategy(refine_start_iter=0, refine_every=1, reset_every=10_000, grow_scale3d=0.1)
+    is_sky = torch.tensor([0, 0, 0, 0, 0, 1], dtype=torch.bool)
+    state = strat.initialize_state(6, scene_scale=1.0, is_sky=is_sky)
+    state["node"] = torch.arange(6) * 10
+    out = strat.step_post_backward(params, opts, state, 1, _info(6, torch.tensor([1.0, 1, 0, 0, 0, 1])),
+                                   torch.Generator().manual_seed(0))
+    assert (out["duplicated"], out["split"], out["pruned"]) == (1, 1, 1)
+    # survivors 0, 2, 3, 5 (4 pruned, 1 split), then the copy of 0, then 1's two children
+    source = torch.tensor([0, 2, 3, 5, 0, 1, 1])
+    new = torch.tensor([False, False, False, False, True, True, True])
+    assert torch.equal(state["node"], source * 10) and torch.equal(state["is_sky"], is_sky[source])
+    for key, p in params.items():
+        fixed = before[key][source]
+        if key in ("means", "scales"):
+            fixed = fixed[:5]                                  # the children are placed anew
+        assert torch.equal(p.detach()[:len(fixed)], fixed), key
+        m = opts[key].state[p]["exp_avg_sq"]
+        assert torch.equal(m[~new], moments[key][source[~new]]), key
+        assert not m[new].any() and m[~new].any(), key
+    children = params["scales"].detach()[5:]
+    assert torch.allclose(children, (before["scales"][1] - np.log(1.6)).expand(2, 3))
+    assert not torch.equal(params["means"].detach()[5], params["means"].detach()[6])
+
+
 def test_the_fit_s_adam_step_gives_the_bytes_of_the_optimizers_own_steps():
     """The fit steps its fused Adams with their kernel directly once they hold their state: the
     same parameters and moments, byte for byte, as their own step() over iterations that start

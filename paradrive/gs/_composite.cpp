@@ -1121,6 +1121,11 @@ extern "C" {
 // means2d (C, N, 2), conics (C, N, 3), depths (C, N) and radii (C, N, 2) as
 // _cpu_project.project_forward fills them, in float32; and, when table is not null, columns
 // 0..5 and depth_col (if >= 0) of the compositing table (C*N, F) (see TableOut).
+// Blocks of L Gaussians a projection task takes at a time: one block a task (a shared counter
+// bumped every ~100 ns, and neighbouring output rows written by both threads) left the
+// projection as slow on two threads as on one.
+constexpr int64_t BLOCKS_PER_TASK = 64;
+
 void pd_project_forward(const float* means, const float* quats, const float* scales,
                         const float* opacities, const float* viewmats, const float* Ks, int64_t N,
                         int C, int width, int height, float near, float far, float eps2d,
@@ -1130,8 +1135,10 @@ void pd_project_forward(const float* means, const float* quats, const float* sca
                         near, far, eps2d, radius_clip};
     const TableOut out{table, F, depth_col};
     const int64_t blocks = (N + L - 1) / L;
-    parallel_tiles(blocks, threads, [&](int64_t b) {
-        project_block(a, b, means2d, conics, depths, radii, out);
+    parallel_tiles((blocks + BLOCKS_PER_TASK - 1) / BLOCKS_PER_TASK, threads, [&](int64_t t) {
+        const int64_t hi = (t + 1) * BLOCKS_PER_TASK < blocks ? (t + 1) * BLOCKS_PER_TASK : blocks;
+        for (int64_t b = t * BLOCKS_PER_TASK; b < hi; ++b)
+            project_block(a, b, means2d, conics, depths, radii, out);
     });
 }
 
@@ -1148,17 +1155,20 @@ void pd_project_backward(const float* means, const float* quats, const float* sc
     const ProjectArgs a{means, quats, scales, nullptr, viewmats, Ks, N, C, width, height,
                         near, far, eps2d, 0.0f};
     const ProjectGrads vg{v2d, v_conic, v_depth, s2d, s_conic, s_depth};
-    std::vector<int64_t> ids;
-    for (int64_t n = 0; n < N; ++n)
-        for (int c = 0; c < C; ++c)
-            if (gets_gradient(vg, c * N + n)) {
-                ids.push_back(n);
-                break;
-            }
-    const int64_t m = static_cast<int64_t>(ids.size());
-    const int64_t blocks = (m + L - 1) / L;
-    parallel_tiles(blocks, threads, [&](int64_t b) {
-        project_backward_block(a, ids.data(), m, b, vg, v_means, v_quats, v_scales);
+    // Gaussians in ranges of a task's blocks; each task lists those of its range some camera
+    // passes a gradient to and takes them L at a time (each lane's result is its own).
+    const int64_t per_task = BLOCKS_PER_TASK * L;
+    parallel_tiles((N + per_task - 1) / per_task, threads, [&](int64_t t) {
+        int64_t ids[BLOCKS_PER_TASK * L], m = 0;
+        const int64_t hi = (t + 1) * per_task < N ? (t + 1) * per_task : N;
+        for (int64_t n = t * per_task; n < hi; ++n)
+            for (int c = 0; c < C; ++c)
+                if (gets_gradient(vg, c * N + n)) {
+                    ids[m++] = n;
+                    break;
+                }
+        for (int64_t b = 0; b * L < m; ++b)
+            project_backward_block(a, ids, m, b, vg, v_means, v_quats, v_scales);
     });
 }
 

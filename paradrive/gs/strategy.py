@@ -51,22 +51,59 @@ def remap(params: dict[str, torch.nn.Parameter], optimizers: dict[str, torch.opt
     n_old = params["means"].shape[0]
     for key in list(params.keys()):
         old = params[key]
-        data = values[key] if key in values else old.data[index]
+        data = values[key] if key in values else old.data.index_select(0, index)
         new = torch.nn.Parameter(data.contiguous(), requires_grad=old.requires_grad)
         opt = optimizers[key]
         st = opt.state.pop(old, None)
         if st is not None:
             for name in ("exp_avg", "exp_avg_sq"):
                 if name in st:
-                    m = st[name][index]
-                    m[is_new] = 0.0
-                    st[name] = m.contiguous()
+                    m = st[name].index_select(0, index)
+                    st[name] = m.masked_fill_(is_new.view(-1, *[1] * (m.dim() - 1)), 0.0)
             opt.state[new] = st
         opt.param_groups[0]["params"] = [new]
         params[key] = new
     for key, v in list(state.items()):
         if isinstance(v, torch.Tensor) and v.dim() >= 1 and v.shape[0] == n_old:
-            state[key] = v[index].contiguous()
+            state[key] = v.index_select(0, index)
+
+
+class _Changes:
+    """The topology changes of one refinement (duplicate, split, prune) composed into one index
+    map from the Gaussians before them, so that the parameters, moments and state are gathered
+    once (each gather of a 150k-Gaussian model's SH moments costs tens of milliseconds).
+
+    ``data(key)`` is a parameter as the changes so far left it; ``then(index, is_new, values)``
+    adds a change as :func:`remap` takes it (``index`` into the Gaussians after the changes so
+    far).
+    """
+
+    def __init__(self, params: dict[str, torch.nn.Parameter], state: dict[str, Any]) -> None:
+        self.params, self.state = params, state
+        n, dev = params["means"].shape[0], params["means"].device
+        self.index = torch.arange(n, device=dev)
+        self.is_new = torch.zeros(n, dtype=torch.bool, device=dev)
+        self.values: dict[str, torch.Tensor] = {}
+        self.changed = False
+
+    def data(self, key: str, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """Parameter ``key`` (its ``rows``, or all) after the changes so far."""
+        if key in self.values:
+            return self.values[key] if rows is None else self.values[key][rows]
+        return self.params[key].data[self.index if rows is None else self.index[rows]]
+
+    def sky(self) -> torch.Tensor:
+        return self.state["is_sky"][self.index]
+
+    def then(self, index: torch.Tensor, is_new: torch.Tensor,
+             values: dict[str, torch.Tensor] | None = None) -> None:
+        self.index, self.is_new = self.index[index], self.is_new[index] | is_new
+        self.values = {k: v[index] for k, v in self.values.items()} | (values or {})
+        self.changed = True
+
+    def apply(self, optimizers: dict[str, torch.optim.Optimizer]) -> None:
+        if self.changed:
+            remap(self.params, optimizers, self.state, self.index, self.is_new, self.values)
 
 
 def _native_sums(grads: torch.Tensor, scale: tuple[float, float], radii: torch.Tensor,
@@ -161,8 +198,10 @@ class DensifyStrategy:
             return out
         self.update_state(state, info)
         if step > self.refine_start_iter and step % self.refine_every == 0:
-            out["duplicated"], out["split"] = self._grow(params, optimizers, state, generator)
-            out["pruned"] = self._prune(params, optimizers, state, step)
+            changes = _Changes(params, state)
+            out["duplicated"], out["split"] = self._grow(changes, generator)
+            out["pruned"] = self._prune(changes, step)
+            changes.apply(optimizers)
             state["grad2d"].zero_()
             state["count"].zero_()
         if step > 0 and step % self.reset_every == 0:
@@ -170,7 +209,8 @@ class DensifyStrategy:
             out["reset"] = 1
         return out
 
-    def _grow(self, params, optimizers, state, generator) -> tuple[int, int]:
+    def _grow(self, changes: _Changes, generator: torch.Generator) -> tuple[int, int]:
+        params, state = changes.params, changes.state
         n = params["means"].shape[0]
         dev = params["means"].device
         grads = state["grad2d"] / state["count"].clamp_min(1)
@@ -189,40 +229,38 @@ class DensifyStrategy:
         n_dup, n_split = int(dup.sum()), int(spl.sum())
         if n_dup:
             sel = torch.nonzero(dup).squeeze(1)
-            index = torch.cat([torch.arange(n, device=dev), sel])
-            is_new = torch.cat([torch.zeros(n, dtype=torch.bool, device=dev),
-                                torch.ones(n_dup, dtype=torch.bool, device=dev)])
-            remap(params, optimizers, state, index, is_new)
+            changes.then(torch.cat([torch.arange(n, device=dev), sel]),
+                         torch.cat([torch.zeros(n, dtype=torch.bool, device=dev),
+                                    torch.ones(n_dup, dtype=torch.bool, device=dev)]))
             spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool, device=dev)])
         if n_split:
-            n = params["means"].shape[0]
             rest = torch.nonzero(~spl).squeeze(1)
             sel = torch.nonzero(spl).squeeze(1)
-            index = torch.cat([rest, sel, sel])
-            is_new = torch.cat([torch.zeros(len(rest), dtype=torch.bool, device=dev),
-                                torch.ones(2 * n_split, dtype=torch.bool, device=dev)])
-            scales = torch.exp(params["scales"].data[sel])                     # (S, 3)
-            rot = quat_to_rotmat(params["quats"].data[sel])                    # (S, 3, 3)
+            scales = torch.exp(changes.data("scales", sel))                    # (S, 3)
+            rot = quat_to_rotmat(changes.data("quats", sel))                   # (S, 3, 3)
             noise = split_noise(generator, n_split, dev) * scales               # (2, S, 3)
             offsets = torch.einsum("sij,bsj->bsi", rot, noise).reshape(-1, 3)
-            means = torch.cat([params["means"].data[rest],
-                               params["means"].data[sel].repeat(2, 1) + offsets])
-            new_scales = torch.cat([params["scales"].data[rest],
+            means = torch.cat([changes.data("means", rest),
+                               changes.data("means", sel).repeat(2, 1) + offsets])
+            new_scales = torch.cat([changes.data("scales", rest),
                                     torch.log(scales / 1.6).repeat(2, 1)])
-            remap(params, optimizers, state, index, is_new, {"means": means, "scales": new_scales})
+            changes.then(torch.cat([rest, sel, sel]),
+                         torch.cat([torch.zeros(len(rest), dtype=torch.bool, device=dev),
+                                    torch.ones(2 * n_split, dtype=torch.bool, device=dev)]),
+                         {"means": means, "scales": new_scales})
         return n_dup, n_split
 
-    def _prune(self, params, optimizers, state, step) -> int:
-        prune = torch.sigmoid(params["opacities"].data) < self.prune_opa
+    def _prune(self, changes: _Changes, step: int) -> int:
+        prune = torch.sigmoid(changes.data("opacities")) < self.prune_opa
         if step > self.reset_every:
-            big = torch.exp(params["scales"].data).max(-1).values > self.prune_scale3d * state["scene_scale"]
+            big = (torch.exp(changes.data("scales")).max(-1).values
+                   > self.prune_scale3d * changes.state["scene_scale"])
             prune |= big
-        prune &= ~state["is_sky"]
+        prune &= ~changes.sky()
         n_prune = int(prune.sum())
         if n_prune:
             keep = torch.nonzero(~prune).squeeze(1)
-            remap(params, optimizers, state, keep,
-                  torch.zeros(len(keep), dtype=torch.bool, device=keep.device))
+            changes.then(keep, torch.zeros(len(keep), dtype=torch.bool, device=keep.device))
         return n_prune
 
     def _reset_opacity(self, params, optimizers, state) -> None:
