@@ -14,7 +14,7 @@ from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 from paradrive import geometry
 from paradrive.actors import Actor, box_footprint, is_moving
 from paradrive.gs.fit import fit_scene
-from paradrive.gs.graph import BACKGROUND, FittedModel, NodePoses, load_model, place
+from paradrive.gs.graph import BACKGROUND, FittedModel, NodePoses, NodeRows, load_model, place
 from paradrive.gs.model import new_params
 from paradrive.gs.strategy import DensifyStrategy
 from paradrive.gs.views import render_views
@@ -67,6 +67,24 @@ def test_a_node_is_moved_by_its_box_pose_and_hidden_where_absent():
     out = place(params, node, poses, 1)
     assert bool(torch.isfinite(out["opacities"]).all())
     torch.testing.assert_close(out["means"][2], torch.tensor([10.0, 2.0, 0.0]))
+
+
+def test_kept_node_rows_place_as_fresh_ones_until_the_nodes_change():
+    params = _gaussians([[0.0, 0.0, 5.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], [0.5, 0.5, 0.5])
+    turn = geometry.make_pose(geometry.rotation_about("z", math.pi / 2), [10.0, 0.0, 0.0])
+    poses = _poses([[turn, turn], [turn, None]])
+    node = torch.tensor([BACKGROUND, 0, 1])
+    kept = NodeRows.of(node)
+    assert NodeRows.of(node, kept) is kept
+    for frame in (0, 1):
+        fresh, reused = place(params, node, poses, frame), place(params, node, poses, frame, rows=kept)
+        assert all(torch.equal(fresh[k], reused[k]) for k in fresh)
+    node[0] = 1     # changed in place: its rows are taken again
+    again = NodeRows.of(node, kept)
+    assert again is not kept and again.rows.tolist() == [0, 1, 2] and again.k.tolist() == [1, 0, 1]
+    assert NodeRows.of(node.clone(), again) is not again
+    moved = place(params, node, poses, 0, rows=again)
+    torch.testing.assert_close(moved["means"][0], torch.tensor([10.0, 0.0, 5.0]))
 
 
 def _render(model: FittedModel, frames: list[int]) -> np.ndarray:

@@ -48,8 +48,8 @@ from paradrive.stages.records import FitRecord
 
 from . import init as gsinit
 from ._fit_loss import FitLossTerms, fit_loss, fit_loss_kernels, fit_loss_torch
-from .graph import (BACKGROUND, FittedModel, actor_points_init, boxes_containing, node_poses, place,
-                    save_model)
+from .graph import (BACKGROUND, FittedModel, NodeRows, actor_points_init, boxes_containing,
+                    node_poses, place, save_model)
 from .init import View
 from .losses import DepthTarget, flatten_loss, lidar_depth_target, shape_ratio_loss
 from .model import (PARAM_KEYS, Gaussians, Params, cat_params, deterministic_torch, new_params, render_gaussians,
@@ -479,6 +479,7 @@ class _Fit:
                                    if graph.carved else {})})
         self.files = actor_files(ids)
         self.poses = node_poses(scene, graph.nodes).to(device) if graph.nodes else None
+        self.node_rows: NodeRows | None = None   # the rows place() moves, kept between refinements
         self.views = views = load_views(scene, p.cameras, p.downscale)
         scene_scale = scene_scale_of(torch.stack([v.c2w for v in views]))
         self.strategy = DensifyStrategy(
@@ -577,7 +578,10 @@ class _Fit:
         viewmat, K = self.gpu_views[vi]
         use_sky = self.has_sky and view.sky is not None and p.sky_depth_weight > 0
         target = self.depth_targets[vi]
-        gaussians = place(self.params, self.strat_state.get("node"), self.poses, view.frame, self.boxes)
+        node = self.strat_state.get("node")
+        if node is not None:
+            self.node_rows = NodeRows.of(node, self.node_rows)
+        gaussians = place(self.params, node, self.poses, view.frame, self.boxes, self.node_rows)
         with_depth = use_sky or target is not None
         masked = self.loss_masks[vi]
         gt = view.rgb().to(device)
