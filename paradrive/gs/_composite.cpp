@@ -439,8 +439,9 @@ void forward_tile(int64_t t, const float* table, const Reach* reach, const int64
             for (int ch = ca; ch < cb; ++ch) {
                 const int p = (y - box.y_lo) * s.chunks + ch;
                 const vf alpha = rows.alpha[p];
+                // no branch for a vector none of whose lanes composites (its weights are 0):
+                // 2 % faster than skipping it (the backward, with more work a vector, skips)
                 vi ok = rows.ok[p] & ~done[p];
-                if (!any(ok)) continue;
                 vf next_T = T[p] * (1.0f - alpha);
                 vi sat = ok & (next_T <= T_MIN);
                 if (any(sat)) {
