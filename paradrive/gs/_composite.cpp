@@ -263,23 +263,19 @@ inline Alphas alphas(const Entry& g, vf dx, float dy) {
 
 // Alphas of an entry over rows [ya, yb) and chunks [ca, cb) of a tile, into per-chunk buffers
 // (p = row * chunks + chunk): computed first, without branches, so the exp polynomials of
-// successive rows overlap instead of waiting on the compositing's branches.
-struct RowBuffers {
-    std::vector<vf> alpha, E;
-    std::vector<vi> ok;
-    explicit RowBuffers(int P) : alpha(P), E(P), ok(P) {}
-};
-
+// successive rows overlap instead of waiting on the compositing's branches. An alpha is 0 where
+// its lane does not composite (any other is at least ALPHA_MIN), so it carries that mask too.
+// With E, exp(-sigma) as well (the backward's opacity gradient).
+template <bool WITH_E>
 inline void entry_alphas(const Entry& g, const TileBox& box, int chunks, int ya, int yb, int ca,
-                         int cb, vf centres, RowBuffers& out) {
+                         int cb, vf centres, vf* alpha, vf* E) {
     for (int y = ya; y < yb; ++y) {
         const float dy = g.my - (y + 0.5f);
         for (int ch = ca; ch < cb; ++ch) {
             const int p = (y - box.y_lo) * chunks + ch;
             Alphas al = alphas(g, g.mx - (box.x_lo + ch * L) - centres, dy);
-            out.alpha[p] = al.alpha;
-            out.E[p] = al.E;
-            out.ok[p] = al.ok;
+            alpha[p] = al.ok ? al.alpha : splat(0.0f);
+            if constexpr (WITH_E) E[p] = al.E;
         }
     }
 }
@@ -416,7 +412,7 @@ void forward_tile(int64_t t, const float* table, const Reach* reach, const int64
     const int P = s.ts * s.chunks;
     std::vector<vf> T(P, splat(1.0f)), acc(P * MAX_CHANNELS, splat(0.0f));
     std::vector<vi> stop(P, splat_i(0)), done(P);
-    RowBuffers rows(P);
+    std::vector<vf> lane_alpha(P);
     const vf centres = lane_centres();
     int active = 0;
     for (int r = 0; r < s.ts; ++r)
@@ -434,14 +430,15 @@ void forward_tile(int64_t t, const float* table, const Reach* reach, const int64
         extent(g, 1, box.y_lo, box.y_hi, &ya, &yb);
         chunk_range(g, box.x_lo, box.x_hi, &ca, &cb);
         const vi next_stop = splat_i(static_cast<int32_t>(j + 1));
-        entry_alphas(g, box, s.chunks, ya, yb, ca, cb, centres, rows);
+        entry_alphas<false>(g, box, s.chunks, ya, yb, ca, cb, centres, lane_alpha.data(),
+                            nullptr);
         for (int y = ya; y < yb; ++y) {
             for (int ch = ca; ch < cb; ++ch) {
                 const int p = (y - box.y_lo) * s.chunks + ch;
-                const vf alpha = rows.alpha[p];
+                const vf alpha = lane_alpha[p];
                 // no branch for a vector none of whose lanes composites (its weights are 0):
                 // 2 % faster than skipping it (the backward, with more work a vector, skips)
-                vi ok = rows.ok[p] & ~done[p];
+                vi ok = (alpha > 0.0f) & ~done[p];
                 vf next_T = T[p] * (1.0f - alpha);
                 vi sat = ok & (next_T <= T_MIN);
                 if (any(sat)) {
@@ -506,7 +503,7 @@ void backward_tile(int64_t t, const float* table, const Reach* reach, const int6
             q[p][i] = trans[pix] * (d_alpha[pix] - bg_dot);
         }
     const vf centres = lane_centres();
-    RowBuffers rows(P);
+    std::vector<vf> lane_alpha(P), lane_E(P);
     if (n > walked)  // entries behind every pixel's last: no gradient
         std::memset(grads + (start + walked) * F, 0, sizeof(float) * F * (n - walked));
     for (int64_t j = walked - 1; j >= 0; --j) {
@@ -520,13 +517,14 @@ void backward_tile(int64_t t, const float* table, const Reach* reach, const int6
         int ya, yb, ca, cb;
         extent(g, 1, box.y_lo, box.y_hi, &ya, &yb);
         chunk_range(g, box.x_lo, box.x_hi, &ca, &cb);
-        entry_alphas(g, box, s.chunks, ya, yb, ca, cb, centres, rows);
+        entry_alphas<true>(g, box, s.chunks, ya, yb, ca, cb, centres, lane_alpha.data(),
+                           lane_E.data());
         for (int y = ya; y < yb; ++y) {
             const float dy = g.my - (y + 0.5f);
             for (int ch = ca; ch < cb; ++ch) {
                 const int p = (y - box.y_lo) * s.chunks + ch;
-                const vf alpha = rows.alpha[p];
-                vi ok = rows.ok[p] & (jj < stop[p]);
+                const vf alpha = lane_alpha[p];
+                vi ok = (alpha > 0.0f) & (jj < stop[p]);
                 if (!any(ok)) continue;
                 touched = true;
                 vf ra = 1.0f / (1.0f - alpha);
@@ -548,7 +546,7 @@ void backward_tile(int64_t t, const float* table, const Reach* reach, const int6
                 g2 += 0.5f * v_sigma * dx * dx;
                 g3 += v_sigma * dx * dy;
                 g4 += 0.5f * v_sigma * dy * dy;
-                g5 += shaped ? rows.E[p] * v_alpha : splat(0.0f);
+                g5 += shaped ? lane_E[p] * v_alpha : splat(0.0f);
             }
         }
         float* out = grads + e * F;
