@@ -1117,14 +1117,14 @@ void pd_grad_norms(const float* grads, int64_t stride, int C, int64_t N, float s
 
 extern "C" {
 
-// means2d (C, N, 2), conics (C, N, 3), depths (C, N) and radii (C, N, 2) as
-// _cpu_project.project_forward fills them, in float32; and, when table is not null, columns
-// 0..5 and depth_col (if >= 0) of the compositing table (C*N, F) (see TableOut).
 // Blocks of L Gaussians a projection task takes at a time: one block a task (a shared counter
 // bumped every ~100 ns, and neighbouring output rows written by both threads) left the
 // projection as slow on two threads as on one.
 constexpr int64_t BLOCKS_PER_TASK = 64;
 
+// means2d (C, N, 2), conics (C, N, 3), depths (C, N) and radii (C, N, 2) as
+// _cpu_project.project_forward fills them, in float32; and, when table is not null, columns
+// 0..5 and depth_col (if >= 0) of the compositing table (C*N, F) (see TableOut).
 void pd_project_forward(const float* means, const float* quats, const float* scales,
                         const float* opacities, const float* viewmats, const float* Ks, int64_t N,
                         int C, int width, int height, float near, float far, float eps2d,

@@ -164,7 +164,7 @@ def place(params: Gaussians, node: torch.Tensor | None, poses: NodePoses | None,
 
     The rows are gathered and written whole (index_select, index_copy), not element by element
     through advanced indexing: a fit iteration at 150k Gaussians with 16k in nodes placed them
-    in 7 ms that way, 4 ms so, with the same bytes.
+    in 7.4 ms that way, 3.4 ms so, with the same bytes.
     """
     if poses is None or node is None or not len(poses):
         return params
