@@ -1,6 +1,7 @@
 """The fused CPU rasterizer (backend 'cpu'): images and gradients against the torch-op reference,
-and byte-identical results at any thread count; every test runs on both kernel sets (the
-vectorised native library and the Numba kernels it falls back to)."""
+and byte-identical results at any thread count; every test runs on each kernel set (the
+vectorised native library, the Numba kernels it falls back to, and the library as machines with
+other vector units build it)."""
 
 from __future__ import annotations
 
@@ -21,12 +22,20 @@ from paradrive.gs import _native
 from paradrive.gs.rasterize import rasterize
 
 
-@pytest.fixture(autouse=True, params=["native", "numba"])
+@pytest.fixture(autouse=True, params=["native", "numba", "lanes-4", "lanes-8", "lanes-16"])
 def kernels(request, monkeypatch):
-    """Each test once per kernel set; 'native' fails where it cannot be built."""
-    monkeypatch.setenv("PARADRIVE_KERNELS", request.param)
-    assert (_native.load() is not None) == (request.param == "native")
-    return request.param
+    """Each test once per kernel set: the native library as this machine builds it, the Numba
+    kernels, and the library built with vectors of 4, 8 and 16 lanes (SSE or NEON, AVX2,
+    AVX-512), whose blocks of pixels differ, run here whatever this machine's unit. The
+    native ones fail where the library cannot be built."""
+    choice = request.param
+    monkeypatch.setenv("PARADRIVE_KERNELS", "numba" if choice == "numba" else "native")
+    if choice.startswith("lanes-"):
+        built = _native.with_lanes(int(choice.removeprefix("lanes-")))
+        monkeypatch.setattr(_native, "load", lambda: built)
+        assert built.lanes == int(choice.removeprefix("lanes-"))
+    assert (_native.load() is not None) == (choice != "numba")
+    return choice
 
 
 BG = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.0, 0.3]])
@@ -219,7 +228,7 @@ def test_the_fit_s_render_is_one_node_with_the_bytes_of_the_kernels_run_one_by_o
     densification reads) are the bytes of the same kernels run as separate nodes."""
     import paradrive.gs.rasterize as R
 
-    if kernels != "native":
+    if kernels == "numba":
         pytest.skip("one node needs the native library")
     means, quats, scales, opac, sh = make_scene(n=300, seed=31, sh_k=16)
     weights = _loss_weights(3 if render_mode == "RGB" else 4, seed=32)

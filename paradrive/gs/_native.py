@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["NativeBuildError", "kernel_choice", "load"]
+__all__ = ["NativeBuildError", "kernel_choice", "load", "with_lanes"]
 
 log = logging.getLogger(__name__)
 
@@ -76,24 +76,24 @@ def _cpu_flags() -> str:
     return platform.processor()
 
 
-def _library_path(cxx: str) -> Path:
+def _library_path(cxx: str, extra: tuple[str, ...] = ()) -> Path:
     try:
         source = SOURCE.read_text()
     except OSError as exc:
         raise NativeBuildError(f"cannot read {SOURCE}: {exc}; reinstall paradrive") from exc
     version = subprocess.run([cxx, "--version"], capture_output=True, text=True, check=False).stdout
-    key = hashlib.sha256("\0".join([source, " ".join(FLAGS), version, _cpu_flags(),
+    key = hashlib.sha256("\0".join([source, " ".join(FLAGS + extra), version, _cpu_flags(),
                                     platform.machine()]).encode()).hexdigest()[:16]
     cache = Path(os.environ.get("PARADRIVE_CACHE", Path.home() / ".cache" / "paradrive"))
     return cache / "native" / f"composite-{key}.so"
 
 
-def _build(cxx: str, target: Path) -> None:
+def _build(cxx: str, target: Path, extra: tuple[str, ...] = ()) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".so", dir=target.parent)
     os.close(fd)
     try:
-        done = subprocess.run([cxx, *FLAGS, str(SOURCE), "-o", tmp], capture_output=True,
+        done = subprocess.run([cxx, *FLAGS, *extra, str(SOURCE), "-o", tmp], capture_output=True,
                               text=True, check=False)
         if done.returncode != 0:
             raise NativeBuildError(f"{cxx} could not build {SOURCE.name}:\n{done.stderr[-2000:]}")
@@ -409,15 +409,15 @@ def _rows(a: np.ndarray, width: int, rows: int) -> tuple[int, int]:
     return a.ctypes.data, step // 4
 
 
-@functools.lru_cache(maxsize=1)
-def _load() -> Kernels | NativeBuildError:
-    """The kernels, or the reason they are not there (kept, so a failed build is not retried on
-    every call)."""
+@functools.cache
+def _load(extra: tuple[str, ...] = ()) -> Kernels | NativeBuildError:
+    """The kernels built with the ``extra`` compiler flags, or the reason they are not there
+    (kept, so a failed build is not retried on every call)."""
     try:
         cxx = _compiler()
-        path = _library_path(cxx)
+        path = _library_path(cxx, extra)
         if not path.exists():
-            _build(cxx, path)
+            _build(cxx, path, extra)
         _mark_used(path)
         try:
             return Kernels(ctypes.CDLL(str(path)), path)
@@ -430,6 +430,18 @@ def _load() -> Kernels | NativeBuildError:
 @functools.lru_cache(maxsize=1)
 def _fallback_warning(reason: str) -> None:
     log.warning("vectorised kernels unavailable, using the Numba kernels: %s", reason)
+
+
+def with_lanes(lanes: int) -> Kernels:
+    """The library built with ``lanes`` float32 lanes a vector (4, 8 or 16) whatever the machine's
+    vector unit, for checking the other units' vector layouts on this one (vectors wider than
+    the unit run slowly, split by the compiler); NativeBuildError where it cannot be built."""
+    if lanes not in (4, 8, 16):
+        raise ValueError(f"lanes={lanes}: the kernels take 4, 8 or 16")
+    kernels = _load((f"-DPD_LANES={lanes}", "-Wno-psabi"))
+    if isinstance(kernels, NativeBuildError):
+        raise kernels
+    return kernels
 
 
 def load() -> Kernels | None:
