@@ -17,7 +17,7 @@
 // A compositing vector is a block of VH = 4 rows of VW = L / 4 pixels: most Gaussians of a fit
 // cover a few pixels each way, and a row of L pixels carries more lanes outside their ellipse.
 // On AVX2, 2 x 4 blocks made the forward and backward 12-16 % faster than rows of 8 on a fit's
-// lists (4 x 2 blocks: 7-12 %), and 1 x 4 blocks of 4 lanes 3-12 % faster than rows of 4; 4 x 4
+// lists (4 x 2 blocks: 8-13 %), and 1 x 4 blocks of 4 lanes 3-12 % faster than rows of 4; 4 x 4
 // blocks of 16 lanes take 16-29 % fewer vectors than rows of 16 on the same lists. A pixel's
 // arithmetic is the same in any block; the order of a per-entry gradient's sum is not.
 //
