@@ -37,7 +37,6 @@
 #include <functional>
 #include <mutex>
 #include <thread>
-#include <type_traits>
 #include <vector>
 
 #include <unistd.h>
@@ -48,8 +47,8 @@
 
 namespace {
 
-// PD_LANES and PD_VH, where defined, set the lanes and the block's rows (the tests build the
-// other vector units' layouts on any machine: _native.with_lanes).
+// PD_LANES, where defined, sets the lanes (the tests build the other vector units' layouts on
+// any machine: _native.with_lanes).
 #if defined(PD_LANES)
 constexpr int L = PD_LANES;
 #elif defined(__AVX512F__)
@@ -59,13 +58,8 @@ constexpr int L = 8;
 #else
 constexpr int L = 4;  // a 128-bit unit (SSE, NEON): 8 lanes there ran 2.5 times slower
 #endif
-#if defined(PD_VH)
-constexpr int VH = PD_VH;
-#else
-constexpr int VH = 4;
-#endif
+constexpr int VH = 4;  // a compositing vector's rows
 constexpr int VW = L / VH;
-static_assert(VW * VH == L, "a compositing vector is VW pixels of VH rows");
 typedef float vf __attribute__((vector_size(4 * L)));
 typedef int32_t vi __attribute__((vector_size(4 * L)));
 
@@ -285,29 +279,22 @@ inline Centres lane_centres() {
     return c;
 }
 
-// The offset of the lanes' rows from an entry's mean: a number where a vector is one row.
-template <int H = VH>
-inline std::conditional_t<H == 1, float, vf> lane_dy(const Entry& g, const TileBox& box, int band,
-                                                     const Centres& c) {
-    if constexpr (H == 1) {
-        return g.my - (box.y_lo + band + 0.5f);
-    } else {
-        return g.my - (static_cast<float>(box.y_lo + band * H) + c.y);
-    }
+// The lanes' offsets from an entry's mean, down (dy, of a band) and across (dx, of a chunk).
+inline vf lane_dy(const Entry& g, const TileBox& box, int band, const Centres& c) {
+    return g.my - (static_cast<float>(box.y_lo + band * VH) + c.y);
 }
-typedef std::conditional_t<VH == 1, float, vf> Dy;
 
 inline vf lane_dx(const Entry& g, const TileBox& box, int chunk, const Centres& c) {
     return g.mx - (box.x_lo + chunk * VW) - c.x;
 }
 
-// Sigma and alpha of an entry over one chunk of a row; ok marks the lanes it composites onto.
+// Sigma and alpha of an entry over one block; ok marks the lanes it composites onto.
 struct Alphas {
     vf sigma, alpha, E;
     vi ok;
 };
 
-inline Alphas alphas(const Entry& g, vf dx, Dy dy) {
+inline Alphas alphas(const Entry& g, vf dx, vf dy) {
     Alphas r;
     r.sigma = 0.5f * (g.a * dx * dx + g.c * dy * dy) + g.b * dx * dy;
     r.E = exp_neg(r.sigma);
@@ -326,7 +313,7 @@ template <bool WITH_E>
 inline void entry_alphas(const Entry& g, const TileBox& box, int chunks, int ba, int bb, int ca,
                          int cb, const Centres& centres, vf* alpha, vf* E) {
     for (int band = ba; band < bb; ++band) {
-        const Dy dy = lane_dy(g, box, band, centres);
+        const vf dy = lane_dy(g, box, band, centres);
         for (int ch = ca; ch < cb; ++ch) {
             const int p = band * chunks + ch;
             Alphas al = alphas(g, lane_dx(g, box, ch, centres), dy);
@@ -579,7 +566,7 @@ void backward_tile(int64_t t, const float* table, const Reach* reach, const int6
         entry_alphas<true>(g, box, s.chunks, ba, bb, ca, cb, centres, lane_alpha.data(),
                            lane_E.data());
         for (int band = ba; band < bb; ++band) {
-            const Dy dy = lane_dy(g, box, band, centres);
+            const vf dy = lane_dy(g, box, band, centres);
             for (int ch = ca; ch < cb; ++ch) {
                 const int p = band * s.chunks + ch;
                 const vf alpha = lane_alpha[p];
