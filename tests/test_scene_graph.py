@@ -87,6 +87,50 @@ def test_kept_node_rows_place_as_fresh_ones_until_the_nodes_change():
     torch.testing.assert_close(moved["means"][0], torch.tensor([10.0, 0.0, 5.0]))
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_placement_has_the_bytes_of_the_torch_expressions(threads):
+    """On the CPU one native call places the nodes and one computes their gradients; the bytes
+    are those of the torch expressions (any device's path), forward and backward, -0 included."""
+    from paradrive.devices import set_cpu_kernel_threads
+    from paradrive.gs import _native
+    from paradrive.gs import graph
+
+    gen = torch.Generator().manual_seed(3)
+    n, k = 40000, 5       # rows of nodes span several of the kernel's chunks
+    params = {"means": torch.randn(n, 3, generator=gen) * 20, "quats": torch.randn(n, 4, generator=gen),
+              "opacities": torch.randn(n, generator=gen), "scales": torch.randn(n, 3, generator=gen),
+              "sh0": torch.randn(n, 1, 3, generator=gen), "shN": torch.zeros(n, 0, 3)}
+    for key in ("means", "quats", "opacities"):
+        params[key].requires_grad_(True)
+    node = torch.randint(-1, k, (n,), generator=gen)
+    angles = torch.rand(2, k, generator=gen).double() * 6.28
+    poses = _poses([[None if (f, j) == (0, 3) else geometry.make_pose(
+        geometry.rotation_about("z", float(angles[f, j])) @ geometry.rotation_about("x", 0.1 * j),
+        [30.0 * j, -4.0, 0.5]) for j in range(k)] for f in range(2)])
+    outputs = [torch.randn(n, 3, generator=gen), torch.randn(n, 4, generator=gen),
+               torch.randn(n, generator=gen)]
+    for g in outputs:
+        g.view(-1)[::7] = -0.0
+    inputs = [params[key] for key in ("means", "quats", "opacities")]
+    assert graph._place_kernels(params, poses, None) is _native.load() is not None
+    old = set_cpu_kernel_threads(threads)
+    try:
+        for frame in (0, 1):
+            native = place(params, node, poses, frame)
+            reference = graph._place_torch(params, dict(params), NodeRows.of(node), poses, frame, None)
+            assert type(native["means"].grad_fn).__name__ == "_PlaceBackward"
+            for key in ("means", "quats", "opacities"):
+                assert torch.equal(native[key].detach().view(torch.int32),
+                                   reference[key].detach().view(torch.int32)), key
+            grads = [torch.autograd.grad([out[key] for key in ("means", "quats", "opacities")],
+                                         inputs, outputs) for out in (native, reference)]
+            for key, a, b in zip(("means", "quats", "opacities"), *grads):
+                assert torch.equal(a.view(torch.int32), b.view(torch.int32)), key
+        assert bool(torch.isinf(place(params, node, poses, 0)["opacities"][node == 3]).all())
+    finally:
+        set_cpu_kernel_threads(old)
+
+
 def _render(model: FittedModel, frames: list[int]) -> np.ndarray:
     K = np.array([[40.0, 0, 32], [0, 40.0, 24], [0, 0, 1]])
     c2w = np.repeat(np.eye(4)[None], len(frames), 0)

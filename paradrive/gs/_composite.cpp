@@ -1583,3 +1583,131 @@ void pd_fit_loss_backward(const float* render, const float* alphas, const float*
 }
 
 }  // extern "C"
+
+// The scene graph's placement (graph.place): a node's Gaussians move by its box's pose.
+//
+// Arithmetic without fused multiply-adds, in torch's order, so the bytes are those of the
+// torch expressions: the rotation's row sums as torch's batched product of small matrices
+// takes them ((0 + a0 b0) + a1 b1) + a2 b2, then the translation; the quaternion product term
+// by term, left to right. The gradients are summed in the order autograd sums those of the
+// torch expressions, and an added zero turns -0 into +0 where autograd adds a row's two
+// gradients (the rows copied and the rows moved).
+namespace {
+
+// a * b, rounded, where the compiler cannot fuse it into an add (fused multiply-adds round once).
+inline float product(float a, float b) {
+    float p = a * b;
+#if defined(__x86_64__) || defined(__i386__)
+    asm("" : "+x"(p));
+#elif defined(__aarch64__)
+    asm("" : "+w"(p));
+#endif
+    return p;
+}
+
+// Rows of a copy each task takes.
+constexpr int64_t PLACE_CHUNK = 16384;
+
+// dst = src, n floats, on `threads` threads.
+void copy_floats(float* dst, const float* src, int64_t n, int threads) {
+    parallel_tiles((n + PLACE_CHUNK - 1) / PLACE_CHUNK, threads, [&](int64_t t) {
+        const int64_t lo = t * PLACE_CHUNK, hi = lo + PLACE_CHUNK < n ? lo + PLACE_CHUNK : n;
+        std::memcpy(dst + lo, src + lo, static_cast<size_t>(hi - lo) * sizeof(float));
+    });
+}
+
+// box (4, 4) row-major: out = R m + t.
+void place_mean(const float* box, const float* m, float* out) {
+    for (int i = 0; i < 3; ++i) {
+        const float* r = box + 4 * i;
+        float acc = 0.0f;
+        for (int j = 0; j < 3; ++j) acc += product(r[j], m[j]);
+        out[i] = acc + r[3];
+    }
+}
+
+// out = a (x) b, quaternions w x y z.
+void quat_product(const float* a, const float* b, float* out) {
+    const float aw = a[0], ax = a[1], ay = a[2], az = a[3];
+    const float bw = b[0], bx = b[1], by = b[2], bz = b[3];
+    out[0] = product(aw, bw) - product(ax, bx) - product(ay, by) - product(az, bz);
+    out[1] = product(aw, bx) + product(ax, bw) + product(ay, bz) - product(az, by);
+    out[2] = product(aw, by) - product(ax, bz) + product(ay, bw) + product(az, bx);
+    out[3] = product(aw, bz) + product(ax, by) - product(ay, bx) + product(az, bw);
+}
+
+// g_m = R^T g, then + 0.
+void place_mean_vjp(const float* box, const float* g, float* out) {
+    for (int j = 0; j < 3; ++j) {
+        float acc = 0.0f;
+        for (int i = 0; i < 3; ++i) acc += product(box[4 * i + j], g[i]);
+        out[j] = acc + 0.0f;
+    }
+}
+
+// The gradient of b in a (x) b, then + 0. Autograd sums each component's four terms as those of
+// the product's y, z, x and w components reach it: ((y + z) + x) + w.
+void quat_product_vjp(const float* a, const float* g, float* out) {
+    const float aw = a[0], ax = a[1], ay = a[2], az = a[3];
+    const float g0 = g[0], g1 = g[1], g2 = g[2], g3 = g[3];
+    out[0] = product(ay, g2) + product(az, g3) + product(ax, g1) + product(aw, g0) + 0.0f;
+    out[1] = product(az, g2) - product(ay, g3) + product(aw, g1) - product(ax, g0) + 0.0f;
+    out[2] = product(aw, g2) + product(ax, g3) - product(az, g1) - product(ay, g0) + 0.0f;
+    out[3] = -product(ax, g2) + product(aw, g3) + product(ay, g1) - product(az, g0) + 0.0f;
+}
+
+}  // namespace
+
+extern "C" {
+
+// The Gaussians of one scene frame: out_means (N, 3), out_quats (N, 4) and out_opac (N,) are
+// copies of means, quats and opacities, but for the M rows `rows` of nodes `node` (node k's box
+// (K, 4, 4) row-major and its rotation nq (K, 4)): means moved by the box, quats turned by its
+// rotation, and the opacity -inf where present[k] is 0 (the node is not in this frame).
+void pd_place_forward(const float* means, const float* quats, const float* opac, int64_t N,
+                      const int64_t* rows, const int64_t* node, int64_t M, const float* box,
+                      const float* nq, const uint8_t* present, float* out_means,
+                      float* out_quats, float* out_opac, int threads) {
+    copy_floats(out_means, means, N * 3, threads);
+    copy_floats(out_quats, quats, N * 4, threads);
+    copy_floats(out_opac, opac, N, threads);
+    parallel_tiles((M + PLACE_CHUNK - 1) / PLACE_CHUNK, threads, [&](int64_t t) {
+        const int64_t hi = (t + 1) * PLACE_CHUNK < M ? (t + 1) * PLACE_CHUNK : M;
+        for (int64_t i = t * PLACE_CHUNK; i < hi; ++i) {
+            const int64_t r = rows[i], k = node[i];
+            place_mean(box + 16 * k, means + 3 * r, out_means + 3 * r);
+            quat_product(nq + 4 * k, quats + 4 * r, out_quats + 4 * r);
+            if (!present[k]) out_opac[r] = -INFINITY;
+        }
+    });
+}
+
+// The gradients of pd_place_forward's inputs from those of its outputs (each pointer pair may
+// be null: that gradient is not wanted). The rows of nodes get the moved rows' gradients; a
+// row of a node not in the frame gets no opacity gradient.
+void pd_place_backward(const float* g_means, const float* g_quats, const float* g_opac,
+                       int64_t N, const int64_t* rows, const int64_t* node, int64_t M,
+                       const float* box, const float* nq, const uint8_t* present,
+                       float* v_means, float* v_quats, float* v_opac, int threads) {
+    // A row outside the nodes: its gradient, + 0 where autograd adds the zeros of the moved rows.
+    parallel_tiles((N + PLACE_CHUNK - 1) / PLACE_CHUNK, threads, [&](int64_t t) {
+        const int64_t lo = t * PLACE_CHUNK, hi = lo + PLACE_CHUNK < N ? lo + PLACE_CHUNK : N;
+        if (g_means != nullptr)
+            for (int64_t i = 3 * lo; i < 3 * hi; ++i) v_means[i] = g_means[i] + 0.0f;
+        if (g_quats != nullptr)
+            for (int64_t i = 4 * lo; i < 4 * hi; ++i) v_quats[i] = g_quats[i] + 0.0f;
+        if (g_opac != nullptr)
+            std::memcpy(v_opac + lo, g_opac + lo, static_cast<size_t>(hi - lo) * sizeof(float));
+    });
+    parallel_tiles((M + PLACE_CHUNK - 1) / PLACE_CHUNK, threads, [&](int64_t t) {
+        const int64_t hi = (t + 1) * PLACE_CHUNK < M ? (t + 1) * PLACE_CHUNK : M;
+        for (int64_t i = t * PLACE_CHUNK; i < hi; ++i) {
+            const int64_t r = rows[i], k = node[i];
+            if (g_means != nullptr) place_mean_vjp(box + 16 * k, g_means + 3 * r, v_means + 3 * r);
+            if (g_quats != nullptr) quat_product_vjp(nq + 4 * k, g_quats + 4 * r, v_quats + 4 * r);
+            if (g_opac != nullptr && !present[k]) v_opac[r] = 0.0f;
+        }
+    });
+}
+
+}  // extern "C"

@@ -128,64 +128,48 @@ class Kernels:
 
     def __init__(self, lib: ctypes.CDLL, path: Path) -> None:
         self.path = path
-        lanes = lib.pd_lanes
-        lanes.restype = _int
-        self.lanes: int = lanes()  # float32 lanes per vector: 16 with AVX-512, 8 with AVX2, else 4
-        self._forward = lib.pd_composite_forward
-        self._forward.restype = _int
-        self._forward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
-                                  _int, _int, _int, _int, _f32, _f32, _f32, _i64, _f32, _int]
-        self._backward = lib.pd_composite_backward
-        self._backward.restype = _int
-        self._backward.argtypes = [_f32, _long, _int, _i64, _i64, _i64, _long, _int, _int, _int,
-                                   _int, _int, _int, _int, _f32, _f32, _i64, _f32, _f32, _f32,
-                                   _f32, _int]
-        self._bin_count = lib.pd_bin_count
-        self._bin_count.restype = _long
-        self._bin_count.argtypes = [_f32, _f32, _f32, _long, _long, _int, _int, _int, _i64, _i64]
-        self._bin_fill = lib.pd_bin_fill
-        self._bin_fill.restype = None
-        self._bin_fill.argtypes = [_i64, _long, _f32, _f32, _long, _int, _int, _int, _i64, _i64]
-        self._sum = lib.pd_sum_by_gaussian
-        self._sum.restype = None
-        self._sum.argtypes = [_f32, _i64, _long, _int, _long, _f32, _int]
+        # float32 lanes a vector: 16 with AVX-512, 8 with AVX2, else 4
+        self.lanes: int = _entry(lib.pd_lanes, _int, [])()
         _flt = ctypes.c_float
-        self._project = lib.pd_project_forward
-        self._project.restype = None
-        self._project.argtypes = [_f32] * 6 + [_long, _int, _int, _int, _flt, _flt, _flt, _flt,
-                                               _f32, _f32, _f32, _i32, _f32, _int, _int, _int]
-        self._sh = lib.pd_sh_forward
-        self._sh.restype = None
-        self._sh.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _u8, _f32, _int,
-                             _int]
-        self._sh_vjp = lib.pd_sh_backward
-        self._sh_vjp.restype = None
-        self._sh_vjp.argtypes = [_int, _f32, _f32, _f32, _int, _f32, _long, _int, _f32, _int,
-                                 _f32, _int, _f32, _f32, _f32, _int]
-        self._project_vjp = lib.pd_project_backward
-        self._project_vjp.restype = None
-        self._project_vjp.argtypes = [_f32] * 5 + [_long, _int, _int, _int, _flt, _flt, _flt,
-                                                   _f32, _int, _f32, _int, _f32, _int, _f32, _f32,
-                                                   _f32, _int]
-        self._grad_norms = lib.pd_grad_norms
-        self._grad_norms.restype = None
-        self._grad_norms.argtypes = [_f32, _long, _int, _long, _flt, _flt, _i32, _f32, _f32, _int]
-        self._ssim = lib.pd_ssim_forward
-        self._ssim.restype = None
-        self._ssim.argtypes = [_f32, _f32, _long, _int, _int, _int, _f32, _int, _flt, _flt, _f32,
-                               _f64, _f32, _int]
-        self._loss_terms = lib.pd_fit_loss_terms
-        self._loss_terms.restype = None
-        self._loss_terms.argtypes = [_f32, _f32, _f32, _long, _int, _u8, _flt, _i64, _f32, _long,
-                                     _f64]
-        self._loss_vjp = lib.pd_fit_loss_backward
-        self._loss_vjp.restype = None
-        self._loss_vjp.argtypes = [_f32, _f32, _f32, _f32, _long, _int, _flt, _u8, _flt, _flt,
-                                   _i64, _f32, _long, _flt, _f32, _f32]
-        self._ssim_vjp = lib.pd_ssim_backward
-        self._ssim_vjp.restype = None
-        self._ssim_vjp.argtypes = [_f32, _f32, _f32, _long, _int, _int, _int, _f32, _int, _f32,
-                                   _f32, _f32, _int]
+        tiles = [_long, _int, _int, _int, _int, _int, _int, _int]  # tiles, ts, tiles_x/y, C H W D
+        self._forward = _entry(lib.pd_composite_forward, _int, [
+            _f32, _long, _int, _i64, _i64, _i64, *tiles, _f32, _f32, _f32, _i64, _f32, _int])
+        self._backward = _entry(lib.pd_composite_backward, _int, [
+            _f32, _long, _int, _i64, _i64, _i64, *tiles, _f32, _f32, _i64, _f32, _f32, _f32, _f32,
+            _int])
+        self._bin_count = _entry(lib.pd_bin_count, _long, [
+            _f32, _f32, _f32, _long, _long, _int, _int, _int, _i64, _i64])
+        self._bin_fill = _entry(lib.pd_bin_fill, None, [
+            _i64, _long, _f32, _f32, _long, _int, _int, _int, _i64, _i64])
+        self._sum = _entry(lib.pd_sum_by_gaussian, None, [_f32, _i64, _long, _int, _long, _f32, _int])
+        self._project = _entry(lib.pd_project_forward, None, [
+            *[_f32] * 6, _long, _int, _int, _int, _flt, _flt, _flt, _flt, _f32, _f32, _f32, _i32,
+            _f32, _int, _int, _int])
+        self._sh = _entry(lib.pd_sh_forward, None, [
+            _int, _f32, _f32, _f32, _int, _f32, _long, _int, _u8, _f32, _int, _int])
+        self._sh_vjp = _entry(lib.pd_sh_backward, None, [
+            _int, _f32, _f32, _f32, _int, _f32, _long, _int, _f32, _int, _f32, _int, _f32, _f32,
+            _f32, _int])
+        self._project_vjp = _entry(lib.pd_project_backward, None, [
+            *[_f32] * 5, _long, _int, _int, _int, _flt, _flt, _flt, _f32, _int, _f32, _int, _f32,
+            _int, _f32, _f32, _f32, _int])
+        self._grad_norms = _entry(lib.pd_grad_norms, None, [
+            _f32, _long, _int, _long, _flt, _flt, _i32, _f32, _f32, _int])
+        self._ssim = _entry(lib.pd_ssim_forward, None, [
+            _f32, _f32, _long, _int, _int, _int, _f32, _int, _flt, _flt, _f32, _f64, _f32, _int])
+        self._loss_terms = _entry(lib.pd_fit_loss_terms, None, [
+            _f32, _f32, _f32, _long, _int, _u8, _flt, _i64, _f32, _long, _f64])
+        self._loss_vjp = _entry(lib.pd_fit_loss_backward, None, [
+            _f32, _f32, _f32, _f32, _long, _int, _flt, _u8, _flt, _flt, _i64, _f32, _long, _flt,
+            _f32, _f32])
+        self._ssim_vjp = _entry(lib.pd_ssim_backward, None, [
+            _f32, _f32, _f32, _long, _int, _int, _int, _f32, _int, _f32, _f32, _f32, _int])
+        # both: three arrays in, N, the node rows (rows, nodes, M, boxes, rotations, present),
+        # three arrays out, threads
+        place = [_f32, _f32, _f32, _long, _i64, _i64, _long, _f32, _f32, _u8, _f32, _f32, _f32,
+                 _int]
+        self._place = _entry(lib.pd_place_forward, None, place)
+        self._place_vjp = _entry(lib.pd_place_backward, None, place)
 
     def composite_forward(self, table: np.ndarray, ids: np.ndarray, offsets: np.ndarray,
                           counts: np.ndarray, ts: int, tiles_x: int, tiles_y: int,
@@ -364,6 +348,37 @@ class Kernels:
                        _ptr(d_render, f32), _ptr(d_alpha, f32))
         return d_render, d_alpha
 
+    def place_forward(self, means: np.ndarray, quats: np.ndarray, opacities: np.ndarray,
+                      rows: np.ndarray, node: np.ndarray, box: np.ndarray, nq: np.ndarray,
+                      present: np.ndarray, threads: int
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``graph.place``'s Gaussians (the same bytes): copies of means (N, 3), quats (N, 4)
+        and opacities (N,) with the ``rows`` (M,) of nodes ``node`` (M,) moved by their box
+        (K, 4, 4) and turned by its rotation nq (K, 4), hidden where ``present`` (K,) is not."""
+        f32, N = np.float32, means.shape[0]
+        out = (np.empty((N, 3), f32), np.empty((N, 4), f32), np.empty(N, f32))
+        self._place(_ptr(means, f32), _ptr(quats, f32), _ptr(opacities, f32), N,
+                    *_node_rows(rows, node, box, nq, present), *(_ptr(a, f32) for a in out),
+                    threads)
+        return out
+
+    def place_backward(self, g_means: np.ndarray | None, g_quats: np.ndarray | None,
+                       g_opacities: np.ndarray | None, rows: np.ndarray, node: np.ndarray,
+                       box: np.ndarray, nq: np.ndarray, present: np.ndarray, threads: int
+                       ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+        """The gradients of :meth:`place_forward`'s means, quats and opacities from those of
+        its outputs (None: not wanted), with autograd's bytes for ``graph.place``."""
+        def like(g: np.ndarray | None) -> np.ndarray | None:
+            return None if g is None else np.empty(g.shape, np.float32)
+
+        grads = (g_means, g_quats, g_opacities)
+        out = (like(g_means), like(g_quats), like(g_opacities))
+        n = next(g.shape[0] for g in grads if g is not None)
+        self._place_vjp(*(None if g is None else _ptr(g, np.float32) for g in grads), n,
+                        *_node_rows(rows, node, box, nq, present),
+                        *(None if a is None else _ptr(a, np.float32) for a in out), threads)
+        return out
+
     def sum_by_gaussian(self, grads: np.ndarray, ids: np.ndarray, n: int,
                         threads: int) -> np.ndarray:
         """``_cpu_kernels.sum_by_gaussian`` of float32 rows (the same bytes), on ``threads``
@@ -372,6 +387,25 @@ class Kernels:
         self._sum(_ptr(grads, np.float32), _ptr(ids, np.int64), ids.shape[0], grads.shape[1], n,
                   _ptr(out, np.float32), threads)
         return out
+
+
+def _node_rows(rows: np.ndarray, node: np.ndarray, box: np.ndarray, nq: np.ndarray,
+               present: np.ndarray) -> tuple[int, int, int, int, int, int]:
+    """The placement's row arguments, checked: rows and their nodes (M,) int64, the nodes' boxes
+    (K, 4, 4) and rotations (K, 4) float32, present (K,) bool."""
+    K = box.shape[0]
+    if (rows.shape != node.shape or box.shape != (K, 4, 4) or nq.shape != (K, 4)
+            or present.shape != (K,) or present.dtype != np.bool_):
+        raise ValueError(f"place: rows {rows.shape}, nodes {node.shape}, boxes {box.shape}, "
+                         f"rotations {nq.shape}, present {present.shape} {present.dtype}")
+    return (_ptr(rows, np.int64), _ptr(node, np.int64), rows.shape[0], _ptr(box, np.float32),
+            _ptr(nq, np.float32), _ptr(present.view(np.uint8), np.uint8))
+
+
+def _entry(fn, restype, argtypes: list):
+    """The library's function ``fn`` with its result and argument types set."""
+    fn.restype, fn.argtypes = restype, argtypes
+    return fn
 
 
 def _reach(reach: np.ndarray, table: np.ndarray) -> int:
