@@ -1597,10 +1597,13 @@ namespace {
 // a * b, rounded, where the compiler cannot fuse it into an add (fused multiply-adds round once).
 inline float product(float a, float b) {
     float p = a * b;
-#if defined(__x86_64__) || defined(__i386__)
+#if defined(__x86_64__)
     asm("" : "+x"(p));
 #elif defined(__aarch64__)
     asm("" : "+w"(p));
+#else
+    volatile float kept = p;
+    p = kept;
 #endif
     return p;
 }
