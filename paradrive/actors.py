@@ -22,7 +22,7 @@ import numpy as np
 
 from paradrive import geometry
 from paradrive.errors import SceneError
-from paradrive.stages.layout import SceneLayout
+from paradrive.contracts.layout import SceneLayout
 
 log = logging.getLogger(__name__)
 

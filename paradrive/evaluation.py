@@ -36,8 +36,8 @@ from paradrive.actors import views_mask
 from paradrive.streams import clip_windows, condition_stream, frames_needed, source_stream
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
-from paradrive.stages.layout import SceneLayout
-from paradrive.stages.records import FitRecord, RendersRecord
+from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import FitRecord, RendersRecord
 from paradrive.streams import OutputCamera, output_camera
 
 __all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "depth_signed_rel", "depth_errors",

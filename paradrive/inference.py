@@ -16,7 +16,7 @@ import numpy as np
 
 from paradrive.manifest import MediaFile
 from paradrive.pairs import media_uri
-from paradrive.stages.records import ClipRecord, ClipsRecord
+from paradrive.contracts.records import ClipRecord, ClipsRecord
 from paradrive.streams import format_offset
 
 TRUTH_DIR = "truth"

@@ -37,8 +37,8 @@ from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
 from paradrive.io import PathEscapeError, path_inside, sha256_file, temporary_name
 from paradrive.pairs import COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri
-from paradrive.stages.layout import INDEX_JSON, MEDIA_DIR, SHARD_GLOB, SHARD_PATTERN, SceneLayout
-from paradrive.stages.records import ClipRecord, ClipsRecord, IndexRecord
+from paradrive.contracts.layout import INDEX_JSON, MEDIA_DIR, SHARD_GLOB, SHARD_PATTERN, SceneLayout
+from paradrive.contracts.records import ClipRecord, ClipsRecord, IndexRecord
 
 if TYPE_CHECKING:
     from paradrive.stages.manifest import Params as ManifestParams

@@ -18,8 +18,8 @@ from pydantic import ValidationError
 
 from paradrive.errors import ParaDriveError, validation_message
 from paradrive.io import check_relative, path_inside
-from paradrive.stages.layout import INDEX_JSON, MEDIA_DIR, BuildLayout
-from paradrive.stages.records import IndexRecord
+from paradrive.contracts.layout import INDEX_JSON, MEDIA_DIR, BuildLayout
+from paradrive.contracts.records import IndexRecord
 from paradrive.streams import format_offset
 
 SCHEMA_VERSION = 1

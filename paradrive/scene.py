@@ -22,7 +22,7 @@ import numpy as np
 
 from paradrive import geometry
 from paradrive.actors import Actor, actor_from_json
-from paradrive.stages.layout import SceneLayout
+from paradrive.contracts.layout import SceneLayout
 from paradrive.errors import SceneError
 from paradrive.io import PathEscapeError, atomic_path, check_relative, path_inside, write_json
 

@@ -36,7 +36,7 @@ from collections.abc import Iterable
 
 from paradrive.errors import ConfigError
 from paradrive.io import is_temporary, temporary_name, write_json
-from paradrive.stages.layout import LOGS_DIR, SCENES_DIR, DataLayout, SceneLayout
+from paradrive.contracts.layout import LOGS_DIR, SCENES_DIR, DataLayout, SceneLayout
 from paradrive.redact import redact, redact_options
 
 OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"})

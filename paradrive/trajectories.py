@@ -28,8 +28,8 @@ import numpy as np
 
 from paradrive.errors import ParaDriveError
 from paradrive.pairs import read_index, read_pairs
-from paradrive.stages.layout import SceneLayout
-from paradrive.stages.records import IndexRecord
+from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import IndexRecord
 from paradrive.streams import format_offset
 
 __all__ = ["ScenePaths", "scene_paths", "trajectories_picture", "rig_picture", "ACTOR_COLOURS"]

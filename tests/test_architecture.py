@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from paradrive.pipeline.specs import StageRegistry
-from paradrive.stages.base import StageParams
+from paradrive.contracts.base import StageParams
 
 PACKAGE = Path(__file__).resolve().parents[1] / "paradrive"
 STAGE_ORDER = ("ingest", "fit", "render", "clip", "manifest")

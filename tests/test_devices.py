@@ -25,7 +25,7 @@ from paradrive.gs import fit as fit_module
 from paradrive.gs import strategy as strategy_module
 from paradrive.gs.fit import fit_scene, render_checkpoint
 from paradrive.gs.ply import load_ply
-from paradrive.stages.layout import SceneLayout
+from paradrive.contracts.layout import SceneLayout
 
 # densify at 4, 8, 12, 16; reset at 12; checkpoints at 10 and 20; the kill at 14 lands after both
 FIT = {**TINY_FIT, "checkpoints": [10, 20]}
@@ -118,7 +118,7 @@ def test_scene_graph_renders_on_a_device_as_on_the_cpu(device, tiny_scene, tmp_p
     from paradrive.gs.graph import load_model
     from paradrive.gs.views import render_views
     from paradrive.scene import load_scene
-    from paradrive.stages.records import FitRecord
+    from paradrive.contracts.records import FitRecord
 
     scene_dir = _copy_scene(tiny_scene, tmp_path / "scene")
     record = fit_scene(scene_dir, fit_params("smoke", **FIT, device="cpu"), moving_threshold_m=1.0)

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import stage_params
 
-from paradrive.stages.records import FitRecord
+from paradrive.contracts.records import FitRecord
 from paradrive.evaluation import depth_abs_rel, depth_signed_rel, evaluate_scene, image_quality
 
 from test_render import SCENE, SID, smoke_params

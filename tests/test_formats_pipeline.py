@@ -8,8 +8,8 @@ from typer.testing import CliRunner
 
 from paradrive.cli import app
 from paradrive.pairs import read_pairs
-from paradrive.stages.layout import SceneLayout
-from paradrive.stages.records import FitRecord
+from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import FitRecord
 from paradrive.uri import parse_uri
 
 FRONT3 = ["front", "front_left", "front_right"]

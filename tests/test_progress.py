@@ -11,7 +11,7 @@ import pytest
 
 from paradrive.pipeline import run_build
 from paradrive.pipeline.progress import StageCounts, StageProgress
-from paradrive.stages.layout import DataLayout
+from paradrive.contracts.layout import DataLayout
 
 FIT_LINE = re.compile(r"fit: iteration (\d+)/(\d+) \((\d+)%\), loss ([\d.]+), PSNR ([\d.]+) dB(?: \(at \d+\))?, "
                       r"([\d,]+) Gaussians, ([\d.]+|\?) it/s, ETA (\d+:\d\d:\d\d|\?)$")

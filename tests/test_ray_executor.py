@@ -141,7 +141,7 @@ def test_ray_build_equals_local_build(ray_cluster, stage_config, tmp_path):
 def test_progress_of_tasks_on_the_workers_reaches_the_driver_and_the_scene_logs(
         ray_cluster, stage_config, tmp_path):
     from paradrive.pipeline.progress import StageCounts
-    from paradrive.stages.layout import DataLayout
+    from paradrive.contracts.layout import DataLayout
 
     snaps, order = [], []
     counts = StageCounts(["ingest", "fit", "render", "clip"], len(SCENES))

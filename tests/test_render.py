@@ -27,8 +27,8 @@ SID = "synthetic-demo-s7"
 def fitted_model(scene_dir, iteration: int):
     """The checkpoint as the render stage loads it (background plus actor nodes)."""
     from paradrive.gs.graph import load_model
-    from paradrive.stages.layout import SceneLayout
-    from paradrive.stages.records import FitRecord
+    from paradrive.contracts.layout import SceneLayout
+    from paradrive.contracts.records import FitRecord
 
     layout = SceneLayout(scene_dir)
     return load_model(layout, iteration, load_scene(scene_dir), FitRecord.load(layout.fit_json))

@@ -19,8 +19,8 @@ from paradrive.gs.model import new_params
 from paradrive.gs.strategy import DensifyStrategy
 from paradrive.gs.views import render_views
 from paradrive.scene import load_scene
-from paradrive.stages.layout import SceneLayout
-from paradrive.stages.records import FitRecord
+from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import FitRecord
 
 
 def _poses(mats: list[list[np.ndarray | None]]) -> NodePoses:

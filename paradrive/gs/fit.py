@@ -43,8 +43,8 @@ from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import SceneError
 from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries
 from paradrive.metrics import peak_rss_mb, psnr, ssim
-from paradrive.stages.layout import SceneLayout, actor_files
-from paradrive.stages.records import FitRecord
+from paradrive.contracts.layout import SceneLayout, actor_files
+from paradrive.contracts.records import FitRecord
 
 from . import init as gsinit
 from ._fit_loss import FitLossTerms, fit_loss, fit_loss_kernels, fit_loss_torch

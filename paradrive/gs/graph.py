@@ -40,8 +40,8 @@ if TYPE_CHECKING:
     from paradrive.actors import Actor
 
     from .init import View
-    from paradrive.stages.layout import SceneLayout
-    from paradrive.stages.records import FitRecord
+    from paradrive.contracts.layout import SceneLayout
+    from paradrive.contracts.records import FitRecord
 
 __all__ = ["BACKGROUND", "NodePoses", "NodeRows", "FittedModel", "node_poses", "place", "save_model", "load_model",
            "boxes_containing"]

@@ -14,7 +14,7 @@ from paradrive import geometry
 from paradrive.gs.ply import load_checkpoint
 
 if TYPE_CHECKING:
-    from paradrive.stages.records import FitInit
+    from paradrive.contracts.records import FitInit
 
 __all__ = ["SkyDome", "sky_dome_of", "render_views", "load_checkpoint"]
 

@@ -30,7 +30,7 @@ from rich.table import Table
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.pipeline.runner import read_marker
 from paradrive.pipeline.specs import ResolvedConfig
-from paradrive.stages.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
+from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
 from paradrive.storage import DataRoot, file_stats
 from paradrive.streams import clip_windows, frames_needed, plan_streams
 from paradrive.uri import parse_uri
@@ -186,7 +186,7 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
 def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
     """An ingested scene's shape; its Gaussians too when its fit ran with ``fit_params`` (None:
     whatever it ran with)."""
-    from paradrive.stages.records import FitRecord
+    from paradrive.contracts.records import FitRecord
 
     doc = json.loads(layout.scene_json.read_text())
     cams = {name: (int(c["width"]), int(c["height"])) for name, c in doc["cameras"].items()}
@@ -229,7 +229,7 @@ def measured_rates(data_dir: Path, defaults: dict[str, Rate], config: ResolvedCo
 
 def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, float, float]]:
     """(rate, device, seconds or bytes, work) of each stage one scene finished."""
-    from paradrive.stages.records import FitRecord
+    from paradrive.contracts.records import FitRecord
 
     markers = {s: read_marker(scene_dir, s) for s in STAGE_OWNS}
     layout = SceneLayout(scene_dir)

@@ -28,8 +28,8 @@ from paradrive.pipeline.runner import (
 from paradrive.pipeline.ledger import LEDGER_FILE
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.splits import Selection
-from paradrive.stages.base import BuildContext
-from paradrive.stages.layout import BuildLayout
+from paradrive.contracts.base import BuildContext
+from paradrive.contracts.layout import BuildLayout
 from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 

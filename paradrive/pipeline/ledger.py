@@ -37,7 +37,7 @@ from pathlib import Path
 from collections.abc import Iterable, Iterator
 
 from paradrive.errors import ConfigError
-from paradrive.stages.layout import LEDGER
+from paradrive.contracts.layout import LEDGER
 from paradrive.redact import redact, redact_argv
 from paradrive.uri import parse_uri
 

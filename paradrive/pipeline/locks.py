@@ -37,7 +37,7 @@ from pathlib import Path
 from collections.abc import Iterator
 
 from paradrive.errors import ParaDriveError
-from paradrive.stages.layout import LOCKS_DIR, DataLayout
+from paradrive.contracts.layout import LOCKS_DIR, DataLayout
 from paradrive.storage import DataRoot
 
 LOCK_DIR = LOCKS_DIR

@@ -45,8 +45,8 @@ from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
 from paradrive.metrics import peak_rss_mb
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
-from paradrive.stages.base import StageContext
-from paradrive.stages.layout import MARKER_DIR, DataLayout, SceneLayout
+from paradrive.contracts.base import StageContext
+from paradrive.contracts.layout import MARKER_DIR, DataLayout, SceneLayout
 from paradrive.redact import redact
 from paradrive.storage import DataRoot, SceneMirror, file_stats, matches
 from paradrive.uri import parse_uri

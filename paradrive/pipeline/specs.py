@@ -39,7 +39,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from paradrive.errors import ConfigError
-from paradrive.stages.base import StageParams
+from paradrive.contracts.base import StageParams
 
 
 class Resources(BaseModel):

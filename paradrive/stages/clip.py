@@ -27,9 +27,9 @@ from paradrive.errors import SceneError
 from paradrive.io import atomic_path
 from paradrive.metrics import frames_quality
 from paradrive.scene import Scene, load_scene, read_image
-from paradrive.stages.base import StageContext, StageParams
-from paradrive.stages.layout import SceneLayout, clip_depth_dir, clip_file, frame_file
-from paradrive.stages.records import (CameraIntrinsics, CameraSkippedClip, ClipRecord, ClipsRecord,
+from paradrive.contracts.base import StageContext, StageParams
+from paradrive.contracts.layout import SceneLayout, clip_depth_dir, clip_file, frame_file
+from paradrive.contracts.records import (CameraIntrinsics, CameraSkippedClip, ClipRecord, ClipsRecord,
                                       ClipStream, FitFigures, FitRecord, Quality, RenderedCamera,
                                       RenderedStream, RendersRecord, WindowRecord)
 from paradrive.video import container_suffix, encode_video

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pydantic import field_validator
 
-from paradrive.stages.base import StageContext, StageParams
-from paradrive.stages.records import FitRecord
+from paradrive.contracts.base import StageContext, StageParams
+from paradrive.contracts.records import FitRecord
 
 
 class Params(StageParams):

@@ -22,8 +22,8 @@ import numpy as np
 from paradrive.actors import dynamic_mask, moving_actors
 from paradrive.io import temporary_name
 from paradrive.scene import Scene, load_scene, write_image, write_scene
-from paradrive.stages.base import StageContext, StageParams
-from paradrive.stages.layout import SceneLayout
+from paradrive.contracts.base import StageContext, StageParams
+from paradrive.contracts.layout import SceneLayout
 from paradrive.uri import parse_uri
 
 READERS = {

@@ -10,8 +10,8 @@ from pathlib import Path
 
 from paradrive.errors import ParaDriveError, SceneError
 from paradrive.manifest import MediaFile, publish, read_clips, scene_rows
-from paradrive.stages.base import BuildContext, StageParams
-from paradrive.stages.records import IndexRecord
+from paradrive.contracts.base import BuildContext, StageParams
+from paradrive.contracts.records import IndexRecord
 
 
 class Params(StageParams):

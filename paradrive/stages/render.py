@@ -49,9 +49,9 @@ from paradrive.errors import SceneError
 from paradrive.exr import write_depth_exr
 from paradrive.io import atomic_path
 from paradrive.scene import Scene, load_scene, write_image
-from paradrive.stages.base import StageContext, StageParams
-from paradrive.stages.layout import SceneLayout, frame_file, stream_dir
-from paradrive.stages.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
+from paradrive.contracts.base import StageContext, StageParams
+from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
+from paradrive.contracts.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
                                       SkippedClip, SkyDomeRecord, WindowRecord)
 from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_windows, crop_resize,
                                frames_needed, output_camera, plan_streams)

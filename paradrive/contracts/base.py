@@ -17,7 +17,7 @@ from typing import Any, Generic, Protocol, TypeVar
 from pydantic import BaseModel, ConfigDict, PrivateAttr, ValidationError
 
 from paradrive.errors import ConfigError
-from paradrive.stages.layout import BuildLayout, SceneLayout
+from paradrive.contracts.layout import BuildLayout, SceneLayout
 
 
 class StageParams(BaseModel):
