@@ -14,12 +14,14 @@ build_args = --scene '$(SCENE)' $(profile_flag) --data $(DATA) --manifests $(MAN
 
 .PHONY: setup setup-test ingest fit render clip manifest build demo inspect eval status train lint test bench clean
 
-.venv/.installed: pyproject.toml scripts/setup.sh
-	scripts/setup.sh
+# setup.py compiles the CPU kernels at install: an edited kernel source reinstalls
+KERNEL_SOURCES = setup.py MANIFEST.in $(wildcard paradrive/gs/*.cpp)
+.venv/.installed: pyproject.toml scripts/setup.sh $(KERNEL_SOURCES)
+	scripts/setup.sh build
 	touch $@
 
-.venv/.installed-test: pyproject.toml scripts/setup.sh
-	scripts/setup.sh test
+.venv/.installed-test: pyproject.toml scripts/setup.sh $(KERNEL_SOURCES)
+	scripts/setup.sh build,test
 	touch $@ .venv/.installed
 
 setup: .venv/.installed

@@ -65,8 +65,8 @@ def time_fit(scene_dir: Path, params: dict, backend: str, *, label: str | None =
 
 
 def first_call_seconds(backend: str) -> float:
-    """A tiny forward+backward: the one-off cost (Numba loads or compiles its kernels) that the
-    fit would otherwise count as its own."""
+    """A tiny forward+backward: the one-off cost (importing the kernels, torch's first calls) that
+    the fit would otherwise count as its own."""
     import torch
 
     from paradrive.gs.rasterize import rasterize
@@ -86,6 +86,8 @@ def bench(profile: str, iterations: int, threads: int | None, backends: list[str
           root: Path) -> dict:
     import torch
 
+    from paradrive.gs import _native
+
     first = {b: first_call_seconds(b) for b in backends}
     scene_dir, params = ingest(profile, root)
     params.update(checkpoints=[iterations], keep_state=False)
@@ -99,6 +101,7 @@ def bench(profile: str, iterations: int, threads: int | None, backends: list[str
     out = {"profile": profile, "iterations": iterations, "frames": len(scene["frames"]),
            "image_resolution": [cam["width"], cam["height"]], "threads": params["threads"],
            "torch": torch.__version__, "load_average": [round(x, 2) for x in os.getloadavg()],
+           "kernels": getattr(_native.load(), "__name__", None),
            "first_call_seconds": first, "runs": runs}
     if len(runs) > 1:
         rate = (runs[0]["iterations_per_second"] + runs[-1]["iterations_per_second"]) / 2

@@ -10,7 +10,7 @@ iteration over the static fit's (goal: at most 1.3). Both fits' Gaussian counts 
 the graph's per-iteration work also depends on how many Gaussians each model grows.
 
 A third fit places the nodes with the torch expressions (the path of a CUDA device, or where the
-native kernels are not built) instead of the native placement kernels, with the same bytes:
+native kernels are not built) instead of the native placement kernels (within float32 rounding):
 ``placement_speedup`` is its seconds per iteration over the graph fit's, that one the mean of a
 run before and a run after it (a shared machine's speed drifts within minutes).
 """

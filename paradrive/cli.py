@@ -9,13 +9,15 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn,
                            TimeRemainingColumn)
 from rich.table import Table
 
 from paradrive import __version__
-from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.errors import EXIT_INTERRUPTED, EXIT_USAGE, ConfigError, ParaDriveError
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S
+from paradrive.redact import remember
 from paradrive.storage import data_root
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -28,8 +30,8 @@ DEFAULT_MANIFESTS = Path("manifests")
 DEFAULT_SCENE = "synthetic:demo?seed=7"
 
 
-def fail(message: str, code: int = 2) -> None:
-    console.print(f"[bold red]error:[/] {message}")
+def fail(message: str, code: int = EXIT_USAGE) -> None:
+    console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)  # one line, whatever the width
     raise typer.Exit(code)
 
 
@@ -80,6 +82,7 @@ def build(
     max_retries: int = typer.Option(2, "--max-retries", min=0, help="ray: times a task whose worker died is submitted again (each try counts in the ledger)."),
     set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
+    verify_outputs: bool = typer.Option(False, "--verify-outputs", help="Also re-hash every stage's outputs (not only their sizes; the clips' are always re-hashed) and redo a stage whose files changed."),
     retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
     lock_timeout: float = typer.Option(DEFAULT_LOCK_TIMEOUT_S, "--lock-timeout", min=0, help="Seconds to wait for a scene another build holds locked; after that the scene is left for this run (reported failed, naming that build)."),
     split: str | None = typer.Option(None, "--split", help="Build exactly the scenes of this split (splits/NAME.txt, or a split file's path) found among --scenes; every line must match one log."),
@@ -102,14 +105,15 @@ def build(
             overrides.setdefault("manifest", {})["kind"] = kind
         config = StageRegistry().resolve(profile, overrides)
         stage_list = _split_csv(stages)
-        config.registry().order(stage_list)  # unknown stage names fail here
+        config.check(stage_list)  # unknown stages and values no stage can take fail before any work
         ledger = _open_ledger(manifests, build_name)
         if retry_failed:
             if scene or scenes:
                 fail("--retry-failed takes the scenes from the ledger; leave out --scene/--scenes")
             uris = ledger.failed_scene_uris()
             if not uris:
-                out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene")
+                out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene",
+                          markup=False)
                 raise typer.Exit(0)
             build_uris = ledger.scene_uris()
         else:
@@ -122,21 +126,35 @@ def build(
                    "max_retries": max_retries} if executor == "ray" else {}
         runner = make_executor(executor, **options)
         root = data_root(data, storage_option, cache, drop_cache)
+        remember(root.storage_options)
     except (ConfigError, ParaDriveError, ValueError) as exc:
         fail(str(exc))
 
+    active: dict[tuple[str, str], None] = {}
     try:
         report = _run_with_progress(config, uris, root, stage_list, runner, manifests, build_name,
                                     force, ledger, build_uris=build_uris,
                                     replace=not retry_failed, lock_timeout=lock_timeout,
-                                    selection=selection)
+                                    selection=selection, active=active,
+                                    verify_outputs=verify_outputs)
     except (ConfigError, ParaDriveError) as exc:
-        ledger.end_run(2)
+        ledger.end_run(EXIT_USAGE)
         fail(str(exc))
+    except KeyboardInterrupt:
+        ledger.end_run(EXIT_INTERRUPTED)
+        console.print(interrupted_message(active), markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(EXIT_INTERRUPTED) from None
     ledger.end_run(report.exit_code)
     _print_report(report, ledger)
     _print_footprint(root, report)
     raise typer.Exit(report.exit_code)
+
+
+def interrupted_message(active: dict[tuple[str, str], None]) -> str:
+    """What Ctrl-C stopped, and how to go on: ``interrupted: stopped fit of scene-a; ...``."""
+    stopped = ", ".join(f"{stage} of {scene}" for scene, stage in active) or "the build between stages"
+    return (f"interrupted: stopped {stopped}; finished stages are kept: run the same command "
+            f"again to resume (a fit goes on from its last saved state)")
 
 
 def _print_footprint(root, report) -> None:
@@ -147,7 +165,7 @@ def _print_footprint(root, report) -> None:
     try:
         out.print(footprint_table({sid: scene_footprint(root, sid) for sid in scene_ids}))
     except OSError as exc:  # a URL data root that cannot be listed now: the build itself is done
-        console.print(f"footprint not shown: {exc}")
+        console.print(f"footprint not shown: {exc}", markup=False)
 
 
 def select_scenes(config, uris: list[str], split: str | None, exclude_split: list[str]):
@@ -157,15 +175,15 @@ def select_scenes(config, uris: list[str], split: str | None, exclude_split: lis
 
     if split:
         uris = splits.select(uris, split)
-        out.print(f"split {split}: {len(uris)} scene(s)")
+        out.print(f"split {split}: {len(uris)} scene(s)", markup=False)
     # an explicit --split is the selection: the default exclusion would empty paper-eval
     names = exclude_split or (["none"] if split else None)
     selection = default_selection(config, uris, names)
     for e in selection.excluded:
-        out.print(f"excluded {e['scene_id']} (split {e['split']}: {e['line']})")
+        out.print(f"excluded {e['scene_id']} (split {e['split']}: {e['line']})", markup=False)
     if selection.excluded:
         out.print(f"{len(selection.excluded)} scene(s) excluded by split(s) "
-                  f"{', '.join(s.name for s in selection.splits)}")
+                  f"{', '.join(s.name for s in selection.splits)}", markup=False)
     if not selection.uris:
         raise ConfigError("every scene given is excluded by a split; nothing to build (pass "
                           "--exclude-split none to build them)")
@@ -173,14 +191,15 @@ def select_scenes(config, uris: list[str], split: str | None, exclude_split: lis
 
 
 def _open_ledger(manifests: Path, build_name: str):
+    from paradrive.contracts.layout import checked_build_name
     from paradrive.pipeline.ledger import Ledger
 
-    return Ledger.for_build(manifests, build_name)
+    return Ledger.for_build(manifests, checked_build_name(build_name))
 
 
 def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_name, force, ledger,
                        *, build_uris=None, replace=True, lock_timeout=DEFAULT_LOCK_TIMEOUT_S,
-                       selection=None):
+                       selection=None, active=None, verify_outputs=False):
     """Run the build with the ledger updated and, on a terminal, a live display: a bar over
     scenes (done / failed, ETA) with the per-stage counts, and a bar per running stage with its
     figures (the fit's loss, PSNR, Gaussians, it/s, ETA; render's frames; clip's streams)."""
@@ -198,12 +217,14 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
     stages = StageCounts(scene_stages, len(uris))
     running: dict[tuple[str, str], TaskID] = {}
     ids = {uri: parse_uri(uri).scene_id for uri in uris}
+    active = {} if active is None else active   # (scene id, stage) running now, for Ctrl-C
 
     def describe(activity: str) -> str:
         failed = f", [red]{counts['failed']} failed[/]" if counts["failed"] else ""
         return f"{counts['done']} done{failed} | {activity}"
 
     def on_start(scene: str, stage: str) -> None:
+        active[(ids.get(scene, scene), stage)] = None
         stages.start(scene, stage)
         progress.update(task, description=describe(f"{stage} {ids.get(scene, scene)}"),
                         figures=stages.line())
@@ -217,6 +238,7 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
         progress.update(running[key], completed=snap.done, total=snap.total, figures=snap.figures())
 
     def on_result(result) -> None:
+        active.pop((result.scene_id, result.stage), None)
         ledger.record(result)
         stages.result(result)
         if (result.scene_id, result.stage) in running:
@@ -231,8 +253,9 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
         progress.update(task, description=describe(f"{result.stage} {result.scene_id} {result.status}"),
                         figures=stages.line())
         style = {"done": "green", "skipped": "dim", "failed": "red", "blocked": "yellow"}[result.status]
-        console.print(f"[{style}]{result.status:>7}[/] {result.stage:<8} {result.scene_id}"
-                      + (f" — {result.error}" if result.error else f" ({result.seconds:.1f} s)"))
+        console.print(f"[{style}]{result.status:>7}[/] {result.stage:<8} {escape(result.scene_id)}"
+                      + (f" — {escape(result.error)}" if result.error else f" ({result.seconds:.1f} s)"),
+                      soft_wrap=True)   # a line per result, whatever the width
 
     ledger.register(uris, scene_stages, build_stages, replace=replace)
     ledger.begin_run(getattr(runner, "name", ""), len(uris))
@@ -244,7 +267,8 @@ def _run_with_progress(config, uris, data, stage_list, runner, manifests, build_
                          manifests_dir=manifests, build=build_name, force=force,
                          build_scene_uris=build_uris, selection=selection,
                          on_start=on_start, on_result=on_result, lock_timeout=lock_timeout,
-                         on_progress=on_progress if console.is_terminal else None)
+                         on_progress=on_progress if console.is_terminal else None,
+                         verify_outputs=verify_outputs)
 
 
 def _print_report(report, ledger=None, max_rows: int = 20) -> None:
@@ -260,16 +284,16 @@ def _print_report(report, ledger=None, max_rows: int = 20) -> None:
     table.add_column("status")
     table.add_column("reason", overflow="fold")
     for sid, state in list(shown.items())[:200]:
-        table.add_row(sid, "[green]done" if state == "done" else "[red]failed", reasons.get(sid, ""))
+        table.add_row(escape(sid), "[green]done" if state == "done" else "[red]failed", escape(reasons.get(sid, "")))
     for r in report.results:
         if r.scene_id.startswith("build:"):
-            table.add_row(r.scene_id, r.status, r.error)
+            table.add_row(escape(r.scene_id), r.status, escape(r.error))
     out.print(table)
     more = f" (status of all: paradrive status {ledger.build} --manifests {ledger.path.parent.parent})" \
         if ledger is not None else ""
     out.print(f"{done} of {len(scenes)} scenes done"
               + ("" if report.exit_code == 0 else f"; exit code {report.exit_code} "
-                 f"({'partial build' if report.exit_code == 3 else 'failed'})") + more)
+                 f"({'partial build' if report.exit_code == 3 else 'no scene built'})") + more, markup=False)
 
 
 @app.command("stages")
@@ -300,10 +324,10 @@ def stages_cmd(
         for key, param in spec.params.items():
             origin = config.origins[name][key]
             value = config.params[name][key]
-            table.add_row(key, repr(value), origin if origin == "default" else f"[yellow]{origin}",
-                          param.doc)
+            table.add_row(key, escape(repr(value)), origin if origin == "default" else f"[yellow]{escape(origin)}",
+                          escape(param.doc))
         out.print(table)
-    out.print(f"profiles: paper (defaults), {', '.join(registry.profiles())}")
+    out.print(f"profiles: paper (defaults), {', '.join(registry.profiles())}", markup=False)
 
 
 # Commands that live next to the code they drive. Each module exposes ``register(app)``.
@@ -365,8 +389,8 @@ def main() -> None:
     try:
         app()
     except ConfigError as exc:
-        console.print(f"[bold red]error:[/] {exc}")
-        sys.exit(2)
+        console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        sys.exit(EXIT_USAGE)
 
 
 if __name__ == "__main__":

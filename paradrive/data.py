@@ -2,9 +2,10 @@
 
 ``PairDataset`` (map-style) and ``PairIterableDataset`` (sharded over ranks and DataLoader
 workers, deterministic shuffle, exact mid-epoch resume) read a build folder written by the
-manifest stage (``<manifests>/<build>/index.json`` + ``pairs-*.parquet`` + ``media/``).
+manifest stage (``<manifests>/<build>/index.json`` and the version folder it names, holding
+``pairs-*.parquet`` + ``media/``; :mod:`paradrive.pairs` resolves it once, at open).
 
-One sample (DESIGN.md, "Dataset adapter")::
+One sample (docs/manifest.md, "The dataset adapter")::
 
     source, condition, target   float32 (F, 3, H, W) in [-1, 1] (no target in an inference row without one);
                                 with dtype="uint8": uint8 (F, 3, H, W) as stored, for the trainer to
@@ -42,7 +43,7 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.io import sha256_file
-from paradrive.pairs import build_file, check_row_uris, read_index, shard_paths
+from paradrive.pairs import build_file, check_row_uris, read_index, read_shard, shard_paths
 from paradrive.video import each_frame
 
 __all__ = ["FramePool", "PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera", "to_unit_range"]
@@ -141,7 +142,7 @@ def output_geometry(width: int, height: int, output_size: tuple[int, int] | None
 
     ``crop``: scale uniformly so the frame covers (H, W), then cut the centre; ``stretch``: scale
     each axis to fit. Returns the intermediate size (rh, rw), the crop origin (y0, x0) and the
-    per-axis scales (sx, sy); intrinsics follow DESIGN.md: fx, cx scale by sx, fy, cy by sy, and
+    per-axis scales (sx, sy); intrinsics follow docs/conventions.md: fx, cx scale by sx, fy, cy by sy, and
     the crop shifts cx, cy.
     """
     if output_size is None:
@@ -234,7 +235,7 @@ class PairDataset(Dataset):
             if not path.is_file():
                 raise ParaDriveError(f"{path} is listed in {self.build / 'index.json'} but missing;"
                                      f" re-run the manifest stage or re-publish the build")
-            table = pq.read_table(path, columns=list(_ROW_COLUMNS))
+            table = read_shard(path, _ROW_COLUMNS)
             if table.num_rows != entry.rows:
                 raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
                                      f"{entry.rows}; the build is inconsistent, re-run the "

@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import errno
+
+# exit codes of a build (and of the CLI): every scene landed; no scene landed; a usage or
+# configuration error (before any stage ran); some scenes landed, some failed; Ctrl-C, as a
+# shell reports a process SIGINT ended
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
 
 class ParaDriveError(Exception):
     """Base class of every error the builder raises on purpose."""
@@ -41,3 +48,20 @@ def validation_message(exc) -> str:
     """The first problem of a pydantic ValidationError: ``field 'a.b': message``."""
     err = exc.errors()[0]
     return f"field '{'.'.join(str(x) for x in err['loc'])}': {err['msg']}"
+
+
+_NO_SPACE = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
+_NOT_WRITABLE = {errno.EROFS, errno.EACCES, errno.EPERM}
+
+
+def os_error_fix(exc: BaseException, folder: object) -> str:
+    """The fix of a write that failed for want of room or rights in ``folder``, as ``; …``
+    (empty for other errors)."""
+    code = getattr(exc, "errno", None)
+    if "re-run" in str(exc):   # the writer already said what to do (io's "disk full while writing …")
+        return ""
+    if code in _NO_SPACE:
+        return f"; no room to write in {folder}: free space there (or pass another --data) and re-run"
+    if code in _NOT_WRITABLE:
+        return f"; {folder} cannot be written: pass a --data this user can write, then re-run"
+    return ""

@@ -31,9 +31,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from paradrive import geometry
 from paradrive.actors import views_mask
-from paradrive.streams import clip_windows, condition_stream, frames_needed, source_stream
+from paradrive.streams import (condition_stream, frames_needed, source_clip_windows, source_poses,
+                               source_stream)
 from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
 from paradrive.contracts.layout import SceneLayout
@@ -147,7 +147,8 @@ def _plan_camera(scene, cam_name: str, render_params: RenderParams,
         x0, y0, cw, ch = rc.crop
         out = OutputCamera(width=renders.width, height=renders.height, crop=(x0, y0, cw, ch), K=K)
         return list(rc.frames), out
-    windows, _ = clip_windows(len(scene.frames), render_params.clip_frames, render_params.clips)
+    windows, _ = source_clip_windows(scene.c2w(cam_name), render_params.clip_frames, render_params.clips,
+                                     render_params.source_offsets, render_params.transform)
     frames = frames_needed(windows) or list(range(len(scene.frames)))
     out = output_camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
                         render_params.width, render_params.height)
@@ -228,9 +229,7 @@ class _EvalContext:
         recorded_doc = {"iteration": p.source_checkpoint, **image_quality(rgb, target),
                         "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
                         **self.truth_quality(rgb, dep, truth, instants, recorded, out)}
-        ego = scene.ego2world()[frames]
-        shifted_rows = [self.shifted(final, recorded, ego, float(d), frames, out, cam_name)
-                        for d in p.offsets_m]
+        shifted_rows = [self.shifted(final, float(d), frames, out, cam_name) for d in p.source_offsets]
         return {"intrinsics": out.intrinsics, "frames": frames, "conditions": conditions,
                 "shifted": shifted_rows, "recorded": recorded_doc,
                 "shifted_by_abs_offset": _by_abs_offset(shifted_rows)}
@@ -239,15 +238,24 @@ class _EvalContext:
         dynamic = views_mask(self.moving, instants, c2w, out.K, out.width, out.height)
         return {**static_quality(rgb, truth["rgb"], dynamic), **depth_errors(dep, truth["depth"])}
 
-    def shifted(self, final, recorded, ego, d: float, frames: list[int], out, cam_name: str) -> dict:
-        shifted = geometry.lateral_shift(recorded, ego, d)
+    def shifted(self, final, d: float, frames: list[int], out, cam_name: str) -> dict:
+        poses, on_path = source_poses(self.scene.c2w(cam_name), self.scene.ego2world(), d, self.p.transform)
+        # renders.json of another transform may hold frames a longitudinal source runs off
+        frames = [f for f in frames if on_path[f]]
+        if not frames:
+            raise SceneError(f"camera {cam_name}: the {self.p.transform} source {d:+g} m runs off the "
+                             f"recorded path on every frame evaluated", scene_id=self.scene.scene_id,
+                             path=self.layout.renders_json, fix="evaluate with smaller offsets")
+        shifted = poses[frames]
+        name = source_stream(d, self.p.transform)
         instants = [self.scene.frames[f].index for f in frames]
         rgb, dep = self.render(final, shifted, frames, out, depth=True)
         truth = self.street.render(shifted, out.K, out.width, out.height, frames=instants)
         q = image_quality(rgb, truth["rgb"])
         self.log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", self.scene.scene_id, cam_name,
-                      source_stream(d), q["psnr"], q["ssim"])
-        return {"offset_m": d, "stream": source_stream(d), "iteration": self.p.source_checkpoint,
+                      name, q["psnr"], q["ssim"])
+        return {"offset_m": d, "stream": name, "transform": self.p.transform,
+                "iteration": self.p.source_checkpoint,
                 **q, **self.truth_quality(rgb, dep, truth, instants, shifted, out)}
 
 
@@ -388,6 +396,7 @@ def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | Non
     """``paradrive eval --build B --videos V``: exit 0 all scored, 3 some missing, 2 none/usage."""
     import typer
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from paradrive.errors import ParaDriveError
@@ -401,10 +410,10 @@ def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | Non
     try:
         doc = score_videos(build, videos)
     except ParaDriveError as exc:
-        err.print(f"[bold red]error:[/] {exc}")
+        err.print(f"[bold red]error:[/] {escape(str(exc))}")
         raise typer.Exit(2)
     if not doc["rows"]:
-        err.print(f"[bold red]error:[/] no video in {videos} matches a row with a target "
+        err.print(f"[bold red]error:[/] no video in {escape(str(videos))} matches a row with a target "
                   f"({len(doc['missing'])} missing, {doc['rows_without_target']} rows without "
                   f"a true view)")
         raise typer.Exit(2)
@@ -412,17 +421,17 @@ def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | Non
     folder.mkdir(parents=True, exist_ok=True)
     plot_scores(doc, folder / "scores.png")
     write_json(folder / "scores.json", doc)
-    table = Table(title=f"{videos} against {build}", title_justify="left")
+    table = Table(title=escape(f"{videos} against {build}"), title_justify="left")
     for col in ("offset", "videos", "PSNR", "SSIM"):
         table.add_column(col, justify="right")
     for r in doc["by_offset"]:
         table.add_row(f"{r['offset_m']:+g} m", str(r["videos"]), f"{r['psnr']:.2f}",
                       f"{r['ssim']:.4f}")
     console.print(table)
-    console.print(f"wrote {folder / 'scores.json'} and {folder / 'scores.png'}")
+    console.print(f"wrote {folder / 'scores.json'} and {folder / 'scores.png'}", markup=False)
     if doc["missing"]:
         err.print(f"[yellow]{len(doc['missing'])} row(s) have no video[/], e.g. "
-                  f"{doc['missing'][0]}")
+                  f"{escape(str(doc['missing'][0]))}")
         raise typer.Exit(3)
 
 
@@ -449,6 +458,7 @@ def register(app) -> None:
         views of a synthetic inference set (PSNR / SSIM per offset, scores.json and scores.png).
         """
         from rich.console import Console
+        from rich.markup import escape
 
         if build is not None or videos is not None:
             score_build_cmd(build, videos, out_dir)
@@ -464,7 +474,7 @@ def register(app) -> None:
             config = StageRegistry().resolve(profile, parse_overrides(set_))
             parsed = [parse_uri(u) for u in uris]
         except ConfigError as exc:
-            err.print(f"[bold red]error:[/] {exc}")
+            err.print(f"[bold red]error:[/] {escape(str(exc))}")
             raise typer.Exit(2)
         if out_dir is not None and len(uris) > 1:
             err.print("[bold red]error:[/] --out takes one --scene")
@@ -472,7 +482,7 @@ def register(app) -> None:
         failed = 0
         for uri in parsed:
             if uri.kind != "synthetic":
-                err.print(f"[bold red]error:[/] {uri.text}: eval needs a 'synthetic:' scene, the "
+                err.print(f"[bold red]error:[/] {escape(uri.text)}: eval needs a 'synthetic:' scene, the "
                           f"only kind whose shifted views have a known truth")
                 failed += 1
                 continue
@@ -483,11 +493,11 @@ def register(app) -> None:
                                      cameras=[c.strip() for c in camera.split(",")] if camera else None,
                                      max_frames=frames or None, out_dir=out_dir)
             except (SceneError, ConfigError) as exc:
-                err.print(f"[bold red]error:[/] {exc}")
+                err.print(f"[bold red]error:[/] {escape(str(exc))}")
                 failed += 1
                 continue
             console.print(eval_table(doc))
             where = Path(out_dir) if out_dir else scene_dir / "eval"
-            console.print(f"wrote {where / 'eval.json'} and {where / 'eval.png'}")
+            console.print(f"wrote {where / 'eval.json'} and {where / 'eval.png'}", markup=False)
         if failed:
             raise typer.Exit(2 if failed == len(parsed) else 3)

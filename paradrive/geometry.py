@@ -1,4 +1,4 @@
-"""SE(3) helpers, the lateral shift and the relative pose, exactly as DESIGN.md fixes them.
+"""SE(3) helpers, the lateral shift and the relative pose, exactly as docs/conventions.md fixes them.
 
 Frames: ego (vehicle) x forward, y left, z up; camera OpenCV x right, y down, z forward.
 Poses are 4x4 homogeneous matrices in float64; every function takes a single pose (4, 4) or a
@@ -150,3 +150,52 @@ def as_floats(m) -> list[float]:
     """An array as a flat list of Python floats, row-major (the JSON form of a pose, a
     quaternion, a translation)."""
     return [float(x) for x in np.asarray(m, dtype=np.float64).reshape(-1)]
+
+
+def arc_length(c2w) -> np.ndarray:
+    """Distance travelled (N,) along a camera path (N, 4, 4): 0 at the first pose, then the sum
+    of the straight steps between consecutive camera centres."""
+    centres = as_pose(c2w)[:, :3, 3]
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=-1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def slerp(rot_a, rot_b, t) -> np.ndarray:
+    """Rotations (N, 3, 3) a fraction ``t`` (N,) of the way from ``rot_a`` to ``rot_b`` (N, 3, 3)
+    along the shorter great arc of their unit quaternions."""
+    qa = np.stack([rotation_to_quaternion(r) for r in np.asarray(rot_a, dtype=np.float64)])
+    qb = np.stack([rotation_to_quaternion(r) for r in np.asarray(rot_b, dtype=np.float64)])
+    dot = np.einsum("ni,ni->n", qa, qb)
+    qb = np.where(dot[:, None] < 0, -qb, qb)  # q and -q are one rotation: take the short way
+    angle = np.arccos(np.clip(np.abs(dot), -1.0, 1.0))
+    t = np.asarray(t, dtype=np.float64)
+    small = angle < 1e-9
+    sin = np.where(small, 1.0, np.sin(angle))
+    wa = np.where(small, 1.0 - t, np.sin((1.0 - t) * angle) / sin)
+    wb = np.where(small, t, np.sin(t * angle) / sin)
+    return quaternion_to_rotation(wa[:, None] * qa + wb[:, None] * qb)
+
+
+def longitudinal_shift(c2w, offset_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Move each camera ``offset_m`` metres along its own recorded path (negative = behind).
+
+    The pose of frame i goes to where the path is ``arc_length[i] + offset_m`` along: the
+    centre interpolated linearly and the rotation slerped between the two recorded frames
+    around that point, so the camera looks where the recording looked there.
+
+    c2w: (N, 4, 4) camera-to-world, OpenCV, the recorded path in frame order. Returns the
+    shifted poses (N, 4, 4) and ``on_path`` (N,) bool: False where the point falls before the
+    first or after the last frame (that pose is the recorded one, and must not be rendered).
+    """
+    c2w = as_pose(c2w)
+    arc = arc_length(c2w)
+    want = arc + float(offset_m)
+    on_path = (want >= -1e-9) & (want <= arc[-1] + 1e-9)
+    j = np.clip(np.searchsorted(arc, want, side="right") - 1, 0, max(len(arc) - 2, 0))
+    k = np.minimum(j + 1, len(arc) - 1)
+    span = arc[k] - arc[j]
+    t = np.where(span > 0, (want - arc[j]) / np.where(span > 0, span, 1.0), 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    centres = c2w[j, :3, 3] + t[:, None] * (c2w[k, :3, 3] - c2w[j, :3, 3])
+    shifted = make_pose(slerp(c2w[j, :3, :3], c2w[k, :3, :3], t), centres)
+    return np.where(on_path[:, None, None], shifted, c2w), on_path

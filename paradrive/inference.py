@@ -39,18 +39,17 @@ def no_truth(clip: ClipRecord, offset_m: float, novel_c2w: np.ndarray) -> None:
 
 def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
     """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
-    from paradrive.pipeline.runner import read_marker
+    from paradrive.contracts.layout import SceneLayout
+    from paradrive.stages.ingest import recorded_values
 
-    marker = read_marker(scene_dir, "ingest")
-    if marker and isinstance(marker.get("params"), dict):
-        return marker["params"]
-    return dict(fallback or {})
+    recorded = recorded_values(SceneLayout.at(scene_dir))
+    return recorded if recorded is not None else dict(fallback or {})
 
 
-def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: ClipsRecord) -> Truth:
+def truth_renderer(scene_dir: str | Path, version_dir: str | Path, clips: ClipsRecord) -> Truth:
     """``truth(clip, offset_m, novel_c2w)`` for the scene of ``clips`` (its clips.json):
-    renders and encodes the street's view from ``novel_c2w`` (F, 4, 4) into ``build_dir`` for a
-    synthetic scene; ``no_truth`` for any other."""
+    renders and encodes the street's view from ``novel_c2w`` (F, 4, 4) into ``version_dir`` (the
+    build version being published) for a synthetic scene; ``no_truth`` for any other."""
     if clips.dataset != "synthetic":
         return no_truth
     from paradrive.ingest.synthetic import street_from_uri
@@ -69,7 +68,7 @@ def truth_renderer(scene_dir: str | Path, build_dir: str | Path, clips: ClipsRec
         # the street at each frame's instant: moving actors where they were then
         rgb = street.render(novel_c2w, K, width, height, frames=clip.frame_indices)["rgb"]
         uri = media_uri(sid, truth_file(clip.camera, clip.clip, offset_m))
-        path = Path(build_dir) / uri
+        path = Path(version_dir) / uri
         path.parent.mkdir(parents=True, exist_ok=True)
         info = encode_video(path, rgb, clips.fps, codec=TRUTH_CODEC)
         return MediaFile(src=path, uri=uri, sha256=info["sha256"], bytes=info["bytes"])

@@ -18,13 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from paradrive.errors import ParaDriveError
-from paradrive.io import PathEscapeError, sha256_file
+from paradrive.io import PathEscapeError, atomic_path, sha256_file
 from paradrive.pairs import build_file, read_index, read_pairs, shard_paths
 from paradrive.streams import format_offset
 from paradrive.trajectories import rig_picture, trajectories_picture
 
 __all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "rig_picture", "register"]
 
+ROLES = ("source", "condition", "target")
 _SUMMARY_COLUMNS = ["pair_id", "dataset", "scene_id", "camera", "clip", "offset_m",
                     "condition_iteration", "source_iteration", "condition_psnr",
                     "condition_ssim", "fit_train_psnr", "fit_train_ssim"]
@@ -83,6 +84,7 @@ def summarize(build_dir: str | Path) -> dict:
                     "scenes": quality},
         "skipped_scenes": [s.model_dump() for s in index.skipped_scenes],
         "kind": index.kind,
+        "transform": sorted({s.transform for s in index.scenes}),
         "exclude_splits": [s.model_dump() for s in index.exclude_splits],
         "excluded_scenes": [s.model_dump() for s in index.excluded_scenes],
     }
@@ -90,18 +92,22 @@ def summarize(build_dir: str | Path) -> dict:
 
 # --------------------------------------------------------------------------- verify
 
+# A plain re-run re-hashes the clips and redoes what changed, then publishes again.
+HEAL = "re-run the build without --stages (the same paradrive build command): it redoes what is damaged"
+
+
 def _check_file(path: Path, size: int | None, sha: str | None, what: str) -> str | None:
     if not path.is_file():
-        return f"missing: {path} ({what}); restore it or re-run the manifest stage"
+        return f"missing: {path} ({what}); {HEAL}"
     actual_size = path.stat().st_size
     if size is not None and actual_size != size:
         return (f"corrupt: {path} ({what}) has {actual_size} bytes, the manifest says {size}; "
-                f"restore it or re-run the manifest stage")
+                f"{HEAL}")
     if sha:
         actual = sha256_file(path)
         if actual != sha:
             return (f"corrupt: {path} ({what}) sha256 {actual[:12]}… differs from the manifest's "
-                    f"{sha[:12]}…; restore it or re-run the manifest stage")
+                    f"{sha[:12]}…; {HEAL}")
     return None
 
 
@@ -116,12 +122,16 @@ def verify_build(build_dir: str | Path, threads: int | None = None) -> dict:
     jobs = [(path, s.bytes, s.sha256, "shard")
             for path, s in zip(shard_paths(build_dir, index), index.shards)]
     problems = [p for p in (_check_file(*j) for j in jobs) if p]
+    if not problems:
+        try:
+            cols = read_pairs(build_dir, ["pair_id"] + [f"{r}_{k}" for r in ROLES
+                                                        for k in ("uri", "sha256", "bytes")]).to_pydict()
+        except ParaDriveError as exc:  # a shard whose checksum matches yet does not parse
+            problems.append(str(exc))
     if problems:  # rows cannot be trusted when a shard is bad
         return {"ok": False, "checked_files": len(jobs), "problems": problems}
-    cols = read_pairs(build_dir, ["pair_id"] + [f"{r}_{k}" for r in ("source", "condition", "target")
-                                                for k in ("uri", "sha256", "bytes")]).to_pydict()
     files: dict[str, tuple] = {}
-    for role in ("source", "condition", "target"):
+    for role in ROLES:
         for pair_id, uri, sha, size in zip(cols["pair_id"], cols[f"{role}_uri"],
                                            cols[f"{role}_sha256"], cols[f"{role}_bytes"]):
             if uri is None:  # an inference row of a real log: no true view
@@ -231,21 +241,21 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
                           stroke_width=2, stroke_fill=(0, 0, 0))
             y += th + pad
         y += pad
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
-    sheet.save(tmp)
-    os.replace(tmp, out)
+    with atomic_path(out) as tmp:
+        sheet.save(tmp, format="PNG")
     return out
 
 
 # --------------------------------------------------------------------------- CLI
 
 def _print_tables(summary: dict, console) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
-    console.print(f"[bold]{summary['build']}[/]: {summary['rows']} pairs in {summary['shards']} "
+    console.print(f"[bold]{escape(summary['build'])}[/]: {summary['rows']} pairs in {summary['shards']} "
                   f"shards (fingerprint {summary['config_fingerprint']}, paradrive "
-                  f"{(summary.get('software') or {}).get('paradrive', '?')})")
+                  f"{(summary.get('software') or {}).get('paradrive', '?')}, "
+                  f"{escape(' and '.join(summary.get('transform') or ['lateral']))} sources)")
     titles = {"dataset": "dataset", "scene": "scene", "camera": "camera", "clip": "clip",
               "offset": "offset", "checkpoint": "condition checkpoint"}
     grid = Table.grid(padding=(0, 2))
@@ -255,7 +265,7 @@ def _print_tables(summary: dict, console) -> None:
         t.add_column(title)
         t.add_column("pairs", justify="right")
         for k, v in summary["counts"][key].items():
-            t.add_row(k, str(v))
+            t.add_row(escape(str(k)), str(v))
         small.append(t)
     grid.add_row(*small[:3])
     grid.add_row(*small[3:])
@@ -272,7 +282,7 @@ def _print_tables(summary: dict, console) -> None:
         return "-" if v is None else f"{v:.{digits}f}"
 
     for sid, s in summary["quality"]["scenes"].items():
-        q.add_row(sid, fmt(s["fit_train_psnr"], 2),
+        q.add_row(escape(sid), fmt(s["fit_train_psnr"], 2),
                   *[f"{fmt(s['condition'].get(it, {}).get('psnr'), 2)} / "
                     f"{fmt(s['condition'].get(it, {}).get('ssim'), 3)}" for it in its])
     allq = summary["quality"]["by_checkpoint"]
@@ -280,12 +290,28 @@ def _print_tables(summary: dict, console) -> None:
                                   for it in its])
     console.print(q)
     for s in summary["skipped_scenes"]:
-        console.print(f"[yellow]skipped scene[/] {s['scene_id']}: {s['reason']}")
+        console.print(f"[yellow]skipped scene[/] {escape(s['scene_id'])}: {escape(s['reason'])}")
     splits = ", ".join(f"{s['name']} (sha256 {s['sha256'][:12]}…, {s['scenes']} scenes)"
                        for s in summary["exclude_splits"]) or "none"
-    console.print(f"{summary['kind']} build; excluded splits: {splits}")
+    console.print(f"{summary['kind']} build; excluded splits: {splits}", markup=False)
     for s in summary["excluded_scenes"]:
-        console.print(f"[yellow]excluded scene[/] {s['scene_id']} (split {s['split']}: {s['line']})")
+        console.print("[yellow]excluded scene[/] "
+                      + escape(f"{s['scene_id']} (split {s['split']}: {s['line']})"))
+
+
+def _verify(build: Path, err) -> dict:
+    """Verify ``build``, printing each problem and the verdict on ``err``."""
+    from rich.markup import escape
+
+    result = verify_build(build)
+    for p in result["problems"]:
+        err.print(f"[red]{escape(p)}[/]", soft_wrap=True)
+    if result["ok"]:
+        err.print(f"[green]verified[/] {result['checked_files']} files")
+    else:
+        err.print(f"[bold red]{len(result['problems'])} of {result['checked_files']} files "
+                  f"missing, corrupt or unsafe[/]")
+    return result
 
 
 def register(app) -> None:
@@ -302,25 +328,23 @@ def register(app) -> None:
     ) -> None:
         """Counts, quality, checksum verification and pictures of a published build."""
         from rich.console import Console
+        from rich.markup import escape
 
         out, err = Console(), Console(stderr=True)
         try:
-            summary = summarize(build)
+            result = _verify(build, err) if verify else None
+            code = 0 if result is None or result["ok"] else 1
+            try:
+                summary = summarize(build)
+            except ParaDriveError:
+                if code:  # a shard that cannot be read: already reported as corrupt
+                    raise typer.Exit(code) from None
+                raise
         except ParaDriveError as exc:
-            err.print(f"[bold red]error:[/] {exc}")
-            raise typer.Exit(2)
-        code = 0
-        if verify:
-            result = verify_build(build)
+            err.print(f"[bold red]error:[/] {escape(str(exc))}")
+            raise typer.Exit(2) from None
+        if result is not None:
             summary["verify"] = result
-            for p in result["problems"]:
-                err.print(f"[red]{p}[/]")
-            if result["ok"]:
-                err.print(f"[green]verified[/] {result['checked_files']} files")
-            else:
-                err.print(f"[bold red]{len(result['problems'])} of {result['checked_files']} files "
-                          f"missing, corrupt or unsafe[/]")
-                code = 1
         if sheet is not None:
             try:
                 summary["sheet"] = str(contact_sheet(build, sheet, pairs=pairs))
@@ -329,7 +353,7 @@ def register(app) -> None:
                 rig = sheet.with_name(f"{sheet.stem}_rig.png")
                 summary["rig"] = str(rig_picture(build, rig, data_dir=data))
             except ParaDriveError as exc:
-                err.print(f"[bold red]error:[/] {exc}")
+                err.print(f"[bold red]error:[/] {escape(str(exc))}")
                 code = code or 1
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
@@ -337,5 +361,5 @@ def register(app) -> None:
             _print_tables(summary, out)
             for key in ("sheet", "trajectories", "rig"):
                 if key in summary:
-                    out.print(f"wrote {summary[key]}")
+                    out.print(f"wrote {summary[key]}", markup=False)
         raise typer.Exit(code)

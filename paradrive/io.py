@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import hashlib
 import json
 import os
@@ -25,15 +26,19 @@ class UnsafeFileError(ParaDriveError):
     """A file whose loading could run its writer's code (pickle, a module named to import)."""
 
 
+TEMPORARY_MARK = ".tmp-"
+
+
 def temporary_name(path: Path) -> Path:
-    """A sibling of ``path`` that readers ignore (``.<name>.tmp-<random>``)."""
+    """A sibling of ``path`` that readers ignore (``.<name>.tmp-<random>``); every temporary
+    file or folder is named here, so :func:`remove_stale_temporaries` finds them all."""
     path = Path(path)
-    return path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    return path.with_name(f".{path.name}{TEMPORARY_MARK}{uuid.uuid4().hex[:8]}")
 
 
 def is_temporary(name: str) -> bool:
     """A name :func:`temporary_name` made (a write that has not landed)."""
-    return name.startswith(".") and ".tmp-" in name
+    return name.startswith(".") and TEMPORARY_MARK in name
 
 
 @contextlib.contextmanager
@@ -88,15 +93,19 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
 
 
 def remove_stale_temporaries(directory: str | os.PathLike) -> int:
-    """Delete temporaries a killed process left under ``directory``; returns how many."""
-    count = 0
-    for p in Path(directory).rglob(".*.tmp-*"):
-        if p.is_dir():
+    """Delete the temporaries a killed process left under ``directory`` and those made for
+    ``directory`` itself (its siblings ``.<name>.tmp-*``, e.g. a scene being ingested); returns
+    how many. Only for a folder no live process writes (its scene lock held)."""
+    directory = Path(directory)
+    pattern = f".*{TEMPORARY_MARK}*"
+    found = [*directory.parent.glob(f".{glob.escape(directory.name)}{TEMPORARY_MARK}*"),
+             *directory.rglob(pattern)]
+    for p in found:
+        if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
         else:
             p.unlink(missing_ok=True)
-        count += 1
-    return count
+    return len(found)
 
 
 def load_tensors(path: str | os.PathLike, map_location: Any = "cpu") -> Any:

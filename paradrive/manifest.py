@@ -3,27 +3,32 @@
 Reads ``<data>/scenes/<scene_id>/clips/clips.json`` of every scene whose clips are done and
 publishes ``<manifests>/<build>/``::
 
-    index.json                 the commit record: shards, rows, bytes, sha256, fingerprint, scenes
-    pairs-<nnnnn>.parquet      rows sorted by pair_id
-    media/<scene_id>/clips/<camera>/<clip>/<stream>.mp4    the videos the rows reference
+    index.json                 the commit record and the pointer: shards, rows, bytes, sha256,
+                               fingerprint, scenes, and the version folder they live in
+    v-<nnnnnn>/pairs-<nnnnn>.parquet                          rows sorted by pair_id
+    v-<nnnnnn>/media/<scene_id>/clips/<camera>/<clip>/<stream>.mp4    the videos the rows reference
+    .paradrive/build.json      the builder's marker: only a folder carrying it is ever changed
 
-URIs in the rows are relative to the build folder, so the folder moves or publishes as one piece.
-The column reference is ``manifests/SCHEMA.md``.
+URIs in the rows and ``shards[].file`` are relative to the version folder, so a version moves or
+publishes as one piece. The column reference is ``manifests/SCHEMA.md``.
 
-Publishing: shards are written into a hidden staging folder, media files are linked one by one
-(each by rename), then ``index.json`` is withdrawn, the shards are renamed into place and a new
-``index.json`` lands last. Readers open a build through its index; a folder without one is being
-published (or was never built). Files this stage does not own (the runner's ``ledger.sqlite``,
-``logs/``) are never touched.
+Publishing: shards and media are written into a new version folder under a temporary name,
+which is renamed to ``v-<n+1>`` and then ``index.json`` is replaced by rename: readers see the
+old build or the new one, never a mix. The versions ``index.json`` no longer names are removed
+after the switch. Files this stage does not own (the runner's ``ledger.sqlite``, ``logs/``) are
+never touched.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import shutil
+import signal
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -35,15 +40,18 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import PathEscapeError, path_inside, sha256_file, temporary_name
-from paradrive.pairs import COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri
-from paradrive.contracts.layout import INDEX_JSON, MEDIA_DIR, SHARD_GLOB, SHARD_PATTERN, SceneLayout
+from paradrive.io import (PathEscapeError, is_temporary, path_inside, sha256_file, temporary_name,
+                          write_json)
+from paradrive.pairs import (COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri,
+                             read_index)
+from paradrive.contracts.layout import (BUILD_MARKER, SHARD_PATTERN, VERSION_PREFIX, BuildLayout,
+                                        SceneLayout, is_runner_file, is_version, version_name,
+                                        version_number)
 from paradrive.contracts.records import ClipRecord, ClipsRecord, IndexRecord
+from paradrive.streams import stream_transform
 
 if TYPE_CHECKING:
-    from paradrive.stages.manifest import Params as ManifestParams
-
-STAGING_PREFIX = ".manifest-staging"
+    from paradrive.contracts.params import ManifestParams
 
 # --------------------------------------------------------------------------- clips.json
 
@@ -236,7 +244,9 @@ def scene_rows(scene_dir: str | Path, *, verify_inputs: bool = True, quality: bo
                "scene_dir": str(layout.root.resolve()), "rows": len(rows),
                "cameras": sorted({r["camera"] for r in rows}),
                "clips": sorted({r["clip"] for r in rows}),
-               "skipped_clips": [s.model_dump() for s in doc.skipped]}
+               "skipped_clips": [s.model_dump() for s in doc.skipped],
+               "transform": "longitudinal" if any(stream_transform(k) == "longitudinal" for clip in doc.clips
+                                                  for k in clip.streams) else "lateral"}
     return rows, list(media.files.values()), summary
 
 
@@ -283,37 +293,25 @@ def split_rows(table: pa.Table, shard_rows: int, shard_bytes: int | None) -> lis
 
 # --------------------------------------------------------------------------- media
 
-def place_file(src: Path, dst: Path, mode: str, sha256: str | None = None) -> str:
+def place_file(src: Path, dst: Path, mode: str, sha256: str | None = None,
+               reuse: Path | None = None) -> str:
     """Put ``src`` at ``dst`` by hardlink, copy or symlink; returns what was done.
 
-    An existing ``dst`` with the same content (same inode, or same size and sha256) is kept, so
-    re-publishing leaves unchanged media alone. Every change lands by rename.
+    ``reuse`` is the same file in the version published before: a copy whose content still
+    matches (size and sha256) is linked from there instead of copied again. The file lands by
+    rename, so ``dst`` never holds half a file.
     """
     dst.parent.mkdir(parents=True, exist_ok=True)
-    if mode == "symlink":
-        target = os.path.abspath(src)
-        if dst.is_symlink() and os.readlink(dst) == target:
-            return "kept"
-    elif dst.exists() and not dst.is_symlink():
-        a, b = src.stat(), dst.stat()
-        if (a.st_ino, a.st_dev) == (b.st_ino, b.st_dev):
-            return "kept"
-        if a.st_size == b.st_size and sha256 and sha256_file(dst) == sha256:
-            return "kept"
     tmp = temporary_name(dst)
     done = mode
     try:
         if mode == "symlink":
             os.symlink(os.path.abspath(src), tmp)
+        elif mode == "copy" and _same_content(reuse, src, sha256):
+            _link_or_copy(reuse, tmp)  # type: ignore[arg-type]  # _same_content checked it
+            done = "kept"
         elif mode == "hardlink":
-            try:
-                os.link(src, tmp)
-            except OSError as exc:  # another file system, or links not allowed: copy instead
-                if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP,
-                                     errno.EACCES):
-                    raise
-                shutil.copyfile(src, tmp)
-                done = "copy"
+            done = _link_or_copy(src, tmp)
         elif mode == "copy":
             shutil.copyfile(src, tmp)
         else:
@@ -326,96 +324,181 @@ def place_file(src: Path, dst: Path, mode: str, sha256: str | None = None) -> st
     return done
 
 
+def _same_content(old: Path | None, src: Path, sha256: str | None) -> bool:
+    if old is None or old.is_symlink() or not old.is_file() or not sha256:
+        return False
+    return old.stat().st_size == src.stat().st_size and sha256_file(old) == sha256
+
+
+def _link_or_copy(src: Path, dst: Path) -> str:
+    try:
+        os.link(src, dst)
+        return "hardlink"
+    except OSError as exc:  # another file system, or links not allowed: copy instead
+        if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP, errno.EACCES):
+            raise
+        shutil.copyfile(src, dst)
+        return "copy"
+
+
 # --------------------------------------------------------------------------- publish
+
+def stop_point(name: str) -> None:
+    """Stop this process at a named step of publishing when ``PARADRIVE_STOP_AT`` names it.
+
+    Tests kill a real build at an exact step this way: the process stops itself (SIGSTOP), the
+    test sees it stopped (``waitpid`` with ``WUNTRACED``) and kills it."""
+    if os.environ.get("PARADRIVE_STOP_AT") == name:
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+
+def claim_build_folder(build_dir: str | Path, build: str) -> BuildLayout:
+    """The build folder, created with the builder's marker, or an existing one that carries it.
+
+    A folder holding other files and no marker is not the builder's: it is refused, so nothing in
+    it is ever deleted or replaced. Temporaries a killed publish left are removed."""
+    layout = BuildLayout(Path(build_dir))
+    root = layout.root
+    if not layout.marker.is_file():
+        foreign = sorted(p.name for p in root.iterdir()
+                         if not is_runner_file(p.name)) if root.is_dir() else []
+        if foreign and _index_doc(layout).get("format") != INDEX_FORMAT:  # not an earlier build
+            raise ParaDriveError(
+                f"build {build}: {root} holds files the builder did not write "
+                f"({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}) and no "
+                f"{BUILD_MARKER}; choose another --build name or --manifests folder")
+        root.mkdir(parents=True, exist_ok=True)
+        write_json(layout.marker, {"builder": "paradrive", "build": build})
+    for stale in root.iterdir():
+        if is_temporary(stale.name):
+            if stale.is_dir() and not stale.is_symlink():
+                shutil.rmtree(stale, ignore_errors=True)
+            else:
+                stale.unlink(missing_ok=True)
+    return layout
+
+
+@contextlib.contextmanager
+def staging_version(build_dir: str | Path, build: str) -> Iterator[Path]:
+    """A new version folder under a temporary name; gone unless :func:`publish` landed it."""
+    layout = claim_build_folder(build_dir, build)
+    staging = temporary_name(layout.root / VERSION_PREFIX)
+    staging.mkdir()
+    try:
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _write_shards(staging: Path, shards: list[pa.Table], params: ManifestParams) -> list[dict]:
+    compression = params.compression
+    entries = []
+    for i, shard in enumerate(shards):
+        name = SHARD_PATTERN.format(i)
+        pq.write_table(shard, staging / name,
+                       compression=None if compression == "none" else compression,
+                       row_group_size=max(1, params.row_group_rows))
+        entries.append({"file": name, "rows": shard.num_rows,
+                        "bytes": (staging / name).stat().st_size,
+                        "sha256": sha256_file(staging / name),
+                        "first_pair_id": shard.column("pair_id")[0].as_py() if shard.num_rows else None,
+                        "last_pair_id": shard.column("pair_id")[-1].as_py() if shard.num_rows else None})
+    return entries
+
+
+def _place_media(staging: Path, media: list[MediaFile], mode: str, previous: Path | None) -> dict:
+    placed: dict[str, int] = {}
+    first = True
+    for m in media:
+        if m.src.resolve() == (staging / m.uri).resolve():  # written in place (truth views)
+            placed["kept"] = placed.get("kept", 0) + 1
+            continue
+        done = place_file(m.src, staging / m.uri, mode, m.sha256,
+                          reuse=previous / m.uri if previous else None)
+        placed[done] = placed.get(done, 0) + 1
+        if first:
+            stop_point("publish:first-media")
+            first = False
+    return placed
+
+
+def _index_doc(layout: BuildLayout) -> dict:
+    """What ``index.json`` holds now; empty when there is none or it is unreadable."""
+    try:
+        doc = json.loads(layout.index_json.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def _current_version(layout: BuildLayout) -> str | None:
+    """The version ``index.json`` names now (None: nothing published, or an unreadable index)."""
+    version = _index_doc(layout).get("version")
+    return version if isinstance(version, str) and is_version(version) else None
+
+
+def _land(layout: BuildLayout, staging: Path, index: dict) -> str:
+    """Rename the staged version into place and switch ``index.json`` to it: the one step that
+    publishes. Versions other than the new one are removed after the switch."""
+    numbers = [version_number(p.name) for p in layout.root.iterdir() if is_version(p.name)]
+    version = version_name(max(numbers, default=0) + 1)
+    os.replace(staging, layout.version(version))
+    stop_point("publish:before-switch")
+    IndexRecord.model_validate({**index, "version": version}).save(layout.index_json)
+    for old in layout.root.iterdir():
+        if is_version(old.name) and old.name != version:
+            shutil.rmtree(old, ignore_errors=True)
+    return version
+
 
 def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             scenes: list[dict], skipped: list[dict], params: ManifestParams, fingerprint: str = "",
-            build: str | None = None, log=None, selection: dict | None = None) -> IndexRecord:
-    """Write shards, media and index under ``build_dir`` as one published build; returns the index.
+            build: str | None = None, log=None, selection: dict | None = None,
+            data_root: str | Path | None = None, staging: Path | None = None) -> IndexRecord:
+    """Write shards, media and index as a new version of the build; returns the index.
 
-    ``selection`` ({exclude_splits, excluded_scenes}) records which split files left which
-    scenes out of the build."""
-    build_dir = Path(build_dir)
-    build_dir.mkdir(parents=True, exist_ok=True)
-    for stale in build_dir.glob(f"{STAGING_PREFIX}*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    ``staging`` is a folder from :func:`staging_version` that may already hold files (truth
+    views); without one, a new one is made. ``selection`` ({exclude_splits, excluded_scenes})
+    records which split files left which scenes out of the build. ``data_root`` is the data
+    folder the scenes live in: a ``symlink`` build's links may only lead there."""
+    build = build or Path(build_dir).name
+    if staging is None:
+        with staging_version(build_dir, build) as fresh:
+            return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
+                           fingerprint=fingerprint, build=build, log=log, selection=selection,
+                           data_root=data_root, staging=fresh)
+    layout = BuildLayout(Path(build_dir))
     table = rows_to_table(rows)
     ids = table.column("pair_id").to_pylist()
     if len(set(ids)) != len(ids):
         raise ParaDriveError("two scenes give the same pair id; scene ids must be unique")
-    shards = split_rows(table, params.shard_rows, params.shard_bytes)
-    compression = params.compression
-    staging = temporary_name(build_dir / STAGING_PREFIX)
-    staging.mkdir()
-    try:
-        entries = []
-        for i, shard in enumerate(shards):
-            name = SHARD_PATTERN.format(i)
-            pq.write_table(shard, staging / name,
-                           compression=None if compression == "none" else compression,
-                           row_group_size=max(1, params.row_group_rows))
-            entries.append({"file": name, "rows": shard.num_rows,
-                            "bytes": (staging / name).stat().st_size,
-                            "sha256": sha256_file(staging / name),
-                            "first_pair_id": shard.column("pair_id")[0].as_py() if shard.num_rows else None,
-                            "last_pair_id": shard.column("pair_id")[-1].as_py() if shard.num_rows else None})
-        mode = params.media
-        placed: dict[str, int] = {}
-        for m in media:
-            if m.src.resolve() == (build_dir / m.uri).resolve():  # written in place (truth views)
-                placed["kept"] = placed.get("kept", 0) + 1
-                continue
-            done = place_file(m.src, build_dir / m.uri, mode, m.sha256)
-            placed[done] = placed.get(done, 0) + 1
-        index = IndexRecord.model_validate({
-            "format": INDEX_FORMAT, "schema_version": SCHEMA_VERSION,
-            "build": build or build_dir.name, "kind": params.kind,
-            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "software": {"paradrive": paradrive.__version__, "pyarrow": pa.__version__},
-            "config_fingerprint": fingerprint, "params": params.source, "sort": ["pair_id"],
-            "columns": [{"name": f.name, "type": str(f.type)} for f in SCHEMA],
-            "shards": entries,
-            "totals": {"rows": table.num_rows, "shards": len(entries),
-                       "shard_bytes": sum(e["bytes"] for e in entries),
-                       "media_files": len(media), "media_bytes": sum(m.bytes for m in media),
-                       "scenes": len(scenes), "scenes_skipped": len(skipped)},
-            "media": {"mode": mode, "placed": placed}, "scenes": scenes, "skipped_scenes": skipped,
-            **(selection or {"exclude_splits": [], "excluded_scenes": []})})
-        index.save(staging / INDEX_JSON)
-        # Commit: withdraw the old index, swap the shards, then the new index lands last.
-        (build_dir / INDEX_JSON).unlink(missing_ok=True)
-        for e in entries:
-            os.replace(staging / e["file"], build_dir / e["file"])
-        keep = {e["file"] for e in entries}
-        for old in build_dir.glob(SHARD_GLOB):
-            if old.name not in keep:
-                old.unlink()
-        os.replace(staging / INDEX_JSON, build_dir / INDEX_JSON)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    removed = _prune_media(build_dir, {m.uri for m in media})
+    entries = _write_shards(staging, split_rows(table, params.shard_rows, params.shard_bytes), params)
+    current = _current_version(layout)
+    mode = params.media
+    placed = _place_media(staging, media, mode, layout.version(current) if current else None)
+    index = {
+        "format": INDEX_FORMAT, "schema_version": SCHEMA_VERSION, "build": build, "version": None,
+        "kind": params.kind, "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "software": {"paradrive": paradrive.__version__, "pyarrow": pa.__version__},
+        "config_fingerprint": fingerprint, "params": params.source, "sort": ["pair_id"],
+        "columns": [{"name": f.name, "type": str(f.type)} for f in SCHEMA],
+        "shards": entries,
+        "totals": {"rows": table.num_rows, "shards": len(entries),
+                   "shard_bytes": sum(e["bytes"] for e in entries),
+                   "media_files": len(media), "media_bytes": sum(m.bytes for m in media),
+                   "scenes": len(scenes), "scenes_skipped": len(skipped)},
+        # only a symlink build needs it: its links lead into that folder and nowhere else
+        "media": {"mode": mode, "placed": placed,
+                  "data_root": str(Path(data_root).resolve()) if data_root and mode == "symlink"
+                  else None},
+        "scenes": scenes, "skipped_scenes": skipped,
+        **(selection or {"exclude_splits": [], "excluded_scenes": []})}
+    version = _land(layout, staging, index)
     if log is not None:
-        log.info("manifest: %d rows in %d shards, %d media files (%s), %d stale removed",
-                 table.num_rows, len(entries), len(media), placed, removed)
-    return index
+        log.info("manifest: %d rows in %d shards, %d media files (%s) in %s", table.num_rows,
+                 len(entries), len(media), placed, version)
+    return read_index(layout.root)
 
 
-def _prune_media(build_dir: Path, keep: set[str]) -> int:
-    """Remove media files no row references any more (scenes dropped from the build)."""
-    root = build_dir / MEDIA_DIR
-    if not root.is_dir():
-        return 0
-    removed = 0
-    for p in sorted(root.rglob("*"), reverse=True):
-        rel = p.relative_to(build_dir).as_posix()
-        if p.is_symlink() or p.is_file():
-            if rel not in keep:
-                p.unlink()
-                removed += 1
-        elif p.is_dir() and not any(p.iterdir()):
-            p.rmdir()
-    return removed
-
-
-__all__ = ["MediaFile", "publish", "read_clips", "scene_rows", "place_file", "rows_to_table",
-           "split_rows", "video_quality"]
+__all__ = ["MediaFile", "claim_build_folder", "publish", "read_clips", "scene_rows", "place_file",
+           "rows_to_table", "split_rows", "staging_version", "stop_point", "video_quality"]

@@ -1,14 +1,17 @@
 """The published pair format: the Parquet schema of a row, pair ids, and reading a build
-(``<manifests>/<build>/index.json`` + ``pairs-*.parquet`` + ``media/``) safely.
+(``<manifests>/<build>/index.json`` naming a version folder ``v-<nnnnnn>/`` with
+``pairs-*.parquet`` + ``media/``) safely.
 
 Written by the manifest stage (:mod:`paradrive.manifest`), read by the dataset adapter, inspect,
-eval and the inference scorer. Every URI a row or the index holds is checked to stay inside the
-build folder before it is opened.
+eval and the inference scorer. Readers read ``index.json`` once and open only the version it
+names, so a build republished meanwhile is never seen half old, half new. Every URI a row or the
+index holds is checked to stay inside that version folder before it is opened.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -16,9 +19,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import ValidationError
 
-from paradrive.errors import ParaDriveError, validation_message
-from paradrive.io import check_relative, path_inside
-from paradrive.contracts.layout import INDEX_JSON, MEDIA_DIR, BuildLayout
+from paradrive.errors import ConfigError, ParaDriveError, validation_message
+from paradrive.io import PathEscapeError, check_relative, path_inside
+from paradrive.contracts.layout import INDEX_JSON, MEDIA_DIR, SCENES_DIR, BuildLayout
 from paradrive.contracts.records import IndexRecord
 from paradrive.streams import format_offset
 
@@ -76,6 +79,8 @@ def make_pair_id(dataset: str, scene_id: str, camera: str, clip: str, offset_m: 
 
 
 URI_COLUMNS = ("source_uri", "condition_uri", "target_uri")
+# the scene files a symlink build's media may link to: clips/<camera>/<clip>/<stream>.<mp4|mkv>
+CLIP_FILE = re.compile(r"clips/[^/]+/[^/]+/[^/]+\.(?:mp4|mkv)")
 
 
 def check_row_uris(columns: dict, where: str) -> None:
@@ -89,20 +94,42 @@ def check_row_uris(columns: dict, where: str) -> None:
                 checked.add(uri)
 
 
+def version_dir(build_dir: str | Path, index: IndexRecord) -> Path:
+    """The folder ``index``'s shards and URIs are relative to: the version it names."""
+    layout = BuildLayout(Path(build_dir))
+    try:
+        return layout.version(index.version) if index.version is not None else layout.root
+    except ConfigError as exc:
+        raise PathEscapeError(str(exc)) from exc
+
+
+def _linked_clip(index: IndexRecord, uri: str) -> Path | None:
+    """Where a ``symlink`` build's media link for ``uri`` must lead: the clip file of one of the
+    build's own scenes, inside the data folder it was published from; None for anything else."""
+    root = index.media.data_root
+    parts = uri.split("/")
+    if index.media.mode != "symlink" or not root or len(parts) < 3 or parts[0] != MEDIA_DIR:
+        return None
+    scene_id, file = parts[1], "/".join(parts[2:])
+    if scene_id not in {s.scene_id for s in index.scenes} or not CLIP_FILE.fullmatch(file):
+        return None
+    return Path(root) / SCENES_DIR / scene_id / file
+
+
 def build_file(build_dir: str | Path, uri: object, what: str, index: IndexRecord) -> Path:
-    """The file a build-relative ``uri`` names, checked to stay inside the build.
+    """The file a version-relative ``uri`` names, checked to stay inside the build version.
 
     A build published with ``media: symlink`` links each media file to the scene's own clip in
-    the data folder: such a link may lead out, but only to ``<...>/<scene_id>/<file>`` named
-    like the URI, never to an arbitrary file.
+    the data folder: such a link may lead out, but only to exactly that clip file
+    (``<data_root>/scenes/<scene_id>/clips/<camera>/<clip>/<stream>.<mp4|mkv>`` of a scene the
+    index lists), never to an arbitrary file.
     """
-    linked = index.media.mode == "symlink"
-    tail = Path(str(uri)).parts[1:] if str(uri).startswith(MEDIA_DIR + "/") else ()
+    expected = _linked_clip(index, uri) if isinstance(uri, str) else None
 
     def scene_clip(resolved: Path) -> bool:
-        return linked and len(tail) >= 2 and resolved.parts[-len(tail):] == tail
+        return expected is not None and resolved == expected.resolve()
 
-    return path_inside(build_dir, uri, what, may_lead_out=scene_clip)
+    return path_inside(version_dir(build_dir, index), uri, what, may_lead_out=scene_clip)
 
 
 # --------------------------------------------------------------------------- reading
@@ -115,8 +142,8 @@ def read_index(build_dir: str | Path) -> IndexRecord:
         raise ParaDriveError(f"build folder {build_dir} does not exist; pass the folder "
                              f"<manifests>/<build> that `paradrive build` wrote")
     if not path.is_file():
-        raise ParaDriveError(f"{path} is missing: the build is being published or was never "
-                             f"built; wait for `paradrive build` to finish, or run it")
+        raise ParaDriveError(f"{path} is missing: the build was never published here; run "
+                             f"`paradrive build` (a build being published keeps its last index)")
     try:
         index = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
@@ -138,8 +165,20 @@ def read_index(build_dir: str | Path) -> IndexRecord:
 def shard_paths(build_dir: str | Path, index: IndexRecord | None = None) -> list[Path]:
     build_dir = Path(build_dir)
     index = index or read_index(build_dir)
-    return [path_inside(build_dir, s.file, f"{build_dir / INDEX_JSON}: shard {k}")
+    folder = version_dir(build_dir, index)
+    return [path_inside(folder, s.file, f"{build_dir / INDEX_JSON}: shard {k}")
             for k, s in enumerate(index.shards)]
+
+
+def read_shard(path: Path, columns: Iterable[str] | None = None) -> pa.Table:
+    """One shard; a truncated or damaged file is a one-line error naming it."""
+    try:
+        return pq.read_table(path, columns=list(columns) if columns else None)
+    except (pa.ArrowException, OSError) as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ParaDriveError(f"corrupt: {path} cannot be read as Parquet ({first}); re-run the "
+                             f"build without --stages (the same paradrive build command) to "
+                             f"publish it again") from exc
 
 
 def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> pa.Table:
@@ -152,5 +191,5 @@ def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> p
             raise ParaDriveError(f"{p} is listed in {build_dir / INDEX_JSON} but missing; "
                                  f"re-run the manifest stage (paradrive build --stages manifest "
                                  f"--force)")
-        tables.append(pq.read_table(p, columns=list(columns) if columns else None))
+        tables.append(read_shard(p, columns))
     return pa.concat_tables(tables) if tables else SCHEMA.empty_table()

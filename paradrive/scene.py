@@ -1,4 +1,4 @@
-"""The canonical scene: ``scene.json`` + undistorted images, as DESIGN.md fixes them.
+"""The canonical scene: ``scene.json`` + undistorted images, as docs/scene-layout.md fixes them.
 
 Layout under ``<data>/scenes/<scene_id>/``::
 

@@ -1,12 +1,14 @@
 """What render, clip, manifest and eval agree on: clip windows, stream names, the output camera.
 
-A clip is ``clip_frames`` consecutive frames of one camera (DESIGN.md, "Clips"). For a scene of
+A clip is ``clip_frames`` consecutive frames of one camera (docs/scene-layout.md, "Clips"). For a scene of
 N >= F frames: front = [0, F), middle = [floor((N - F) / 2), + F), rear = [N - F, N). A shorter
 scene has no clips; the reason is recorded and the other cameras and scenes go on.
 
 Every clip has streams: ``target`` (the recording), ``cond@<iteration:06d>`` (the recorded
 trajectory at an under-fitted checkpoint) and ``source<offset>`` (the trajectory shifted
-laterally at the final checkpoint). An offset is written one way everywhere (stream names, pair
+laterally at the final checkpoint), or with ``render.transform: longitudinal``
+``source+long<offset>`` (the camera moved that far along its own path, as FreeVS and
+StreetCrafter pair views). An offset is written one way everywhere (stream names, pair
 ids, inference truth files): :func:`format_offset`.
 """
 
@@ -15,12 +17,15 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from paradrive import geometry
 
 CLIP_NAMES = ("front", "middle", "rear")
+TRANSFORMS = ("lateral", "longitudinal")
+LONGITUDINAL_TAG = "+long"   # in a longitudinal source's stream name: source+long+4m
 TARGET_STREAM = "target"
 
 
@@ -64,6 +69,74 @@ def clip_windows(n_frames: int, clip_frames: int,
     return [ClipWindow(name, starts[name], f) for name in names], []
 
 
+class Shortfall(NamedTuple):
+    """Why a scene can give no clip: what it lacks, and the fix."""
+
+    what: str
+    fix: str
+
+
+def clip_shortfall(frames: int, scene_cameras: Sequence[str], cameras: Sequence[str],
+                   clip_frames: int) -> Shortfall | None:
+    """Why a scene of ``frames`` frames of ``scene_cameras`` cannot give the clips of ``cameras``
+    (render.cameras), or None when it can. Every clip window is ``clip_frames`` long, so a
+    scene with fewer frames gives none."""
+    missing = [c for c in cameras if c not in scene_cameras]
+    if missing:
+        return Shortfall(f"it has no camera {', '.join(missing)}, which render.cameras needs for "
+                         f"its pairs (it has {', '.join(scene_cameras) or 'none'})",
+                         "ingest that camera (ingest.cameras), name another one in "
+                         "render.cameras, or use another scene")
+    if frames < clip_frames:
+        return Shortfall(f"it has {frames} frame{'' if frames == 1 else 's'}, and a clip needs "
+                         f"{clip_frames} (render.clip_frames)",
+                         f"set a shorter render.clip_frames (at most {frames}) or use another scene")
+    return None
+
+
+def source_poses(c2w_path: np.ndarray, ego2world: np.ndarray, offset_m: float,
+                 transform: str) -> tuple[np.ndarray, np.ndarray]:
+    """The poses of a source stream over a camera's whole recorded path, and where they exist.
+
+    c2w_path, ego2world: (N, 4, 4) every frame of the scene. ``lateral``: the parallel lane
+    :func:`geometry.lateral_shift` makes (always on the path); ``longitudinal``: the camera
+    ``offset_m`` metres ahead (behind when negative) along its own path
+    (:func:`geometry.longitudinal_shift`). Returns (N, 4, 4) poses and ``on_path`` (N,) bool.
+    """
+    if transform == "longitudinal":
+        return geometry.longitudinal_shift(c2w_path, offset_m)
+    if transform != "lateral":
+        raise ValueError(f"unknown transform {transform!r}; transforms are {', '.join(TRANSFORMS)}")
+    return geometry.lateral_shift(c2w_path, ego2world, offset_m), np.ones(len(c2w_path), dtype=bool)
+
+
+def source_clip_windows(c2w_path: np.ndarray, clip_frames: int, names: Sequence[str],
+                        offsets_m: Sequence[float], transform: str) -> tuple[list[ClipWindow], list[dict]]:
+    """The clip windows of a camera whose every source pose lies on its recorded path.
+
+    A lateral source always does, so these are :func:`clip_windows` of the whole scene. A
+    longitudinal one runs off the path within ``max(offsets)`` metres of its end (or ``-min``
+    of its start): the windows are then laid over the frames where every offset stays on it,
+    so front starts and rear ends further in and no frame off the path is rendered; the clips
+    that do not fit there are skipped with that reason.
+    """
+    n = len(c2w_path)
+    on_path = np.ones(n, dtype=bool)
+    if transform == "longitudinal":
+        for d in offsets_m:
+            on_path &= geometry.longitudinal_shift(c2w_path, d)[1]
+    kept = np.flatnonzero(on_path)
+    span = range(int(kept[0]), int(kept[-1]) + 1) if len(kept) else range(0)
+    windows, skipped = clip_windows(len(span), clip_frames, names)
+    if len(span) == n:
+        return windows, skipped
+    where = f" ({span.start}..{span.stop - 1})" if len(span) else ""
+    reason = (f"its longitudinal sources stay on the recorded path ({geometry.arc_length(c2w_path)[-1]:.1f} m) "
+              f"for {len(span)} of its {n} frames{where}, a clip needs {clip_frames}")
+    return ([ClipWindow(w.name, w.start + span.start, w.num_frames) for w in windows],
+            [{"clip": s["clip"], "reason": reason} for s in skipped])
+
+
 def frames_needed(windows: Iterable[ClipWindow]) -> list[int]:
     """Sorted union of the frame positions the windows cover (each frame once)."""
     return sorted({i for w in windows for i in w.frames})
@@ -87,9 +160,15 @@ def condition_stream(iteration: int) -> str:
     return f"cond@{int(iteration):06d}"
 
 
-def source_stream(offset_m: float) -> str:
-    """``source+1m``: the recorded trajectory shifted ``offset_m`` (left > 0) at the final checkpoint."""
-    return f"source{format_offset(offset_m)}"
+def source_stream(offset_m: float, transform: str = "lateral") -> str:
+    """``source+1m``: the recorded trajectory shifted ``offset_m`` (left > 0) at the final
+    checkpoint; ``source+long+4m`` (longitudinal): moved ``offset_m`` along it (ahead > 0)."""
+    return f"source{LONGITUDINAL_TAG if transform == 'longitudinal' else ''}{format_offset(offset_m)}"
+
+
+def stream_transform(name: str) -> str:
+    """``longitudinal`` for a ``source+long..`` stream name, else ``lateral``."""
+    return "longitudinal" if name.startswith("source" + LONGITUDINAL_TAG) else "lateral"
 
 
 @dataclass(frozen=True)
@@ -100,15 +179,16 @@ class StreamPlan:
     kind: str                 # target | condition | source
     iteration: int | None = None
     offset_m: float | None = None
+    transform: str = "lateral"   # how a source is moved: lateral or longitudinal
 
 
 def plan_streams(condition_checkpoints: Sequence[int], source_checkpoint: int,
-                 offsets_m: Sequence[float]) -> list[StreamPlan]:
+                 offsets_m: Sequence[float], transform: str = "lateral") -> list[StreamPlan]:
     """The streams a camera gets: target, one per condition checkpoint, one per offset."""
     streams = [StreamPlan(TARGET_STREAM, "target")]
     streams += [StreamPlan(condition_stream(it), "condition", int(it)) for it in condition_checkpoints]
-    streams += [StreamPlan(source_stream(d), "source", int(source_checkpoint), float(d))
-                for d in offsets_m]
+    streams += [StreamPlan(source_stream(d, transform), "source", int(source_checkpoint), float(d),
+                           transform) for d in offsets_m]
     return streams
 
 

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Installs ParaDrive builder into ./.venv: system libraries first, then torch pinned to the
-# CPU build that lies on disk here, then the package with the requested extras.
-# Usage: scripts/setup.sh [extras]   e.g. scripts/setup.sh test
+# CPU build that lies on disk here, then the package with the requested extras: `build` (the
+# default) brings the builder's packages; without it only the pair reader (paradrive.data).
+# Usage: scripts/setup.sh [extras]   e.g. scripts/setup.sh build,test
 set -euo pipefail
 cd "$(dirname "$0")/.."
-extras="${1:-}"
+extras="${1-build}"
 PY="${PYTHON:-python3}"
 
 need_apt=()
@@ -12,7 +13,8 @@ need_apt=()
 for pkg in libusb-1.0-0 libgl1 libegl1 libxrender1 libosmesa6; do
     dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
-# The CPU rasterizer kernels are C++, built on first use (the Numba ones stand in without it).
+# The CPU rasterizer kernels are C++, compiled when the package is installed (without a
+# compiler the package still installs and the torch-op rasterizer, about 10x slower, runs).
 command -v c++ >/dev/null 2>&1 || command -v g++ >/dev/null 2>&1 || need_apt+=(g++)
 if [ "${#need_apt[@]}" -gt 0 ]; then
     if command -v apt-get >/dev/null 2>&1; then
@@ -26,7 +28,8 @@ fi
 
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 # torch first and pinned, with pip, which finds the CPU build on disk: an unpinned torch, or one
-# from another installer, pulls a CUDA build of several GB.
+# from another installer, pulls a CUDA build of several GB. The package's own range (torch>=2.4)
+# takes the pinned build as it is.
 .venv/bin/python -m pip install -q "torch==2.13.0"
 target="."
 [ -n "$extras" ] && target=".[$extras]"

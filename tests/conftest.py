@@ -1,20 +1,26 @@
 """Shared fixtures: smoke-profile builds of synthetic scenes, made once per test session.
 
 Building a scene end to end takes seconds to tens of seconds on 2 cores, so every test that needs
-a built scene or a manifest shares these (read-only: copy before mutating).
+a built scene or a manifest shares these. They are read-only: a test that changes anything in one
+copies it first (``copy_tree``); each session fixture checks at the end of the session that no
+file in its folder was added, removed or rewritten, and fails naming the files otherwise.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TypeVar
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
 
 SMOKE_SCENES = ("synthetic:demo?seed=7", "synthetic:demo?seed=11")
+T = TypeVar("T")
 
 
 def _build(root: Path, uris, stages=None, profile="smoke", build="smoke"):
@@ -29,21 +35,42 @@ def _build(root: Path, uris, stages=None, profile="smoke", build="smoke"):
             "build_dir": root / "manifests" / build, "scene_uris": list(uris), "report": report}
 
 
+def snapshot(root: Path) -> dict[str, tuple[int, int]]:
+    """Every entry under ``root``: its size and modification time (what a write changes)."""
+    return {str(p.relative_to(root)): (p.lstat().st_size, p.lstat().st_mtime_ns)
+            for p in root.rglob("*")}
+
+
+def changed_entries(before: dict[str, tuple[int, int]], after: dict[str, tuple[int, int]]) -> list[str]:
+    return sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+
+
+def read_only(root: Path, value: T) -> Iterator[T]:
+    """Yields ``value``; afterwards fails if anything under ``root`` was added, removed or rewritten."""
+    before = snapshot(root)
+    yield value
+    changed = changed_entries(before, snapshot(root))
+    assert not changed, (f"a test changed the shared build under {root} (copy it with copy_tree "
+                         f"before changing it): {changed[:10]}")
+
+
 @pytest.fixture(scope="session")
 def smoke_scene(tmp_path_factory):
     """One synthetic scene (seed 7) ingested and fitted with the smoke profile."""
     root = tmp_path_factory.mktemp("smoke_scene")
-    return _build(root, SMOKE_SCENES[:1], stages=["ingest", "fit"])
+    yield from read_only(root, _build(root, SMOKE_SCENES[:1], stages=["ingest", "fit"]))
 
 
 @pytest.fixture(scope="session")
-def smoke_build(smoke_scene):
+def smoke_build(tmp_path_factory, smoke_scene):
     """Two synthetic scenes (seeds 7 and 11) through every stage, manifest included.
 
-    It grows the ``smoke_scene`` data folder, so seed 7's ingest and fit are reused (skipped by
-    their fingerprints), not redone.
+    It starts from a copy of the ``smoke_scene`` data folder, so seed 7's ingest and fit are
+    reused (skipped by their fingerprints), not redone, and ``smoke_scene`` stays as it was.
     """
-    return _build(smoke_scene["root"], SMOKE_SCENES)
+    root = tmp_path_factory.mktemp("smoke_build")
+    shutil.copytree(smoke_scene["data_dir"], root / "data", symlinks=True)
+    yield from read_only(root, _build(root, SMOKE_SCENES))
 
 
 def ingest_synthetic(root: Path, frames: int, width: int, height: int) -> Path:
@@ -60,10 +87,31 @@ def ingest_synthetic(root: Path, frames: int, width: int, height: int) -> Path:
 
 
 @pytest.fixture(scope="session")
-def tiny_scene(tmp_path_factory) -> Path:
+def tiny_scene(tmp_path_factory) -> Iterator[Path]:
     """Synthetic street, 8 frames of 80x48, the smoke profile's cameras, with LiDAR and sky
     masks (ingest only)."""
-    return ingest_synthetic(tmp_path_factory.mktemp("tiny_scene"), 8, 80, 48)
+    root = tmp_path_factory.mktemp("tiny_scene")
+    scene_dir = ingest_synthetic(root, 8, 80, 48)
+    yield from read_only(root, scene_dir)
+
+
+def picture(path: Path) -> np.ndarray:
+    """The pixels (H, W, 3) an image file decodes to: what a viewer would show."""
+    from PIL import Image
+
+    with Image.open(path) as img:
+        return np.asarray(img.convert("RGB"))
+
+
+def assert_a_drawing(path: Path, min_width: int, min_height: int, background=(255, 255, 255)) -> np.ndarray:
+    """``path`` decodes to a picture of at least that size with something drawn on it: more than
+    a few colours and more than 1 % of the pixels off the background. Returns the pixels."""
+    pixels = picture(path)
+    assert pixels.shape[1] >= min_width and pixels.shape[0] >= min_height, pixels.shape
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 16, f"{path}: a blank or flat picture"
+    drawn = np.any(pixels != np.array(background, np.uint8), axis=-1).mean()
+    assert drawn > 0.01, f"{path}: {drawn:.1%} of the pixels differ from the background"
+    return pixels
 
 
 @pytest.fixture
@@ -93,8 +141,8 @@ def stage_config(tmp_path):
 @pytest.fixture(scope="module")
 def s3_bucket():
     """A local S3 endpoint (moto's server) with an empty bucket "builds"; yields fsspec's options."""
-    pytest.importorskip("s3fs")
-    boto3 = pytest.importorskip("boto3")
+    import boto3
+    import s3fs  # noqa: F401  (the test extra's: fsspec's s3:// protocol)
     from moto.server import ThreadedMotoServer
 
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)

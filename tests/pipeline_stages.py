@@ -18,6 +18,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -121,10 +123,54 @@ def _trouble(ctx, stage: str) -> None:
         os._exit(1)
 
 
+def hold(data_dir: Path, scene_id: str, stage: str) -> Path:
+    """Makes ``stage`` of ``scene_id`` stop once it has started, in every build over
+    ``data_dir`` until the returned switch (a named pipe) is removed: it says ``held`` on the
+    pipe and waits there, so a test kills it inside the stage, never too late."""
+    fifo = Path(data_dir) / f"hold-{scene_id}-{stage}"
+    fifo.parent.mkdir(parents=True, exist_ok=True)
+    os.mkfifo(fifo)
+    return fifo
+
+
+def wait_for_hold(fifo: Path, proc: subprocess.Popen) -> str:
+    """``held`` once the stage behind ``fifo`` holds; ``ended`` if ``proc`` ends before."""
+    reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+    # a writer of our own: the pipe never reads as closed before the first word, and the
+    # watcher below answers through it when the process ends first
+    writer = os.open(fifo, os.O_WRONLY)
+    os.set_blocking(reader, True)
+    lock, answered = threading.Lock(), []
+
+    def on_exit() -> None:
+        proc.wait()
+        with lock:
+            if not answered:
+                os.write(writer, b"ended\n")
+
+    threading.Thread(target=on_exit, daemon=True).start()
+    pipe = os.fdopen(reader)
+    word = pipe.readline().strip()
+    with lock:
+        answered.append(word)
+        os.close(writer)
+    pipe.close()
+    return word
+
+
+def _hold_here(ctx, stage: str) -> None:
+    fifo = Path(ctx.data_dir) / f"hold-{ctx.scene_id}-{stage}"
+    if fifo.exists():
+        with open(fifo, "w") as pipe:
+            pipe.write("held\n")
+        threading.Event().wait()   # until killed
+
+
 def _stage(stage: str):
     def wrap(func):
         def run(ctx):
             _note(ctx, "start", stage, ctx.scene_id)
+            _hold_here(ctx, stage)
             _trouble(ctx, stage)
             summary = func(ctx)
             _note(ctx, "end", stage, ctx.scene_id)
@@ -193,7 +239,7 @@ def run_manifest(ctx) -> dict:
 
 
 def tree_digest(root: Path, skip=(".paradrive", "logs", "locks", "calls.log", "crashed-", "broken-",
-                                  "ledger.sqlite")) -> dict[str, str]:
+                                  "hold-", "ledger.sqlite")) -> dict[str, str]:
     """sha256 of every file under ``root`` (relative path -> digest), minus bookkeeping files."""
     out = {}
     for p in sorted(Path(root).rglob("*")):

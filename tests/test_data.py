@@ -20,8 +20,13 @@ from paradrive.data import (PairDataset, PairIterableDataset, output_geometry, r
 from paradrive.video import decode_frames, each_frame
 from paradrive.errors import ParaDriveError
 from paradrive.stages.manifest import build_manifest
-from paradrive.pairs import read_pairs
+from paradrive.pairs import read_index, read_pairs, version_dir
 from test_manifest import frame_pixels, scenes_entry, write_clip_scene, write_video
+
+
+def media(build, uri: str):
+    """A row's video: URIs are relative to the version folder the build's index names."""
+    return version_dir(build, read_index(build)) / uri
 
 
 @pytest.fixture(scope="module")
@@ -141,7 +146,7 @@ def test_target_frames_are_the_video_frames_scaled_to_minus_one_one(build):
     ds = PairDataset(build, num_frames=3, frame_stride=2, frame_offset=1)
     s = ds[17]
     row = ds.row(17)
-    video = decode_frames(build / row["target_uri"])[[1, 3, 5]]
+    video = decode_frames(media(build, row["target_uri"]))[[1, 3, 5]]
     expected = torch.from_numpy(video).permute(0, 3, 1, 2).float() / 127.5 - 1
     assert torch.equal(s["target"], expected)
     np.testing.assert_allclose(s["rel_pose"].numpy(), row["rel_pose"][[1, 3, 5]], atol=1e-7)
@@ -152,7 +157,7 @@ def test_uint8_samples_are_the_stored_frames_and_float_samples_their_normalisati
     raw = PairDataset(build, dtype="uint8", **window)[17]
     row = PairDataset(build).row(17)
     for role in ("source", "condition", "target"):
-        video = decode_frames(build / row[f"{role}_uri"])[[1, 3, 5]]
+        video = decode_frames(media(build, row[f"{role}_uri"]))[[1, 3, 5]]
         assert raw[role].dtype == torch.uint8 and raw[role].shape == (3, 3, 48, 64)
         assert torch.equal(raw[role], torch.from_numpy(video).permute(0, 3, 1, 2))
     for dtype in (torch.float32, torch.bfloat16):
@@ -170,7 +175,7 @@ def test_resized_and_cropped_uint8_and_float_samples_agree(build):
     assert torch.equal(s["target"], to_unit_range(raw["target"]))
     assert s["target"].min() >= -1 and s["target"].max() <= 1
     # the area filter scales each colour plane: near a full decode scaled by torch, then cut
-    full = torch.from_numpy(decode_frames(build / PairDataset(build).row(3)["target_uri"])[:2])
+    full = torch.from_numpy(decode_frames(media(build, PairDataset(build).row(3)["target_uri"]))[:2])
     scaled = torch.nn.functional.interpolate(full.permute(0, 3, 1, 2).float(), size=(32, 43), mode="area")
     assert (raw["target"].float() - scaled[..., 5:37]).abs().mean() < 3.0
 
@@ -224,7 +229,7 @@ def test_a_window_decodes_from_the_keyframe_before_it_not_from_the_start(long_bu
     s = ds[0]
     row = ds.row(0)
     for role in ("source", "condition", "target"):
-        full = decode_frames(long_build / row[f"{role}_uri"], seek=False)
+        full = decode_frames(media(long_build, row[f"{role}_uri"]), seek=False)
         assert torch.equal(s[role], torch.from_numpy(full[start:start + 25]).permute(0, 3, 1, 2))
     keyframe = start // 30 * 30  # the clip has a keyframe every 30 frames
     # per video: from the keyframe to the window's end, plus what the decoder holds back
@@ -283,7 +288,7 @@ def test_verify_checksums_names_a_corrupt_file(build, tmp_path):
     shutil.copytree(build, copy)
     ds = PairDataset(copy, verify_checksums=True)
     ds[0]  # clean files pass
-    victim = copy / ds.row(1)["source_uri"]
+    victim = media(copy, ds.row(1)["source_uri"])
     data = bytearray(victim.read_bytes())
     data[-5] ^= 0xFF
     victim.unlink()  # hardlinked: write a new file rather than change the original

@@ -110,7 +110,25 @@ def test_fit_densifies_resets_checkpoints_and_resumes_on_a_device(device, graph,
                 assert (dev / name).read_bytes() == (cpu / name).read_bytes(), name
             else:                       # gsplat's kernels: the same model up to float noise
                 a, b = load_ply(dev / name), load_ply(cpu / name)
-                assert a["means"].shape == b["means"].shape
+                assert a["means"].shape == b["means"].shape, name
+                # Adam's normalised steps can turn a float-noise gradient into a whole step for a
+                # few Gaussians: most must sit where the CPU put them, and every one near it
+                moved = np.linalg.norm(np.asarray(a["means"]) - np.asarray(b["means"]), axis=-1)
+                assert np.quantile(moved, 0.9) < 1e-2 and moved.max() < 0.5, (name, moved.max())
+        _assert_renders_alike(dev / f"gs/ckpt_{it:06d}.ply", cpu / f"gs/ckpt_{it:06d}.ply", cpu)
+
+
+def _assert_renders_alike(ply, ref_ply, scene_dir: Path, min_psnr: float = 30.0) -> None:
+    """The two checkpoints, rendered by the same CPU rasterizer from the first recorded front
+    view, show the same picture (PSNR over ``min_psnr`` dB)."""
+    doc = json.loads((scene_dir / "scene.json").read_text())
+    cam, frame = doc["cameras"]["front"], doc["frames"][0]
+    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+    c2w = np.reshape(frame["cameras"]["front"]["c2w"], (1, 4, 4))
+    a, b = (render_checkpoint(p, c2w, K, cam["width"], cam["height"], **CPU_REF)["rgb"]
+            for p in (ply, ref_ply))
+    err = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))   # rgb in [0, 1]
+    assert 10 * np.log10(1.0 / max(err, 1e-10)) > min_psnr, (ply, err)
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -1,4 +1,4 @@
-"""The lateral shift and the relative pose, as DESIGN.md defines them (property tests)."""
+"""The lateral shift and the relative pose, as docs/conventions.md defines them (property tests)."""
 
 import numpy as np
 from hypothesis import given, settings

@@ -4,12 +4,14 @@ the true novel view as target (synthetic scenes), null where no truth is known."
 from __future__ import annotations
 
 import json
+import shutil
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import stage_params
+from conftest import assert_a_drawing, picture, stage_params
 
 from paradrive import geometry
 from paradrive.data import PairDataset
@@ -23,20 +25,22 @@ SCENE = "synthetic-demo-s7"
 
 @pytest.fixture(scope="module")
 def inference_build(smoke_build, tmp_path_factory):
-    """The smoke scenes' inference set, from their existing fits, renders and clips."""
-    manifests = tmp_path_factory.mktemp("inference")
+    """The smoke scenes' inference set, from their existing fits, renders and clips (a copy of
+    the data folder: a build writes its ledger and logs there)."""
+    root = tmp_path_factory.mktemp("inference")
+    data_dir = Path(shutil.copytree(smoke_build["data_dir"], root / "data", symlinks=True))
     config = StageRegistry().resolve("smoke", {"manifest": {"kind": "inference"}})
-    report = run_build(config, smoke_build["scene_uris"], smoke_build["data_dir"],
-                       stages=["manifest"], manifests_dir=manifests, build="infer")
+    report = run_build(config, smoke_build["scene_uris"], data_dir,
+                       stages=["manifest"], manifests_dir=root / "manifests", build="infer")
     assert not report.failures(), [r.error for r in report.failures()]
-    return {"dir": manifests / "infer", "config": config, "data_dir": smoke_build["data_dir"],
+    return {"dir": root / "manifests" / "infer", "config": config, "data_dir": data_dir,
             "training": smoke_build["build_dir"]}
 
 
-def test_a_scene_without_a_fit_is_a_failed_scene_not_a_silent_omission(smoke_build, tmp_path):
+def test_a_scene_without_a_fit_is_a_failed_scene_not_a_silent_omission(smoke_build, copy_tree, tmp_path):
     config = StageRegistry().resolve("smoke", {"manifest": {"kind": "inference"}})
     unfitted = "synthetic:demo?seed=5"   # never built in this data root
-    report = run_build(config, smoke_build["scene_uris"] + [unfitted], smoke_build["data_dir"],
+    report = run_build(config, smoke_build["scene_uris"] + [unfitted], copy_tree(smoke_build["data_dir"]),
                        stages=["manifest"], manifests_dir=tmp_path, build="infer")
     (failure,) = report.failures()
     assert failure.scene_id == "synthetic-demo-s5" and failure.stage == "manifest"
@@ -104,7 +108,8 @@ def test_targets_are_the_ray_casters_shifted_views(inference_build):
         fx, fy, cx, cy = row["intrinsics"]
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         truth = street.render(shifted, K, row["width"], row["height"], frames=frames)["rgb"]
-        video = decode_frames(inference_build["dir"] / row["target_uri"])
+        video = decode_frames(inference_build["dir"] / read_index(inference_build["dir"]).version
+                              / row["target_uri"])
         assert np.array_equal(video, truth), row["pair_id"]
         assert row["condition_psnr"] is not None and row["condition_psnr"] > 10
 
@@ -124,16 +129,24 @@ def test_the_adapter_reads_rows_with_and_without_a_target(inference_build, tmp_p
     from paradrive.inspection import contact_sheet, verify_build
 
     assert verify_build(tmp_path / "real")["ok"]
-    contact_sheet(tmp_path / "real", tmp_path / "sheet.png")
-    assert (tmp_path / "sheet.png").stat().st_size > 0
+    contact_sheet(tmp_path / "real", tmp_path / "sheet.png", pairs=1, frames=3, thumb_width=208)
+    # the sheet shows the video frames: its first thumbnail (below the title and the pair's
+    # header) is the decoded source frame, not the blank page
+    first = table[0]
+    th = int(round(208 * first["height"] / first["width"])) // 2 * 2
+    sheet = picture(tmp_path / "sheet.png")
+    assert sheet.shape[1] == 190 + 3 * (208 + 6) + 6
+    thumb = sheet[6 + 18 + 26:6 + 18 + 26 + th, 190:190 + 208].astype(float)
+    assert thumb.std() > 10.0 and len(np.unique(thumb.reshape(-1, 3), axis=0)) > 500
 
 
 def videos_folder(build_dir, rows, role, folder):
     """Generated videos stand-ins: each row's ``role`` video linked as ``<pair_id><suffix>``."""
     import os
 
+    version = read_index(build_dir).version   # URIs are relative to the published version
     for row in rows:
-        src = build_dir / row[f"{role}_uri"]
+        src = build_dir / version / row[f"{role}_uri"]
         dst = folder / f"{row['pair_id']}{src.suffix}"
         dst.parent.mkdir(parents=True, exist_ok=True)
         os.link(src, dst)
@@ -154,7 +167,7 @@ def test_eval_build_scores_the_targets_themselves_as_perfect(inference_build, tm
     assert len(doc["by_offset"]) == 8 and not doc["missing"]
     assert all(r["videos"] == 6 for r in doc["by_offset"])  # 2 scenes x 3 clips
     assert all(r["psnr"] >= 99.0 and r["ssim"] > 0.9999 for r in doc["by_offset"])
-    assert (videos / "scores.png").stat().st_size > 0
+    assert_a_drawing(videos / "scores.png", 600, 300)
 
 
 def test_eval_build_scores_the_conditions_as_eval_scores_the_final_checkpoint(inference_build,

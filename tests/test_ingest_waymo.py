@@ -217,7 +217,8 @@ def test_waymo_segment_builds_through_ingest_and_fit(source, tmp_path):
 
     path = tmp_path / "logs" / SEGMENT
     export.export_waymo(source, path, distortion=DIST)
-    config = StageRegistry().resolve("smoke", {"fit": {"checkpoints": [5, 10, 15, 20]}})
+    config = StageRegistry().resolve("smoke", {"fit": {"checkpoints": [5, 10, 15, 20]},
+                                               "render": {"clip_frames": 4}})  # a 4-frame log
     report = run_build(config, [f"waymo:{path}"], tmp_path / "data", stages=["ingest", "fit"])
     assert [f.error for f in report.failures()] == []
     scene_dir = tmp_path / "data" / "scenes" / "waymo-1234"

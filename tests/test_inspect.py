@@ -73,11 +73,11 @@ def test_cli_json_is_machine_readable(build):
 def test_verify_names_each_missing_or_corrupt_file(build, tmp_path):
     copy = tmp_path / "b"
     shutil.copytree(build, copy)
-    corrupt = copy / "media/synthetic-a/clips/front/rear/cond@000500.mp4"
+    corrupt = copy / read_index(copy).version / "media/synthetic-a/clips/front/rear/cond@000500.mp4"
     data = bytearray(corrupt.read_bytes())
     data[100] ^= 0x55
     corrupt.write_bytes(bytes(data))
-    missing = copy / "media/synthetic-b/clips/front/middle/source-3m.mp4"
+    missing = copy / read_index(copy).version / "media/synthetic-b/clips/front/middle/source-3m.mp4"
     missing.unlink()
     result = invoke(copy, "--verify")
     assert result.exit_code == 1
@@ -92,7 +92,7 @@ def test_verify_names_each_missing_or_corrupt_file(build, tmp_path):
 def test_verify_checks_shards_against_the_index(build, tmp_path):
     copy = tmp_path / "b"
     shutil.copytree(build, copy)
-    shard = copy / read_index(copy).shards[0].file
+    shard = copy / read_index(copy).version / read_index(copy).shards[0].file
     with open(shard, "r+b") as f:
         f.seek(20)
         f.write(b"\0\0\0\0")

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from paradrive.errors import ConfigError
-from paradrive.pipeline.ledger import Ledger
+from paradrive.pipeline.ledger import Ledger, LedgerError
 from paradrive.pipeline.runner import StageResult
 
 A, B, C = "synthetic:a?seed=1", "synthetic:b?seed=2", "synthetic:c?seed=3"
@@ -218,3 +218,31 @@ def test_status_lists_every_scene_on_request(filled, tmp_path):
     res = cli("status", "b1", "--manifests", str(tmp_path / "manifests"), "--scenes")
     assert res.exit_code == 0
     assert AID in res.output and CID in res.output
+
+
+def test_a_ledger_that_is_not_a_database_is_moved_aside_and_rebuilt_from_the_markers(tmp_path):
+    build_dir, scene_dir = tmp_path / "manifests" / "b1", tmp_path / "data" / "scenes" / AID
+    for folder, stage, extra in ((scene_dir, "ingest", {}),
+                                 (scene_dir, "fit", {"upstream_runs": {"ingest": "r1"}}),
+                                 (build_dir, "manifest", {})):
+        (folder / ".paradrive").mkdir(parents=True, exist_ok=True)
+        (folder / ".paradrive" / f"{stage}.json").write_text(json.dumps(
+            {"stage": stage, "fingerprint": f"fp-{stage}", "seconds": 4.0, "run": "r1", **extra}))
+    (build_dir / "index.json").write_text(json.dumps(
+        {"scenes": [{"scene_id": AID, "scene_uri": A, "scene_dir": str(scene_dir)}]}))
+    (build_dir / "ledger.sqlite").write_bytes(b"\x00garbage" * 100)
+    ledger = Ledger.for_build(tmp_path / "manifests", "b1")
+    assert "not a database" in ledger.recovered and "ledger.sqlite.corrupt-" in ledger.recovered
+    assert [(r["scene_id"], r["stage"], r["state"], r["seconds"]) for r in ledger.tasks()] == [
+        (AID, "ingest", "done", 4.0), (AID, "fit", "done", 4.0), ("build:b1", "manifest", "done", 4.0)]
+    (aside,) = build_dir.glob("ledger.sqlite.corrupt-*")
+    assert aside.read_bytes() == b"\x00garbage" * 100  # kept for a person to look at
+
+
+def test_a_ledger_that_cannot_be_made_is_one_line_naming_the_file_and_the_fix(tmp_path):
+    (tmp_path / "manifests").write_text("a file where the builds folder should be")
+    with pytest.raises(LedgerError) as err:
+        Ledger.for_build(tmp_path / "manifests", "b1")
+    text = str(err.value)
+    assert str(tmp_path / "manifests" / "b1" / "ledger.sqlite") in text and "\n" not in text
+    assert "pass a writable --manifests" in text

@@ -21,7 +21,7 @@ from conftest import stage_params
 
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
-from paradrive.pairs import SCHEMA, make_pair_id, read_index, read_pairs
+from paradrive.pairs import SCHEMA, make_pair_id, read_index, read_pairs, version_dir
 from paradrive.stages.manifest import build_manifest
 from paradrive.manifest import scene_rows
 
@@ -199,8 +199,9 @@ def test_checksums_and_sizes_match_the_linked_media(built):
         for role in ("source", "condition", "target"):
             seen[row[f"{role}_uri"]] = (row[f"{role}_sha256"], row[f"{role}_bytes"])
     assert len(seen) == 2 * 3 * (1 + 3 + 8)
+    folder = version_dir(built, read_index(built))
     for uri, (sha, size) in seen.items():
-        path = built / uri
+        path = folder / uri
         assert uri.startswith("media/") and path.is_file()
         data = path.read_bytes()
         assert len(data) == size and hashlib.sha256(data).hexdigest() == sha
@@ -230,11 +231,12 @@ def test_index_lists_shards_with_rows_bytes_and_sha256(built):
     assert index.software["paradrive"]
     assert [s.rows for s in index.shards] == [50, 50, 44]
     assert index.totals.rows == 144
+    assert index.version == "v-000001"
     for s in index.shards:
         assert re.fullmatch(r"pairs-\d{5}\.parquet", s.file)
-        data = (built / s.file).read_bytes()
+        data = (built / index.version / s.file).read_bytes()
         assert len(data) == s.bytes and hashlib.sha256(data).hexdigest() == s.sha256
-        assert pq.ParquetFile(built / s.file).metadata.num_rows == s.rows
+        assert pq.ParquetFile(built / index.version / s.file).metadata.num_rows == s.rows
     assert [c.name for c in index.columns] == SCHEMA.names
     assert {s.scene_id for s in index.scenes} == {"synthetic-a", "synthetic-b"}
     assert index.scenes[0].skipped_clips[0].clip == "extra"
@@ -263,30 +265,34 @@ def test_republishing_keeps_foreign_files_and_drops_stale_shards(tmp_path, two_s
     build = tmp_path / "b"
     entries = [scenes_entry(s) for s in two_scene_data]
     build_manifest(build, entries, stage_params("manifest", {"shard_rows": 10}))
-    assert len(list(build.glob("pairs-*.parquet"))) == 15
+    first = version_dir(build, read_index(build))
+    assert first.name == "v-000001" and len(list(first.glob("pairs-*.parquet"))) == 15
     (build / "ledger.sqlite").write_bytes(b"ledger")
     (build / "logs").mkdir()
     (build / "logs" / "run.log").write_text("log")
     build_manifest(build, entries[:1], stage_params("manifest", {"shard_rows": 100}))
-    assert sorted(p.name for p in build.glob("pairs-*.parquet")) == ["pairs-00000.parquet"]
+    second = version_dir(build, read_index(build))
+    assert second.name == "v-000002" and not first.exists()   # the old version goes after the switch
+    assert sorted(p.name for p in second.glob("pairs-*.parquet")) == ["pairs-00000.parquet"]
     assert (build / "ledger.sqlite").read_bytes() == b"ledger"
     assert (build / "logs" / "run.log").read_text() == "log"
-    assert not (build / "media" / "synthetic-b").exists()
+    assert not (second / "media" / "synthetic-b").exists()
     assert not [p for p in build.rglob("*") if ".tmp-" in p.name or "staging" in p.name]
     assert read_index(build).totals.rows == 72
 
 
 def test_media_hardlinks_share_the_inode_and_copy_does_not(tmp_path, two_scene_data):
     src = two_scene_data[0] / "clips/front/middle/target.mp4"
+    rel = "media/synthetic-a/clips/front/middle/target.mp4"
     for mode, same in (("hardlink", True), ("copy", False)):
         build = tmp_path / mode
         build_manifest(build, [scenes_entry(two_scene_data[0])], stage_params("manifest", {"media": mode}))
-        dst = build / "media/synthetic-a/clips/front/middle/target.mp4"
+        dst = version_dir(build, read_index(build)) / rel
         assert (os.stat(dst).st_ino == os.stat(src).st_ino) is same
         assert dst.read_bytes() == src.read_bytes()
     build = tmp_path / "symlink"
     build_manifest(build, [scenes_entry(two_scene_data[0])], stage_params("manifest", {"media": "symlink"}))
-    assert (build / "media/synthetic-a/clips/front/middle/target.mp4").is_symlink()
+    assert (version_dir(build, read_index(build)) / rel).is_symlink()
 
 
 def test_a_bad_scene_is_skipped_with_its_reason(tmp_path, two_scene_data):

@@ -12,7 +12,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -227,14 +226,9 @@ def _env(stages: Path) -> dict:
     return env
 
 
-SLEEP_S = 1.0
-
-
 def _build_cmd(root: Path, listing: Path) -> list[str]:
-    # fit sleeps a little so the kill lands inside a stage; same parameters in every run
     return [sys.executable, "-m", "paradrive.cli", "build", "--scenes", str(listing),
-            "--data", str(root / "data"), "--manifests", str(root / "manifests"), "--build", "b",
-            "--set", f"fit.sleep_s={SLEEP_S}"]
+            "--data", str(root / "data"), "--manifests", str(root / "manifests"), "--build", "b"]
 
 
 def test_a_build_killed_midway_resumes_with_only_the_missing_work(tmp_path):
@@ -244,22 +238,21 @@ def test_a_build_killed_midway_resumes_with_only_the_missing_work(tmp_path):
     env = _env(stages)
 
     whole = tmp_path / "whole"  # the uninterrupted build, same stages and parameters
-    config = StageRegistry(stages).resolve(None, {"fit": {"sleep_s": SLEEP_S}})
+    config = StageRegistry(stages).resolve(None)
     assert run_build(config, SCENES, whole / "data", manifests_dir=whole / "manifests",
                      build="b").exit_code == EXIT_OK
 
     killed = tmp_path / "killed"
+    held = pipeline_stages.hold(killed / "data", IDS[1], "fit")
     proc = subprocess.Popen(_build_cmd(killed, listing), env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    deadline = time.time() + 180
-    try:  # kill it while the second scene's fit is running
-        while ("start", "fit", IDS[1]) not in pipeline_stages.calls(killed / "data"):
-            assert proc.poll() is None and time.time() < deadline, "the build ended before the kill"
-            time.sleep(0.05)
+    try:  # kill it while the second scene's fit is running (held there)
+        assert pipeline_stages.wait_for_hold(held, proc) == "held", "the build ended before the kill"
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.kill()
-        proc.wait(30)
+        proc.wait()
+    held.unlink()
     assert ("fit", IDS[1]) not in pipeline_stages.finished(killed / "data")
     ledger = Ledger.for_build(killed / "manifests", "b")
     assert ledger.task(IDS[1], "fit")["state"] == "running"  # what the dead build left

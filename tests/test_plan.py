@@ -13,7 +13,7 @@ from paradrive.pipeline.budget import plan_build, scene_footprint
 from paradrive.pipeline.runner import read_marker
 
 WAYMO = [f"waymo:/logs/segment-{n}_with_camera_labels.tfrecord" for n in ("1", "2")]
-PAIRS_PER_SCENE = 72   # DESIGN.md: 3 clips x 8 offsets x 3 under-fitted checkpoints, one camera
+PAIRS_PER_SCENE = 72   # docs/scene-layout.md: 3 clips x 8 offsets x 3 under-fitted checkpoints, one camera
 
 
 def rates() -> dict:
@@ -33,13 +33,19 @@ def test_paper_logs_take_the_documented_rates_and_the_papers_gpu_budget():
         assert one.as_json()[key] > 0 and abs(plan.as_json()[key] - 2 * one.as_json()[key]) <= 1
 
 
-def test_a_finished_scene_is_projected_at_what_it_took(smoke_scene, tmp_path):
-    """Rates measured on the data root's finished scene reproduce that scene's own seconds and bytes."""
+def _scene_alone(data_dir, tmp_path):
+    """A data root holding only seed 7's scene folder, copied from ``data_dir``."""
     import shutil
 
-    data = tmp_path / "data"   # that scene alone: other tests add scenes to the shared data root
-    scene_dir = data / "scenes" / "synthetic-demo-s7"
-    shutil.copytree(smoke_scene["data_dir"] / "scenes" / "synthetic-demo-s7", scene_dir)
+    data = tmp_path / "data"
+    shutil.copytree(data_dir / "scenes" / "synthetic-demo-s7", data / "scenes" / "synthetic-demo-s7")
+    return data, data / "scenes" / "synthetic-demo-s7"
+
+
+def test_a_finished_scene_is_projected_at_what_it_took(smoke_scene, tmp_path):
+    """Rates measured on the data root's finished scene (ingested and fitted, never rendered)
+    reproduce that scene's own seconds and bytes; render, not yet measured, takes the default."""
+    data, scene_dir = _scene_alone(smoke_scene["data_dir"], tmp_path)
     config = StageRegistry().resolve("smoke")
     plan = plan_build(config, ["synthetic:demo?seed=7"], data)
     assert plan.shapes == {"ingested": 1}
@@ -50,12 +56,15 @@ def test_a_finished_scene_is_projected_at_what_it_took(smoke_scene, tmp_path):
     for folder in ("images", "lidar", "gs"):
         assert abs(plan.bytes[folder] - footprint[folder]) < 1.0, folder
     assert plan.rates["compute:fit"].device == "cpu"     # fit.json says where the fit ran
-    # render is measured once the scene has been rendered (other tests may have), else the default
-    render = plan.rates["compute:render"].source
-    if read_marker(scene_dir, "render") is not None:
-        assert render.startswith("measured")
-    else:
-        assert render == rates()["compute"]["render"]["source"]
+    assert read_marker(scene_dir, "render") is None
+    assert plan.rates["compute:render"].source == rates()["compute"]["render"]["source"]
+
+
+def test_a_rendered_scene_is_projected_at_its_render_time(smoke_build, tmp_path):
+    data, scene_dir = _scene_alone(smoke_build["data_dir"], tmp_path)
+    plan = plan_build(StageRegistry().resolve("smoke"), ["synthetic:demo?seed=7"], data)
+    assert plan.rates["compute:render"].source.startswith("measured")
+    assert abs(plan.seconds["render"] - read_marker(scene_dir, "render")["seconds"]) < 1e-6
 
 
 def test_retention_switches_lower_only_what_is_kept():

@@ -151,16 +151,31 @@ def test_an_expired_lease_is_taken_over_and_a_live_one_is_not(tmp_path, stand_in
 
 
 def test_a_lease_is_renewed_while_its_holder_works(monkeypatch, tmp_path):
+    import queue
+
     from paradrive.pipeline import locks
 
     monkeypatch.setattr(locks, "LEASE_SECONDS", 1.5)  # renewed every 0.5 s
+    renewals: queue.Queue = queue.Queue()
+    renew = locks._Lease.renew
+
+    def reported_renew(self, holder):
+        renewed = renew(self, holder)
+        renewals.put(renewed)
+        return renewed
+
+    monkeypatch.setattr(locks._Lease, "renew", reported_renew)
     root = DataRoot.of(f"memory://renew-{uuid.uuid4().hex[:8]}/data", cache_dir=str(tmp_path))
     fs, base = root.filesystem()
     lease = f"{base}/locks/{IDS[0]}.json"
     try:
         with scene_lock(root, IDS[0], LockOptions("b1")):
             first = json.loads(fs.cat_file(lease))["expires_at"]
-            time.sleep(3.5)  # past the first expiry: only renewals keep it
+            # wait for the renewals up to one made after the first expiry: only they keep it now
+            while (renewed := renewals.get()) is not None and \
+                    renewed.expires_at - locks.LEASE_SECONDS <= first:
+                pass
+            assert renewed is not None, "the lease was lost"
             later = json.loads(fs.cat_file(lease))["expires_at"]
             assert later > first
             with pytest.raises(locks.SceneLocked, match="locked by build b1"):
@@ -267,3 +282,13 @@ def test_two_real_builds_started_a_second_apart_both_verify(tmp_path):
     columns = ["pair_id"] + [f"{r}_sha256" for r in ("source", "condition", "target")]
     tables = [read_pairs(tmp_path / "m" / b).select(columns).sort_by("pair_id") for b in procs]
     assert tables[0].num_rows == 2 * 6 and tables[0].equals(tables[1])
+
+
+def test_a_fresh_local_url_root_without_auto_mkdir_makes_the_folders_it_needs(tmp_path,
+                                                                           stage_config):
+    root = DataRoot.of(f"local://{tmp_path / 'fresh' / 'data'}", cache_dir=str(tmp_path / "cache"))
+    assert "auto_mkdir" not in root.storage_options
+    result = run_scene_stage(stage_config(), "ingest", SCENES[0], root, locks=LockOptions("b1", 0))
+    assert result.status == "done", result.error
+    assert (tmp_path / "fresh" / "data" / "scenes" / IDS[0] / ".paradrive" / "ingest.json").is_file()
+    assert held_locks(root) == {}  # the lease is gone again, its folder stays

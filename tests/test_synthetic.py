@@ -10,7 +10,7 @@ W, H = 160, 96
 
 
 def shift_left(street: SyntheticStreet, frame: int, c2w: np.ndarray, d: float) -> np.ndarray:
-    """c2w of the same camera with the vehicle moved d metres to its left (DESIGN.md)."""
+    """c2w of the same camera with the vehicle moved d metres to its left (docs/conventions.md)."""
     ego = street.ego2world()[frame]
     move = np.eye(4)
     move[1, 3] = d

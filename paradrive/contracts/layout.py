@@ -14,12 +14,15 @@ A scene lives at ``<data>/scenes/<scene_id>/``::
     .paradrive/<stage>.json                       a completed stage's marker
 
 and the data root also holds ``logs/<scene_id>.log`` and ``locks/<scene_id>.lock``. A build
-lives at ``<manifests>/<build>/``: ``index.json``, ``pairs-<nnnnn>.parquet``, ``media/``,
-``ledger.sqlite``. No other module spells these names.
+lives at ``<manifests>/<build>/``: ``index.json`` naming its version folder ``v-<nnnnnn>/``
+(``pairs-<nnnnn>.parquet``, ``media/``), ``ledger.sqlite``, ``.paradrive/build.json`` (the
+builder's marker). No other module spells these names.
 """
 
 from __future__ import annotations
 
+import fnmatch
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -178,26 +181,72 @@ class DataLayout:
 INDEX_JSON = "index.json"
 MEDIA_DIR = "media"
 SHARD_PATTERN = "pairs-{:05d}.parquet"
-SHARD_GLOB = "pairs-*.parquet"
 LEDGER = "ledger.sqlite"
+VERSION_PREFIX = "v-"
+BUILD_MARKER = f"{MARKER_DIR}/build.json"
+# what the runner keeps in a build folder before anything is published (ledger, logs, markers)
+RUNNER_FILES = (f"{LEDGER}*", "logs", MARKER_DIR)
+_VERSION = re.compile(r"v-(\d{6})")
+
+
+def checked_build_name(build: str) -> str:
+    """A build name that is a plain folder name: ``..`` or ``a/b`` would lead out of --manifests."""
+    if not isinstance(build, str) or safe_name(build) != build or build.startswith("."):
+        raise ConfigError(f"build name {build!r} is not a plain folder name (letters, digits, "
+                          f"'-', '_', '.', not starting with '.'); pick a name like 'default'")
+    return build
+
+
+def version_name(number: int) -> str:
+    """The folder of a build's ``number``-th publication (``v-000003``)."""
+    return f"{VERSION_PREFIX}{int(number):06d}"
+
+
+def is_version(name: str) -> bool:
+    return _VERSION.fullmatch(name) is not None
+
+
+def version_number(name: str) -> int:
+    match = _VERSION.fullmatch(name)
+    if match is None:
+        raise ValueError(f"{name!r} is not a version folder name")
+    return int(match.group(1))
+
+
+def is_runner_file(name: str) -> bool:
+    """A top entry of a build folder that the runner, not the manifest stage, writes."""
+    return any(fnmatch.fnmatchcase(name, pattern) for pattern in RUNNER_FILES)
 
 
 @dataclass(frozen=True)
 class BuildLayout:
-    """The files of one build folder (``<manifests>/<build>``)."""
+    """The files of one build folder (``<manifests>/<build>``).
+
+    ``index.json`` is the one pointer readers follow: it names the version folder
+    (``v-<nnnnnn>/``) that holds the shards and ``media/`` it describes. A publication writes a
+    new version folder and switches ``index.json`` to it by rename."""
 
     root: Path
+
+    @classmethod
+    def of(cls, manifests_dir: str | Path, build: str) -> BuildLayout:
+        return cls(Path(manifests_dir) / checked_build_name(build))
 
     @property
     def index_json(self) -> Path:
         return self.root / INDEX_JSON
 
-    def shard(self, number: int) -> Path:
-        return self.root / SHARD_PATTERN.format(int(number))
-
     @property
-    def media_dir(self) -> Path:
-        return self.root / MEDIA_DIR
+    def marker(self) -> Path:
+        """Written when the builder creates the folder; without it nothing here is replaced."""
+        return self.root / BUILD_MARKER
+
+    def version(self, name: str) -> Path:
+        """A version folder; ``name`` must be one :func:`version_name` makes."""
+        if not is_version(name):
+            raise ConfigError(f"{self.index_json}: version {name!r} is not a version folder "
+                              f"name (v-<6 digits>); re-run the manifest stage")
+        return self.root / name
 
     @property
     def ledger(self) -> Path:
@@ -205,5 +254,5 @@ class BuildLayout:
 
     @staticmethod
     def media_uri(scene_id: str, file: str) -> str:
-        """Build-relative URI of a scene file (``clips/...`` relative to the scene folder)."""
+        """Version-relative URI of a scene file (``clips/...`` relative to the scene folder)."""
         return f"{MEDIA_DIR}/{scene_id}/{file}"

@@ -306,6 +306,7 @@ class MediaRecord(BaseModel):
     model_config = ConfigDict(extra="forbid")
     mode: str
     placed: dict[str, int]
+    data_root: str | None = None   # a symlink build's links lead only into this data folder
 
 
 class IndexScene(BaseModel):
@@ -318,6 +319,7 @@ class IndexScene(BaseModel):
     cameras: list[str]
     clips: list[str]
     skipped_clips: list[CameraSkippedClip]
+    transform: str = "lateral"   # how its sources were moved (render.transform)
 
 
 class SkippedScene(BaseModel):
@@ -350,6 +352,7 @@ class IndexRecord(BaseModel):
     format: str
     schema_version: int
     build: str
+    version: str | None = None   # the version folder (v-<nnnnnn>) shards and URIs are relative to
     kind: str
     created_at: str
     software: dict[str, str]

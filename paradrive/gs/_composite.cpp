@@ -1,12 +1,13 @@
 // The fused CPU rasterizer's kernels: forward and backward compositing (a block of 4 rows of
 // L / 4 pixels at a time), tile binning, per-Gaussian gradient sums, EWA projection (L Gaussians
-// at a time) and SH shading, each with the rules of its Numba counterpart (_cpu_kernels.py,
-// _cpu_project.py, _cpu_sh.py) in float32; and the mean SSIM of the fit loss with its gradient
-// (paradrive/metrics.py's closed form).
+// at a time) and SH shading, each with the rules of its torch-op counterpart (rasterize.py,
+// _tiles.py, sh.py) in float32; the mean SSIM of the fit loss with its gradient
+// (paradrive/metrics.py's closed form), the rest of the fit loss, the densification's sums and
+// the scene graph's placement. They match the torch operations within float32 rounding (the
+// tests state the tolerances), not bit for bit.
 //
 // Compositing:
-// The same rules and array layouts as the Numba kernels of _cpu_kernels.py (see there): per
-// pixel, the depth-sorted entries of its tile front to back, alpha = min(0.999, opacity *
+// The rules of _tiles.composite: per pixel, the depth-sorted entries of its tile front to back, alpha = min(0.999, opacity *
 // exp(-sigma)), sigma < 0 or alpha < 1/255 skipped, a pixel stops before the entry that would
 // bring its transmittance to <= 1e-4. Arithmetic is float32 in vectors of L lanes, one register
 // of the machine's widest vector unit: 16 with AVX-512, 8 with AVX2, else 4 (SSE, NEON). Vectors
@@ -24,9 +25,11 @@
 // Each tile is the work of one thread, in a fixed order inside it, and the lanes of a
 // per-entry gradient are summed in a fixed order, so the bytes do not depend on the number of
 // threads. Threads take tiles from a shared counter. The lane count sets the order of a
-// per-entry gradient's sum, so machines with different vector units differ in the last bits.
+// per-entry gradient's sum, so the variants built for different vector units differ in the
+// last bits.
 //
-// Built by _native.py with the machine's C++ compiler and loaded through ctypes.
+// Built at install (setup.py) once per instruction set, with _bindings.cpp, into the modules
+// _native.py chooses from.
 
 #include <atomic>
 #include <chrono>
@@ -47,11 +50,7 @@
 
 namespace {
 
-// PD_LANES, where defined, sets the lanes (the tests build the other vector units' layouts on
-// any machine: _native.with_lanes).
-#if defined(PD_LANES)
-constexpr int L = PD_LANES;
-#elif defined(__AVX512F__)
+#if defined(__AVX512F__)
 constexpr int L = 16;
 #elif defined(__AVX2__)
 constexpr int L = 8;
@@ -611,7 +610,7 @@ Shape shape(int ts, int tiles_x, int tiles_y, int C, int H, int W, int D) {
 }
 
 // Tiles [x0, x1) x [y0, y1) of a box of half-size (rx, ry) around (mx, my), as
-// _cpu_kernels.tile_ranges computes them (the difference in float32, the division in double).
+// _tiles.bin_gaussians computes them (the difference in float32, the division in double).
 struct TileRect {
     int x0, x1, y0, y1;
 };
@@ -637,7 +636,7 @@ inline uint32_t order_key(float f) {
     return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
 }
 
-// ---- EWA projection (rasterize._project; the Numba kernels of _cpu_project.py), L Gaussians
+// ---- EWA projection (rasterize._project), L Gaussians
 // per vector in float32. Small matrices are arrays of 9 row-major vectors.
 
 constexpr float RADIUS_SIGMAS = 3.33f;
@@ -838,7 +837,7 @@ inline bool gets_gradient(const ProjectGrads& v, int64_t o) {
            v.v_depth[o * v.s_depth] != 0.0f;
 }
 
-// Lanes where a camera passes a gradient (Numba's _no_gradient negated).
+// Lanes where a camera passes a gradient.
 inline vi has_gradient(const ProjectGrads& v, int64_t N, int c, const Lanes& g) {
     vi r = splat_i(0);
     for (int i = 0; i < L; ++i) r[i] = gets_gradient(v, c * N + g.rows[i]) ? -1 : 0;
@@ -851,7 +850,7 @@ inline vf lane_field(const float* a, int stride, int k, int64_t N, int c, const 
 }
 
 // Gradients of the lanes listed in block b of ids (Gaussians some camera passes a gradient to):
-// cameras summed in order, as _cpu_project._gaussian_vjp.
+// cameras summed in order.
 void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m, int64_t b,
                             const ProjectGrads& vg, float* v_means, float* v_quats,
                             float* v_scales) {
@@ -952,7 +951,7 @@ void project_backward_block(const ProjectArgs& a, const int64_t* ids, int64_t m,
     }
 }
 
-// ---- View-dependent colour from spherical harmonics (sh.eval_sh; _cpu_sh.py), one Gaussian at a
+// ---- View-dependent colour from spherical harmonics (sh.eval_sh), one Gaussian at a
 // time in float32. The coefficients come in the fit's two parts: c0 (N, 1, 3) and cN (N, KN, 3)
 // holding bands 1..3 (KN = K - 1).
 
@@ -1115,7 +1114,7 @@ void pd_bin_fill(const int64_t* order, int64_t m, const float* means2d, const fl
 }
 
 // out (n, F) float32: the rows of grads (n_isects, F) summed per Gaussian id, in list order and
-// in double (as _cpu_kernels.sum_by_gaussian). Each thread owns a range of ids and walks the
+// in double. Each thread owns a range of ids and walks the
 // whole list, so the sums do not depend on the thread count.
 void pd_sum_by_gaussian(const float* grads, const int64_t* ids, int64_t n_isects, int F,
                         int64_t n, float* out, int threads) {
@@ -1137,8 +1136,7 @@ void pd_sum_by_gaussian(const float* grads, const int64_t* ids, int64_t n_isects
 // The densification's statistics (strategy.update_state) from the projected means' gradients
 // (C, N, 2), row o = camera * N + Gaussian at o * stride: for the Gaussians a camera draws
 // (radii (C, N) > 0), grad2d[n] += the norm of (g_x * sx, g_y * sy) and count[n] += 1, the
-// cameras summed in order first. The norm is sqrt(fma(y, y, x * x)) in float32, as torch's
-// vector norm over the last axis computes it, so the statistics keep their bytes.
+// cameras summed in order first.
 void pd_grad_norms(const float* grads, int64_t stride, int C, int64_t N, float sx, float sy,
                    const int32_t* radii, float* grad2d, float* count, int threads) {
     const int64_t chunk = 4096;
@@ -1150,7 +1148,7 @@ void pd_grad_norms(const float* grads, int64_t stride, int C, int64_t N, float s
                 const int64_t o = c * N + n;
                 if (radii[o] <= 0) continue;
                 const float x = grads[o * stride] * sx, y = grads[o * stride + 1] * sy;
-                norms += std::sqrt(std::fma(y, y, x * x));
+                norms += std::sqrt(x * x + y * y);
                 seen += 1.0f;
             }
             grad2d[n] += norms;
@@ -1169,7 +1167,7 @@ extern "C" {
 constexpr int64_t BLOCKS_PER_TASK = 64;
 
 // means2d (C, N, 2), conics (C, N, 3), depths (C, N) and radii (C, N, 2) as
-// _cpu_project.project_forward fills them, in float32; and, when table is not null, columns
+// rasterize._project computes them, in float32; and, when table is not null, columns
 // 0..5 and depth_col (if >= 0) of the compositing table (C*N, F) (see TableOut).
 void pd_project_forward(const float* means, const float* quats, const float* scales,
                         const float* opacities, const float* viewmats, const float* Ks, int64_t N,
@@ -1189,8 +1187,7 @@ void pd_project_forward(const float* means, const float* quats, const float* sca
 
 // v_means (N, 3), v_quats (N, 4), v_scales (N, 3), zero-filled by the caller, get the gradients
 // of the Gaussians some camera passes a gradient to (v_means2d (C, N, 2), v_conics (C, N, 3),
-// v_depths (C, N), row o of each at o * its stride), as _cpu_project.project_backward computes
-// them.
+// v_depths (C, N), row o of each at o * its stride): the backward of rasterize._project.
 void pd_project_backward(const float* means, const float* quats, const float* scales,
                          const float* viewmats, const float* Ks, int64_t N, int C, int width,
                          int height, float near, float far, float eps2d, const float* v2d,
@@ -1505,14 +1502,13 @@ void pd_ssim_backward(const float* x, const float* y, const float* d, int64_t B,
 }  // extern "C"
 
 // ---- The fit's loss (gs/fit.py, _Fit._loss) past the render: its gradient with respect to the
-// render in closed form, with the operations and their order that torch's autograd takes for
-// the same expression, so the bytes are the same.
+// render in closed form.
 namespace {
 
 // torch.sgn of a float: 1, -1, or +0 (for zeros and NaN).
 inline float sgn(float x) { return static_cast<float>((x > 0.0f) - (x < 0.0f)); }
 
-// clamp_min(x, m) as torch computes it (NaN stays NaN).
+// clamp_min(x, m) (NaN stays NaN).
 inline float clamp_min(float x, float m) { return x < m ? m : x; }
 
 }  // namespace
@@ -1547,8 +1543,7 @@ void pd_fit_loss_terms(const float* render, const float* alphas, const float* gt
 // sky: the gradient g_sky / sky_scale where 1 - ed / sky_scale > 0, negated. LiDAR pixels
 // (pixels, K of them; target_inv = 1 / depth) pull its inverse (clamped at 1e-3) to the
 // target: g_depth * sgn(1 / ed - target_inv) through the reciprocal. Writes d_render (P, D)
-// and, when D == 4, d_alpha (P,). (Where autograd sums full-size gradients it adds zeros to
-// values that are never -0 here, so those sums are left out.)
+// and, when D == 4, d_alpha (P,).
 void pd_fit_loss_backward(const float* render, const float* alphas, const float* gt,
                           const float* g_ssim, int64_t P, int D, float c_l1,
                           const uint8_t* sky, float g_sky, float sky_scale,
@@ -1585,28 +1580,7 @@ void pd_fit_loss_backward(const float* render, const float* alphas, const float*
 }  // extern "C"
 
 // The scene graph's placement (graph.place): a node's Gaussians move by its box's pose.
-//
-// Arithmetic without fused multiply-adds, in torch's order, so the bytes are those of the
-// torch expressions: the rotation's row sums as torch's batched product of small matrices
-// takes them ((0 + a0 b0) + a1 b1) + a2 b2, then the translation; the quaternion product term
-// by term, left to right. The gradients are summed in the order autograd sums those of the
-// torch expressions, and an added zero turns -0 into +0 where autograd adds a row's two
-// gradients (the rows copied and the rows moved).
 namespace {
-
-// a * b, rounded, where the compiler cannot fuse it into an add (fused multiply-adds round once).
-inline float product(float a, float b) {
-    float p = a * b;
-#if defined(__x86_64__)
-    asm("" : "+x"(p));
-#elif defined(__aarch64__)
-    asm("" : "+w"(p));
-#else
-    volatile float kept = p;
-    p = kept;
-#endif
-    return p;
-}
 
 // Rows of a copy each task takes.
 constexpr int64_t PLACE_CHUNK = 16384;
@@ -1624,7 +1598,7 @@ void place_mean(const float* box, const float* m, float* out) {
     for (int i = 0; i < 3; ++i) {
         const float* r = box + 4 * i;
         float acc = 0.0f;
-        for (int j = 0; j < 3; ++j) acc += product(r[j], m[j]);
+        for (int j = 0; j < 3; ++j) acc += r[j] * m[j];
         out[i] = acc + r[3];
     }
 }
@@ -1633,30 +1607,25 @@ void place_mean(const float* box, const float* m, float* out) {
 void quat_product(const float* a, const float* b, float* out) {
     const float aw = a[0], ax = a[1], ay = a[2], az = a[3];
     const float bw = b[0], bx = b[1], by = b[2], bz = b[3];
-    out[0] = product(aw, bw) - product(ax, bx) - product(ay, by) - product(az, bz);
-    out[1] = product(aw, bx) + product(ax, bw) + product(ay, bz) - product(az, by);
-    out[2] = product(aw, by) - product(ax, bz) + product(ay, bw) + product(az, bx);
-    out[3] = product(aw, bz) + product(ax, by) - product(ay, bx) + product(az, bw);
+    out[0] = aw * bw - ax * bx - ay * by - az * bz;
+    out[1] = aw * bx + ax * bw + ay * bz - az * by;
+    out[2] = aw * by - ax * bz + ay * bw + az * bx;
+    out[3] = aw * bz + ax * by - ay * bx + az * bw;
 }
 
-// g_m = R^T g, then + 0.
+// g_m = R^T g.
 void place_mean_vjp(const float* box, const float* g, float* out) {
-    for (int j = 0; j < 3; ++j) {
-        float acc = 0.0f;
-        for (int i = 0; i < 3; ++i) acc += product(box[4 * i + j], g[i]);
-        out[j] = acc + 0.0f;
-    }
+    for (int j = 0; j < 3; ++j) out[j] = box[j] * g[0] + box[4 + j] * g[1] + box[8 + j] * g[2];
 }
 
-// The gradient of b in a (x) b, then + 0. Autograd sums each component's four terms as those of
-// the product's y, z, x and w components reach it: ((y + z) + x) + w.
+// The gradient of b in a (x) b: the transposed product matrix of a times g.
 void quat_product_vjp(const float* a, const float* g, float* out) {
     const float aw = a[0], ax = a[1], ay = a[2], az = a[3];
     const float g0 = g[0], g1 = g[1], g2 = g[2], g3 = g[3];
-    out[0] = product(ay, g2) + product(az, g3) + product(ax, g1) + product(aw, g0) + 0.0f;
-    out[1] = product(az, g2) - product(ay, g3) + product(aw, g1) - product(ax, g0) + 0.0f;
-    out[2] = product(aw, g2) + product(ax, g3) - product(az, g1) - product(ay, g0) + 0.0f;
-    out[3] = -product(ax, g2) + product(aw, g3) + product(ay, g1) - product(az, g0) + 0.0f;
+    out[0] = aw * g0 + ax * g1 + ay * g2 + az * g3;
+    out[1] = -ax * g0 + aw * g1 + az * g2 - ay * g3;
+    out[2] = -ay * g0 - az * g1 + aw * g2 + ax * g3;
+    out[3] = -az * g0 + ay * g1 - ax * g2 + aw * g3;
 }
 
 }  // namespace
@@ -1692,16 +1661,10 @@ void pd_place_backward(const float* g_means, const float* g_quats, const float* 
                        int64_t N, const int64_t* rows, const int64_t* node, int64_t M,
                        const float* box, const float* nq, const uint8_t* present,
                        float* v_means, float* v_quats, float* v_opac, int threads) {
-    // A row outside the nodes: its gradient, + 0 where autograd adds the zeros of the moved rows.
-    parallel_tiles((N + PLACE_CHUNK - 1) / PLACE_CHUNK, threads, [&](int64_t t) {
-        const int64_t lo = t * PLACE_CHUNK, hi = lo + PLACE_CHUNK < N ? lo + PLACE_CHUNK : N;
-        if (g_means != nullptr)
-            for (int64_t i = 3 * lo; i < 3 * hi; ++i) v_means[i] = g_means[i] + 0.0f;
-        if (g_quats != nullptr)
-            for (int64_t i = 4 * lo; i < 4 * hi; ++i) v_quats[i] = g_quats[i] + 0.0f;
-        if (g_opac != nullptr)
-            std::memcpy(v_opac + lo, g_opac + lo, static_cast<size_t>(hi - lo) * sizeof(float));
-    });
+    // A row outside the nodes keeps its gradient.
+    if (g_means != nullptr) copy_floats(v_means, g_means, N * 3, threads);
+    if (g_quats != nullptr) copy_floats(v_quats, g_quats, N * 4, threads);
+    if (g_opac != nullptr) copy_floats(v_opac, g_opac, N, threads);
     parallel_tiles((M + PLACE_CHUNK - 1) / PLACE_CHUNK, threads, [&](int64_t t) {
         const int64_t hi = (t + 1) * PLACE_CHUNK < M ? (t + 1) * PLACE_CHUNK : M;
         for (int64_t i = t * PLACE_CHUNK; i < hi; ++i) {

@@ -3,9 +3,8 @@ the sky term and the LiDAR inverse-depth term on the expected depth (``_Fit._los
 expression), with the gradient of the render and its alpha in closed form.
 
 The torch expression is some eighty small operations and their backward a fit iteration; the
-node gives the same gradient bytes (it takes torch's operations in torch's order: each Python
-float a float32, each mean's backward a division by the count), so a fit keeps its bytes either
-way. The loss value is summed in double (it is only shown in the progress lines).
+node's gradient matches it within float32 rounding (tests/test_native_kernels.py states the
+tolerance). The loss value is summed in double (it is only shown in the progress lines).
 """
 
 from __future__ import annotations
@@ -88,19 +87,17 @@ class _FitLoss(torch.autograd.Function):
     def backward(ctx, grad):
         r, a, g, rgb, d, taps, sky_np, n_sky, pixels, target_inv, terms, kernels = ctx.saved
         P, D = r.shape
-        g0 = _f32(grad.item())
-        # torch's constants: each Python float taken as float32, each mean's backward a division
-        # of the incoming gradient by the element count
-        c_l1 = _f32(g0 * _f32(1.0 - terms.ssim_lambda)) / _f32(3 * P)
-        scale = np.array([-_f32(g0 * _f32(terms.ssim_lambda))], dtype=_f32)
+        g0 = grad.item()
+        # each mean's gradient: the incoming one times its weight over the element count
+        c_l1 = g0 * (1.0 - terms.ssim_lambda) / (3 * P)
+        scale = np.array([-g0 * terms.ssim_lambda], dtype=_f32)
         g_ssim = kernels.ssim_backward(rgb, g.reshape(rgb.shape), d, taps, scale,
                                        cpu_kernel_threads())
-        g_sky = _f32(g0 * _f32(terms.sky_weight)) / _f32(n_sky) if n_sky else _f32(0.0)
-        g_depth = (_f32(g0 * _f32(terms.depth_weight)) / _f32(pixels.shape[0])
-                   if target_inv.shape[0] else _f32(0.0))
+        g_sky = g0 * terms.sky_weight / n_sky if n_sky else 0.0
+        g_depth = g0 * terms.depth_weight / pixels.shape[0] if target_inv.shape[0] else 0.0
         d_render, d_alpha = kernels.fit_loss_backward(
-            r, a, g, g_ssim.reshape(P, 3), float(c_l1), sky_np, float(g_sky),
-            float(_f32(terms.sky_scale)), pixels, target_inv, float(g_depth))
+            r, a, g, g_ssim.reshape(P, 3), c_l1, sky_np, g_sky, terms.sky_scale, pixels,
+            target_inv, g_depth)
         d_render_t = torch.from_numpy(d_render).reshape(ctx.shape)
         d_alpha_t = (torch.from_numpy(d_alpha).reshape(*ctx.shape[:3], 1) if D == 4 else None)
         return d_render_t, d_alpha_t, None, None, None, None, None
@@ -116,8 +113,7 @@ def fit_loss(render: Tensor, alphas: Tensor, gt: Tensor, sky: Tensor | None,
     """The fit's loss (see ``_Fit._loss``) of a render (1, H, W, D) with the accumulated depth
     as its 4th channel when there is a sky or depth term, its alphas (1, H, W, 1) and the
     target image gt (H, W, 3); sky (H, W) bool selects the sky term's pixels (None or none
-    selected: no sky term). Same value (to rounding) and same gradient bytes as the torch
-    expression."""
+    selected: no sky term). The torch expression's value and gradient to float32 rounding."""
     if sky is not None and not bool(sky.any()):
         sky = None
     if (sky is not None or target is not None) and render.shape[-1] != 4:

@@ -1,26 +1,21 @@
-"""Torch side of the fused CPU rasterizer: tile binning and a compositing autograd function whose
-work runs in the vectorised kernels of ``_composite.cpp`` (built by ``_native``; the Numba kernels
-of ``_cpu_kernels`` where no compiler is found), on ``devices.cpu_kernel_threads()`` threads
-(torch's count unless set).
+"""Torch side of the fused CPU rasterizer: autograd functions whose work runs in the vectorised
+kernels of ``_composite.cpp`` (built at install, loaded by ``_native``), on
+``devices.cpu_kernel_threads()`` threads (torch's count unless set). ``rasterize`` takes them
+only where ``_native.load()`` finds the kernels; elsewhere the torch-op stages run.
 
-Same interface as ``_tiles.bin_gaussians`` / ``_tiles.composite``, so the two compositors are
-interchangeable behind ``rasterize``.
+Same interface as ``_tiles.bin_gaussians`` / ``_tiles.composite`` and ``rasterize._project``,
+so the stages are interchangeable behind ``rasterize``.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from paradrive.devices import cpu_kernel_threads
-from paradrive.gs import _cpu_kernels as K
-from paradrive.gs import _cpu_project as P
-from paradrive.gs import _cpu_sh as S
 from paradrive.gs import _native
 from paradrive.gs._tiles import TileBins, composite
 from paradrive.gs.sh import shade
@@ -29,26 +24,16 @@ __all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "rasterize
            "shade_fused"]
 
 
-@contextmanager
-def _kernel_threads() -> Iterator[None]:
-    """Run Numba on the kernels' thread count and give torch its count back afterwards: Numba's
-    OpenMP layer shares torch's OpenMP runtime and resets its thread count when it starts."""
-    n = torch.get_num_threads()
-    K.set_threads(cpu_kernel_threads())
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != n:
-            torch.set_num_threads(n)
+# The compositing kernels carry up to this many channels (RGB and depth).
+MAX_CHANNELS = 4
 
 
-def _call(native: _native.Kernels | None, name: str, fallback, *args):
-    """Kernel ``name`` of the native library on the kernels' threads, or its Numba ``fallback``
-    (same arguments) where there is no library."""
-    if native is not None:
-        return getattr(native, name)(*args, cpu_kernel_threads())
-    with _kernel_threads():
-        return fallback(*args)
+def _kernels() -> _native.Kernels:
+    native = _native.load()
+    if native is None:
+        raise RuntimeError("the fused CPU stages need the native kernels (rasterize checks "
+                           "_native.load() first)")
+    return native
 
 
 def _f32(t: Tensor) -> np.ndarray:
@@ -65,30 +50,21 @@ def bin_gaussians_fused(means2d: Tensor, radii_xy: Tensor, depths: Tensor, width
     """
     C, N = depths.shape
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    native = _native.load()
-    if native is not None:
-        lists = native.bin_lists(_f32(depths.reshape(-1)), _f32(means2d.reshape(-1, 2)),
+    lists = _kernels().bin_lists(_f32(depths.reshape(-1)), _f32(means2d.reshape(-1, 2)),
                                  _f32(radii_xy.reshape(-1, 2)), max(N, 1), tile_size, tiles_x,
                                  tiles_y, C * tiles_x * tiles_y)
-        return TileBins(C, width, height, tile_size, tiles_x, tiles_y,
-                        *(torch.from_numpy(a) for a in lists))
-    visible = torch.nonzero((radii_xy > 0).all(dim=-1).reshape(-1)).squeeze(1)
-    order = visible[torch.sort(depths.detach().reshape(-1)[visible], stable=True).indices]
-    m, r = _f32(means2d.reshape(-1, 2)), _f32(radii_xy.reshape(-1, 2))
-    ids, offsets, counts = K.bin_lists(order.numpy(), m, r, max(N, 1), tile_size, tiles_x,
-                                       tiles_y, C * tiles_x * tiles_y)
-    return TileBins(C, width, height, tile_size, tiles_x, tiles_y, torch.from_numpy(ids),
-                    torch.from_numpy(offsets), torch.from_numpy(counts))
+    return TileBins(C, width, height, tile_size, tiles_x, tiles_y,
+                    *(torch.from_numpy(a) for a in lists))
 
 
 def _table(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor) -> np.ndarray:
-    """(C*N, 6 + D) float32 rows per Gaussian: the layout of ``_cpu_kernels``' ``gauss``."""
+    """(C*N, 6 + D) float32 rows per Gaussian: mean (2), conic (3), opacity, features (D)."""
     table = torch.cat([means2d, conics, opacities[:, None], colors], dim=1).detach()
     return table.to(torch.float32).contiguous().numpy()
 
 
 class FusedComposite(torch.autograd.Function):
-    """``_tiles.Composite`` with the per-pixel work in the native (or Numba) kernels.
+    """``_tiles.Composite`` with the per-pixel work in the native kernels.
 
     Inputs: means2d (C*N, 2), conics (C*N, 3), opacities (C*N,), colors (C*N, D),
     backgrounds (C, D); bins: TileBins. Outputs: renders (C, H, W, D), alphas (C, H, W, 1).
@@ -105,17 +81,10 @@ class FusedComposite(torch.autograd.Function):
         last = np.empty((C, H, W), dtype=np.int64)
         tail = (bins.offsets.numpy(), bins.counts.numpy(), bins.tile_size, bins.tiles_x,
                 bins.tiles_y, bg, render, trans, last)
-        native = _native.load()
-        reach = None  # each row's ellipse, from the native forward for its backward
-        if native is not None:  # the table and the ids: no gathered copy
-            reach = np.empty((table.shape[0], 2), dtype=np.float32)
-            native.composite_forward(table, ids, *tail, cpu_kernel_threads(), reach=reach)
-            gauss = table
-        else:
-            gauss = table[ids]
-            with _kernel_threads():
-                K.composite_forward(gauss, *tail)
-        ctx.bins, ctx.arrays, ctx.n_flat = bins, (gauss, bg, trans, last), means2d.shape[0]
+        native = _kernels()
+        reach = np.empty((table.shape[0], 2), dtype=np.float32)  # each row's ellipse, for the backward
+        native.composite_forward(table, ids, *tail, reach, cpu_kernel_threads())
+        ctx.bins, ctx.arrays, ctx.n_flat = bins, (table, bg, trans, last), means2d.shape[0]
         ctx.native, ctx.reach = native, reach
         ctx.save_for_backward(backgrounds)
         dtype = means2d.dtype
@@ -131,14 +100,9 @@ class FusedComposite(torch.autograd.Function):
         ids, threads = bins.flat_ids.numpy(), cpu_kernel_threads()
         tail = (bins.offsets.numpy(), bins.tile_size, bins.tiles_x, bins.tiles_y, bg, trans, last,
                 _f32(grad_renders), _f32(grad_alphas[..., 0]))
-        if ctx.native is not None:  # the backward of the kernels that ran the forward
-            per_isect = ctx.native.composite_backward(gauss, ids, tail[0], bins.counts.numpy(),
-                                                      *tail[1:], threads, reach=ctx.reach)
-            summed = ctx.native.sum_by_gaussian(per_isect, ids, ctx.n_flat, threads)
-        else:
-            with _kernel_threads():
-                per_isect = K.composite_backward(gauss, *tail)
-            summed = K.sum_by_gaussian(per_isect, ids, ctx.n_flat)
+        per_isect = ctx.native.composite_backward(gauss, ids, tail[0], bins.counts.numpy(),
+                                                  *tail[1:], ctx.reach, threads)
+        summed = ctx.native.sum_by_gaussian(per_isect, ids, ctx.n_flat, threads)
         dtype = grad_renders.dtype
         total = torch.from_numpy(summed).to(dtype)
         g_bg = None
@@ -151,14 +115,13 @@ def composite_fused(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: 
                     backgrounds: Tensor, bins: TileBins) -> tuple[Tensor, Tensor]:
     """Differentiable compositing; see FusedComposite. Returns (renders, alphas). Features wider
     than the kernels' ``MAX_CHANNELS`` (RGB and depth) take the torch-op compositor."""
-    if colors.shape[-1] > K.MAX_CHANNELS:
+    if colors.shape[-1] > MAX_CHANNELS:
         return composite(means2d, conics, opacities, colors, backgrounds, bins)
     return FusedComposite.apply(means2d, conics, opacities, colors, backgrounds, bins)
 
 
 class FusedProjection(torch.autograd.Function):
-    """``rasterize._project`` in the native kernels (the Numba ones where there are none);
-    viewmats and Ks get no gradient.
+    """``rasterize._project`` in the native kernels; viewmats and Ks get no gradient.
 
     Inputs: means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), viewmats (C, 4, 4),
     Ks (C, 3, 3) and the camera settings. Outputs: means2d (C, N, 2), conics (C, N, 3),
@@ -175,9 +138,9 @@ class FusedProjection(torch.autograd.Function):
         radii = np.empty((C, N, 2), dtype=np.int32)
         arrays = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(viewmats),
                   _f32(Ks))
-        native = _native.load()
-        _call(native, "project_forward", P.project_forward, *arrays, *settings, means2d, conics,
-              depths, radii)
+        native = _kernels()
+        native.project_forward(*arrays, *settings, means2d, conics, depths, radii, None, -1,
+                               cpu_kernel_threads())
         ctx.arrays, ctx.settings, ctx.dtype, ctx.native = arrays, settings, dtype, native
         ctx.mark_non_differentiable(radii_t := torch.from_numpy(radii))
         return (torch.from_numpy(means2d).to(dtype), torch.from_numpy(conics).to(dtype),
@@ -189,7 +152,7 @@ class FusedProjection(torch.autograd.Function):
         width, height, near, far, eps2d, _ = ctx.settings
         args = (means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
                 _f32(v_means2d), _f32(v_conics), _f32(v_depths[..., None]))
-        grads = _call(ctx.native, "project_backward", P.project_backward, *args)
+        grads = ctx.native.project_backward(*args, cpu_kernel_threads())
         v_means, v_quats, v_scales = (torch.from_numpy(g).to(ctx.dtype) for g in grads)
         return v_means, v_quats, v_scales, None, None, None, None
 
@@ -204,7 +167,7 @@ def project_fused(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
 
 
 class FusedSH(torch.autograd.Function):
-    """``sh.shade`` in the native kernels (the Numba ones where there are none): means (N, 3),
+    """``sh.shade`` in the native kernels: means (N, 3),
     the coefficients in two parts c0 (N, 1, 3) and cN (N, K - 1, 3), campos (C, 3) and visible
     (C, N) bool (no gradient) -> colours (C, N, 3), 0 where a Gaussian is not visible."""
 
@@ -212,9 +175,8 @@ class FusedSH(torch.autograd.Function):
     def forward(ctx, means, c0, cN, campos, visible, degree: int):
         colors = np.empty((campos.shape[0], means.shape[0], 3), dtype=np.float32)
         arrays = (_f32(means), _f32(c0), _f32(cN), _f32(campos))
-        native = _native.load()
-        _call(native, "sh_forward", S.sh_forward, degree, *arrays, visible.contiguous().numpy(),
-              colors)
+        native = _kernels()
+        native.sh_forward(degree, *arrays, visible.contiguous().numpy(), colors, cpu_kernel_threads())
         ctx.arrays, ctx.colors, ctx.degree, ctx.dtype = arrays, colors, degree, means.dtype
         ctx.native = native
         return torch.from_numpy(colors).to(means.dtype)
@@ -222,11 +184,11 @@ class FusedSH(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_colors):
         means, c0, cN, _ = ctx.arrays
-        alloc = np.zeros if ctx.native is None else np.empty  # the native kernel fills every row
-        out = (alloc(means.shape, np.float32), alloc(c0.shape, np.float32),
-               alloc(cN.shape, np.float32))
-        args = (ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors), *out)
-        _call(ctx.native, "sh_backward", S.sh_backward, *args)
+        # the kernel fills every row
+        out = (np.empty(means.shape, np.float32), np.empty(c0.shape, np.float32),
+               np.empty(cN.shape, np.float32))
+        ctx.native.sh_backward(ctx.degree, *ctx.arrays, ctx.colors, _f32(v_colors), *out,
+                               cpu_kernel_threads())
         v_means, v_c0, v_cN = (torch.from_numpy(g).to(ctx.dtype) for g in out)
         return v_means, v_c0, v_cN, None, None, None
 
@@ -278,10 +240,7 @@ class FusedRasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, c0, cN, viewmats, Ks, backgrounds,
                 settings: tuple, screen: Tensor):
-        native = _native.load()
-        if native is None:
-            raise RuntimeError("the one-node fit render needs the native kernels (rasterize "
-                               "checks _fit_case first)")
+        native = _kernels()
         width, height, near, far, eps2d, radius_clip, degree, with_depth, ts = settings
         C, N, threads = viewmats.shape[0], means.shape[0], cpu_kernel_threads()
         arrays = [_f32(t) for t in (means, quats, scales, opacities, viewmats, Ks, c0, cN)]
@@ -295,8 +254,8 @@ class FusedRasterize(torch.autograd.Function):
         D = 3 + int(with_depth)
         table = np.empty((C * N, 6 + D), dtype=np.float32)
         native.project_forward(m, q, s, op, vm, Ks_, width, height, near, far, eps2d, radius_clip,
-                               means2d, conics, depths, radii, threads, table=table,
-                               depth_column=9 if with_depth else -1)
+                               means2d, conics, depths, radii, table, 9 if with_depth else -1,
+                               threads)
         campos = -np.einsum("cji,cj->ci", vm[:, :3, :3], vm[:, :3, 3]).astype(np.float32)
         colors = table[:, 6:9]
         native.sh_forward(degree, m, c0_, cN_, campos, radii[..., 0] > 0, colors, threads)
@@ -312,7 +271,7 @@ class FusedRasterize(torch.autograd.Function):
         last = np.empty((C, height, width), dtype=np.int64)
         reach = np.empty((C * N, 2), dtype=np.float32)  # each row's ellipse, for the backward too
         native.composite_forward(table, ids, offsets, counts, ts, tiles_x, tiles_y, bg, render,
-                                 trans, last, threads, reach=reach)
+                                 trans, last, reach, threads)
         ctx.native, ctx.settings, ctx.screen = native, settings, screen
         ctx.tiles = (tiles_x, tiles_y)
         ctx.arrays = (arrays, campos, colors, table, ids, offsets, counts, bg, trans, last, reach)
@@ -338,8 +297,8 @@ class FusedRasterize(torch.autograd.Function):
         d_alpha = (np.zeros((C, height, width), np.float32) if v_alphas is None
                    else _f32(v_alphas[..., 0]))
         per_entry = native.composite_backward(table, ids, offsets, counts, ts, tiles_x, tiles_y,
-                                              bg, trans, last, d_render, d_alpha, threads,
-                                              reach=reach)
+                                              bg, trans, last, d_render, d_alpha, reach,
+                                              threads)
         # the table's gradients, read in place (column slices) by the projection's and SH's backward
         total = native.sum_by_gaussian(per_entry, ids, C * N, threads)
         v_depths = (total[:, 9:10] if with_depth

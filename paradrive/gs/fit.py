@@ -58,7 +58,7 @@ from .ply import load_ply
 from .strategy import DensifyStrategy
 
 if TYPE_CHECKING:
-    from paradrive.stages.fit import Params as FitParams
+    from paradrive.contracts.params import FitParams
 
 __all__ = ["fit_scene", "render_checkpoint", "load_ply", "load_views"]
 
@@ -280,49 +280,12 @@ def _make_optimizers(params: dict[str, torch.nn.Parameter], p: FitParams,
     return {k: torch.optim.Adam([params[k]], lr=lrs[k], eps=1e-15, fused=fused) for k in PARAM_KEYS}
 
 
-_PLAIN_FUSED_ADAM = {"fused": True, "amsgrad": False, "maximize": False, "capturable": False,
-                     "differentiable": False, "decoupled_weight_decay": False}
-
-
-def _plain_fused_adam(o: torch.optim.Optimizer) -> bool:
-    """Whether ``o`` is a fused Adam with no option beyond lr, betas, eps and weight decay (a
-    number), whose parameters with a gradient all hold their state already."""
-    return isinstance(o, torch.optim.Adam) and all(
-        all(group.get(k) == v for k, v in _PLAIN_FUSED_ADAM.items())
-        and not isinstance(group["lr"], torch.Tensor)
-        and all(o.state.get(p) for p in group["params"] if p.grad is not None)
-        for group in o.param_groups)
-
-
 @torch.no_grad()
 def _step(optimizers: Sequence[torch.optim.Optimizer]) -> None:
-    """``step()`` then ``zero_grad(set_to_none=True)`` of each optimizer.
-
-    A plain fused Adam past its first step (see :func:`_plain_fused_adam`) is stepped by the
-    fused kernel its own ``step`` would call, on the same tensors, so the bytes are the same;
-    what is left out is that call's bookkeeping, about 0.1 ms an optimizer, and the fit steps
-    six of them an iteration. Any other optimizer steps itself.
-    """
+    """``step()`` then ``zero_grad(set_to_none=True)`` of each optimizer."""
     for o in optimizers:
-        if not _plain_fused_adam(o):
-            o.step()
-            o.zero_grad(set_to_none=True)
-            continue
-        for group in o.param_groups:
-            params = [p for p in group["params"] if p.grad is not None]
-            if not params:
-                continue
-            states = [o.state[p] for p in params]
-            steps = [st["step"] for st in states]
-            torch._foreach_add_(steps, 1)
-            beta1, beta2 = group["betas"]
-            torch._fused_adam_(params, [p.grad for p in params], [st["exp_avg"] for st in states],
-                               [st["exp_avg_sq"] for st in states], [], steps, amsgrad=False,
-                               lr=group["lr"], beta1=beta1, beta2=beta2,
-                               weight_decay=group["weight_decay"], eps=group["eps"],
-                               maximize=False, grad_scale=None, found_inf=None)
-            for p in params:
-                p.grad = None
+        o.step()
+        o.zero_grad(set_to_none=True)
 
 
 # --------------------------------------------------------------------------- state
@@ -370,7 +333,12 @@ def _save_state(path: Path, *, step, params, optimizers, strategy_state, gen, or
     }
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            torch.save(doc, f)
+            try:
+                torch.save(doc, f)
+            except RuntimeError as exc:  # torch reports a failed write ("unexpected pos") so
+                if isinstance(exc.__context__, OSError):  # the write's own error says why
+                    raise exc.__context__ from None
+                raise
             f.flush()
             os.fsync(f.fileno())
 

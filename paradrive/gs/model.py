@@ -139,17 +139,18 @@ def deterministic_torch(threads: int, backend: str = "torch"):
     """Fixed thread count and deterministic kernels (fit, render); restored afterwards.
 
     A fixed count makes torch's floating-point sums, hence the files, identical whichever
-    executor runs the stage. With the fused CPU kernels (``backend`` 'cpu') the kernels take the
+    executor runs the stage. With the fused CPU kernels (``backend`` 'cpu', built) the kernels take the
     ``threads`` (their results do not depend on the count) and torch's own operations run on one:
     torch's idle OpenMP workers spin on the cores the kernels need (a demo fit iteration on two
     cores: 45 ms with both on two threads, 37 ms so).
     """
     from paradrive.devices import set_cpu_kernel_threads
+    from paradrive.gs import _native
 
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
-    fused = backend == "cpu"
+    fused = backend == "cpu" and _native.load() is not None  # else the torch-op stages run
     old_kernels = set_cpu_kernel_threads(threads if fused and threads > 0 else 0)
     if threads > 0:
         torch.set_num_threads(1 if fused else threads)

@@ -1,12 +1,16 @@
 """Differentiable 3D Gaussian splatting rasterizer: one entry point, three backends.
 
 ``rasterize`` uses gsplat's CUDA kernels when the tensors live on a CUDA device and the extension
-loads, the fused CPU kernels (``cpu``: Numba, the torch thread count, byte-identical at any
-count) for tensors on the CPU, and otherwise a tile-based torch-op backend (``torch``, any
-device; the reference the fused kernels are tested against). All match gsplat's conventions:
+loads, the fused CPU kernels (``cpu``: C++ built at install, the torch thread count,
+byte-identical at any count; the torch-op stages where they were not built) for tensors on the
+CPU, and otherwise a tile-based torch-op backend (``torch``, any device; the reference the fused
+kernels are tested against, within tolerances). All match gsplat's conventions:
 EWA projection with a 2D low-pass ``eps2d``, opacity-aware screen boxes, per-tile depth
 sorting, front-to-back compositing with alpha clamped to 0.999, alpha < 1/255 skipped and early
 termination at transmittance 1e-4.
+
+Credit: the splatting of 3D Gaussian Splatting (Kerbl et al., ACM TOG 2023), re-implemented after
+gsplat's conventions (nerfstudio-project/gsplat).
 """
 
 from __future__ import annotations
@@ -109,6 +113,8 @@ def _torch_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, widt
         return _expected_depth(renders, alphas, render_mode), alphas, info
     C, N = viewmats.shape[0], means.shape[0]
     project, shade, binner, compositor = _stages(backend)
+    if isinstance(colors, tuple):  # the torch-op stages take the coefficients whole
+        colors = torch.cat(colors, 1)[:, :(int(sh_degree) + 1) ** 2]
     means2d, conics, depths, radii_xy = project(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         near_plane, far_plane, eps2d, radius_clip)
@@ -172,9 +178,11 @@ def _fit_case(means: Tensor, colors, sh_degree, render_mode: str) -> bool:
 
 
 def _stages(backend: str):
-    """(projection, SH colour, binning, compositing) of a CPU-capable backend: the torch-op reference or the
-    fused kernels."""
-    if backend == "torch":
+    """(projection, SH colour, binning, compositing) of a CPU-capable backend: the torch-op
+    reference, or the fused kernels where they were built."""
+    from paradrive.gs import _native
+
+    if backend == "torch" or _native.load() is None:
         return _project, _shade_all, bin_gaussians, composite
     from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused, shade_fused
 
@@ -258,6 +266,8 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)
     if backend in ("torch", "cpu"):
-        ts = TORCH_TILE_SIZE if backend == "torch" else CPU_TILE_SIZE
+        from paradrive.gs import _native
+
+        ts = CPU_TILE_SIZE if backend == "cpu" and _native.load() is not None else TORCH_TILE_SIZE
         return _torch_rasterize(*args[:-1], ts, backend)
     return _gsplat_rasterize(*args)

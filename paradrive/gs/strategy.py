@@ -14,6 +14,9 @@ samples its children in the Gaussian's own frame, so actor nodes densify in thei
 The mutable state is an explicit dict of tensors, saved with the fit for exact resumption.
 Every topology change is expressed as an index map (new Gaussian i comes from old ``index[i]``)
 applied alike to parameters, optimizer moments (zeroed for new Gaussians) and per-Gaussian state.
+
+Credit: the density control of 3D Gaussian Splatting (Kerbl et al., ACM TOG 2023), re-implemented
+with the semantics and defaults of gsplat's ``DefaultStrategy`` (nerfstudio-project/gsplat).
 """
 
 from __future__ import annotations
@@ -108,8 +111,8 @@ class _Changes:
 
 def _native_sums(grads: torch.Tensor, scale: tuple[float, float], radii: torch.Tensor,
                  state: dict[str, Any]) -> bool:
-    """``update_state``'s sums in one pass of the native kernels, with the bytes of its torch
-    operations (a dozen of them, about 0.5 ms a fit iteration at 40k Gaussians). False, with
+    """``update_state``'s sums in one pass of the native kernels (its torch operations are a
+    dozen, about 0.5 ms a fit iteration at 40k Gaussians). False, with
     nothing done, where the library is missing or the tensors are not float32 CPU ones (radii
     int32 (C, N)) in the layouts it reads."""
     from paradrive.devices import cpu_kernel_threads
@@ -126,7 +129,7 @@ def _native_sums(grads: torch.Tensor, scale: tuple[float, float], radii: torch.T
     if native is None:
         return False
     try:
-        native.grad_norms(grads.detach().numpy(), scale, radii.numpy(), grad2d.numpy(),
+        native.grad_norms(grads.detach().numpy(), *scale, radii.numpy(), grad2d.numpy(),
                           count.numpy(), cpu_kernel_threads())
     except TypeError:  # rows not evenly spaced
         return False

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 from paradrive.errors import SceneError
 
 if TYPE_CHECKING:
-    from paradrive.stages.ingest import Params as IngestParams
+    from paradrive.contracts.params import IngestParams
 
 
 def requested_cameras(params: IngestParams, dataset: str, *, scene_id: str) -> list[str] | None:

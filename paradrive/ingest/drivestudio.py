@@ -49,7 +49,7 @@ from paradrive.scene import Camera, Frame, FrameCamera, Scene, read_image, write
 from paradrive.uri import SceneURI
 
 if TYPE_CHECKING:
-    from paradrive.stages.ingest import Params as IngestParams
+    from paradrive.contracts.params import IngestParams
 
 WAYMO_CAMERAS = {0: "front", 1: "front_left", 2: "front_right", 3: "side_left", 4: "side_right"}
 NUSCENES_CAMERAS = {0: "front", 1: "front_left", 2: "front_right", 3: "back_left",

@@ -42,7 +42,7 @@ from paradrive.io import atomic_path, write_bytes
 from paradrive.scene import Camera, Scene, write_image
 
 if TYPE_CHECKING:
-    from paradrive.stages.ingest import Params as IngestParams
+    from paradrive.contracts.params import IngestParams
 
 # global-from-world of exported logs: 30 deg yaw, a small roll, km-scale offsets
 GLOBAL = geometry.make_pose(

@@ -41,7 +41,7 @@ from paradrive.scene import Camera, Frame, FrameCamera, Scene
 from paradrive.uri import SceneURI
 
 if TYPE_CHECKING:
-    from paradrive.stages.ingest import Params as IngestParams
+    from paradrive.contracts.params import IngestParams
 
 CHANNEL_TO_CAMERA = {"CAM_FRONT": "front", "CAM_FRONT_LEFT": "front_left",
                      "CAM_FRONT_RIGHT": "front_right", "CAM_BACK": "back",

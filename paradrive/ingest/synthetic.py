@@ -15,7 +15,7 @@ from paradrive.scene import Frame, FrameCamera, Scene, write_image
 from paradrive.uri import SceneURI
 
 if TYPE_CHECKING:
-    from paradrive.stages.ingest import Params as IngestParams
+    from paradrive.contracts.params import IngestParams
 
 # URI query keys and their types; the stage's synthetic_* params are the defaults.
 QUERY_KEYS = {"seed": int, "frames": int, "width": int, "height": int, "curvature": float,

@@ -41,7 +41,7 @@ from paradrive.scene import Camera, Frame, FrameCamera, Scene
 from paradrive.uri import SceneURI
 
 if TYPE_CHECKING:
-    from paradrive.stages.ingest import Params as IngestParams
+    from paradrive.contracts.params import IngestParams
 
 SUFFIXES = (".tfrecord", ".tfrecords")
 FPS = 10.0

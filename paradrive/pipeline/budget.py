@@ -25,6 +25,7 @@ from typing import Any
 import typer
 import yaml
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from paradrive.errors import ConfigError, ParaDriveError
@@ -32,7 +33,7 @@ from paradrive.pipeline.runner import read_marker
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
 from paradrive.storage import DataRoot, file_stats
-from paradrive.streams import clip_windows, frames_needed, plan_streams
+from paradrive.streams import clip_shortfall, clip_windows, frames_needed, plan_streams
 from paradrive.uri import parse_uri
 
 OTHER = "other"
@@ -110,6 +111,7 @@ class Plan:
     seconds: dict[str, float] = field(default_factory=dict)    # by stage
     rates: dict[str, Rate] = field(default_factory=dict)       # "compute:<stage>", "bytes:<folder>"
     shapes: dict[str, int] = field(default_factory=dict)       # how the scenes' shapes were known
+    unfit: dict[str, str] = field(default_factory=dict)        # scene id -> why it can give no clip
 
     def hours(self, device: str) -> float:
         return sum(s for stage, s in self.seconds.items()
@@ -124,7 +126,8 @@ class Plan:
                 "bytes_kept": {k: round(v) for k, v in self.kept.items()},
                 "seconds": {k: round(v, 1) for k, v in self.seconds.items()},
                 "cpu_hours": round(self.hours("cpu"), 3), "gpu_hours": round(self.hours("gpu"), 3),
-                "rates": {k: vars(r) for k, r in self.rates.items()}, "shapes": self.shapes}
+                "rates": {k: vars(r) for k, r in self.rates.items()}, "shapes": self.shapes,
+                "unfit": self.unfit}
 
 
 def load_rates(config: ResolvedConfig) -> dict[str, Any]:
@@ -140,8 +143,9 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
     ingest, fit, render = params["ingest"], params["fit"], params["render"]
     stored_mp = shape.frames * sum(w * h for w, h in shape.cameras.values()) / MB
     windows, _ = clip_windows(shape.frames, render["clip_frames"], render["clips"])
-    streams = len(plan_streams(render["condition_checkpoints"], render["source_checkpoint"],
-                               render["offsets_m"]))
+    offsets = render["longitudinal_offsets_m"] if render.get("transform") == "longitudinal" \
+        else render["offsets_m"]
+    streams = len(plan_streams(render["condition_checkpoints"], render["source_checkpoint"], offsets))
     out_mp = render["width"] * render["height"] / MB
     cams = [c for c in render["cameras"] if c in shape.cameras] or list(render["cameras"])
     checkpoints = sorted(fit["checkpoints"])
@@ -156,7 +160,7 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
         "bytes:gs": shape.gaussians if shape.gaussians is not None
         else float(fit["init_points"] * (len(checkpoints) - 1) + fit["max_gaussians"]),
         "bytes:renders": rendered_mp, "bytes:clips": encoded_mp,
-        "pairs": float(len(cams) * len(windows) * len(render["offsets_m"])
+        "pairs": float(len(cams) * len(windows) * len(offsets)
                        * len(render["condition_checkpoints"])),
     }
 
@@ -267,6 +271,13 @@ def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -
         plan.shapes[shape.known] = plan.shapes.get(shape.known, 0) + 1
         u = units(config.params, shape)
         plan.scenes += 1
+        short = clip_shortfall(shape.frames, list(shape.cameras), config.params["render"]["cameras"],
+                               config.params["render"]["clip_frames"])
+        if short is not None:
+            # the build fails such a scene right after its ingest: only the ingest is spent
+            plan.unfit[parse_uri(uri).scene_id] = f"{short.what}; {short.fix}"
+            u = {k: v if k in ("compute:ingest", "bytes:images", "bytes:masks", "bytes:lidar") else 0.0
+                 for k, v in u.items()}
         plan.pairs += int(u["pairs"])
         for key, rate in rates.items():
             kind, name = key.split(":", 1)
@@ -291,13 +302,17 @@ def print_plan(plan: Plan, config: ResolvedConfig, data_dir: Path, console: Cons
     summary = plan.as_json()
     known = ", ".join(f"{n} {how}" for how, n in sorted(plan.shapes.items()))
     console.print(f"plan: {plan.scenes} scene(s) ({known}), profile {config.profile}; rates measured "
-                  f"on the finished scenes of {data_dir} where there are any, else stages/budget/rates.yaml")
+                  f"on the finished scenes of {data_dir} where there are any, else stages/budget/rates.yaml",
+                  markup=False)
     console.print(f"pairs         {plan.pairs:,}")
     console.print(f"media         {_size(summary['media_bytes'])} (the clips)")
     console.print(f"intermediate  {_size(summary['intermediate_bytes'])} at most, "
                   f"{_size(summary['intermediate_bytes_kept'])} kept after retention")
     console.print(f"compute       {summary['cpu_hours']:.2f} CPU-hours, "
                   f"{summary['gpu_hours']:.2f} GPU-hours")
+    for scene_id, why in plan.unfit.items():
+        console.print(f"no clip       scene {scene_id}: {why} (the build fails it after its ingest)",
+                      markup=False)
     table = Table(title="rates", title_justify="left")
     for name in ("what", "total", "kept", "rate", "per", "source"):
         table.add_column(name, overflow="fold", justify="right" if name in ("total", "kept", "rate") else "left")
@@ -305,10 +320,10 @@ def print_plan(plan: Plan, config: ResolvedConfig, data_dir: Path, console: Cons
         kind, name = key.split(":", 1)
         if kind == "compute":
             table.add_row(f"{name} ({rate.device}-hours)", f"{plan.seconds[name] / 3600:.3f}", "",
-                          f"{rate.value:.4g} s", rate.unit, rate.source)
+                          f"{rate.value:.4g} s", rate.unit, escape(rate.source))
         else:
             table.add_row(name, _size(plan.bytes[name]), _size(plan.kept[name]),
-                          f"{rate.value:.4g} B", rate.unit, rate.source)
+                          f"{rate.value:.4g} B", rate.unit, escape(rate.source))
     console.print(table)
 
 
@@ -338,7 +353,7 @@ def register(app: typer.Typer) -> None:
                 raise ConfigError("no scenes to plan: give --scene or --scenes")
             plan = plan_build(config, uris, data if data.is_dir() else None)
         except (ConfigError, ParaDriveError, ValueError) as exc:
-            Console(stderr=True).print(f"[bold red]error:[/] {exc}")
+            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}")
             raise typer.Exit(2) from exc
         if as_json:
             print(json.dumps(plan.as_json(), indent=2))

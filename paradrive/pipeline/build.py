@@ -1,29 +1,32 @@
 """A build: scene stages for many scenes through an executor, then the build-scoped stages.
 
 Exit codes of a build (also the CLI's): 0 every scene finished every asked stage; 3 partial (some
-scenes failed, the others landed); 1 nothing succeeded; 2 a usage or configuration error.
+scenes failed, the others landed); 1 no scene landed (a scene whose ingest landed but whose fit
+failed did not); 2 a usage or configuration error, found before any stage ran; 130 interrupted.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from paradrive import splits
-from paradrive.errors import ConfigError, ParaDriveError, StageNotImplemented
+from paradrive.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE,
+                              ConfigError, ParaDriveError, StageNotImplemented)
 from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
-from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions
+from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions, scene_lock
 from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
-    load_entry, local_size, marker_path, read_marker, scene_dir_for, summary_of, typed_params,
-    written_outputs,
+    load_entry, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint, summary_of,
+    typed_params, written_outputs,
 )
 from paradrive.pipeline.ledger import LEDGER_FILE
 from paradrive.pipeline.specs import ResolvedConfig
@@ -33,7 +36,6 @@ from paradrive.contracts.layout import BuildLayout
 from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
 NOT_OWNED = (f"{LEDGER_FILE}*", "logs")  # in a build folder, but no build stage's output
 
 
@@ -59,12 +61,15 @@ class BuildReport:
 
     @property
     def exit_code(self) -> int:
-        if not self.results:
-            return EXIT_OK
+        """0 nothing failed; 1 no scene landed (a scene that got through ingest but failed its
+        fit did not land), or only build stages ran and one failed; 3 some scenes landed (a
+        build stage that published the others counts as their landing)."""
         if not self.failures():
             return EXIT_OK
-        ok = [r for r in self.results if r.status in ("done", "skipped")]
-        return EXIT_PARTIAL if ok else EXIT_FAILED
+        published = any(r.scene_id.startswith("build:") and r.status == "done" for r in self.results)
+        if published or "done" in self.scenes().values():
+            return EXIT_PARTIAL
+        return EXIT_FAILED
 
 
 def default_selection(config: ResolvedConfig, uris: list[str],
@@ -103,7 +108,7 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
     label = f"build:{build}"
-    scenes, inputs, runs, mirrors, unfinished = [], {}, {}, [], {}
+    scenes, inputs, runs, mirrors, unfinished, stale = [], {}, {}, [], {}, {}
     for uri in scene_uris:
         sid = parse_uri(uri).scene_id
         sdir = scene_dir_for(root.local, sid)
@@ -115,7 +120,10 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
             return StageResult(label, stage, "failed", error=f"build {build}: {exc}")
         found = [read_marker(sdir, need) for need in spec.needs]
         markers = [m for m in found if m is not None]
-        if len(markers) == len(found):
+        reason = _made_otherwise(config, spec.needs, uri, sdir) if len(markers) == len(found) else None
+        if reason:
+            stale[sid] = reason
+        elif len(markers) == len(found):
             scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),
                            "scene_location": root.scene_location(sid)})
             inputs[sid] = ",".join(m["fingerprint"] for m in markers)
@@ -125,9 +133,35 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         else:
             unfinished[sid] = [need for need, m in zip(spec.needs, found) if not m]
     result = _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors,
-                              Path(manifests_dir) / build, build, force, record)
+                              BuildLayout.of(manifests_dir, build).root, build, force, record)
     result.summary["unfinished"] = unfinished
+    result.summary["stale"] = stale
+    if not scenes and stale:
+        result.error = f"build {build}: nothing to publish: {'; '.join(stale.values())}"
     return result
+
+
+def _made_otherwise(config: ResolvedConfig, needs: list[str], uri: str, sdir: Path) -> str | None:
+    """Why a scene's outputs of ``needs`` (or of the stages before them) are not what this
+    build's parameters make: the first stage whose marker another configuration wrote."""
+    registry, todo, seen = config.registry(), list(needs), set()
+    while todo:
+        stage = todo.pop(0)
+        if stage in seen:
+            continue
+        seen.add(stage)
+        marker = read_marker(sdir, stage) or {}
+        try:
+            expected = stage_fingerprint(config, stage, uri, sdir)[0]
+        except ConfigError as exc:
+            return f"scene {sdir.name}: {exc}"
+        if marker.get("fingerprint") != expected:
+            return (f"scene {sdir.name}: its {stage} outputs were made with other parameters "
+                    f"(marker fingerprint {marker.get('fingerprint')}, this build's {expected}), "
+                    f"e.g. by another build on this data root; run this build without --stages "
+                    f"to make them again")
+        todo.extend(registry.specs[stage].needs)
+    return None
 
 
 def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, build_dir, build,
@@ -152,7 +186,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
         ctx = BuildContext(stage=stage, build=build, layout=BuildLayout(build_dir),
                            data_dir=root.local, scenes=scenes, params=typed_params(spec, params),
                            log=log, fingerprint=fp, selection=record)
-        summary = summary_of(func(ctx))
+        with _scene_locks(root, scenes, build, log, inputs, spec.needs):
+            summary = summary_of(func(ctx))
         declared = expand_outputs(spec.outputs, config.params[stage])
         outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
                    if not matches(rel, NOT_OWNED)}
@@ -176,6 +211,22 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
                 mirror.drop()
 
 
+@contextlib.contextmanager
+def _scene_locks(root: DataRoot, scenes: list[dict], build: str, log: logging.Logger,
+                 inputs: dict[str, str], needs: list[str]) -> Iterator[None]:
+    """Every scene's lock while a build stage reads its outputs, so no other build rewrites
+    them meanwhile; the needed markers must still be the ones the stage was planned on."""
+    with contextlib.ExitStack() as stack:
+        for entry in sorted(scenes, key=lambda e: e["scene_id"]):  # one order: no deadlock
+            sid = entry["scene_id"]
+            stack.enter_context(scene_lock(root, sid, LockOptions(build), log))
+            now = [read_marker(Path(entry["scene_dir"]), need) or {} for need in needs]
+            if ",".join(str(m.get("fingerprint")) for m in now) != inputs[sid]:
+                raise ParaDriveError(f"scene {sid}: another build changed its {', '.join(needs)} "
+                                     f"outputs while this build waited for them; re-run")
+        yield
+
+
 def _published(index: Path, fp: str) -> bool:
     try:
         return json.loads(index.read_text()).get("config_fingerprint") == fp
@@ -197,7 +248,8 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
               on_start: Callable[[str, str], None] | None = None,
               on_result: Callable[[StageResult], None] | None = None,
               lock_timeout: float = DEFAULT_LOCK_TIMEOUT_S,
-              on_progress: ProgressSink | None = None) -> BuildReport:
+              on_progress: ProgressSink | None = None,
+              verify_outputs: bool = False) -> BuildReport:
     """Scene stages of ``scene_uris`` through ``executor``, then the build stages (manifest).
 
     The build stages read every scene of ``build_scene_uris`` (default: ``scene_uris``) that
@@ -212,6 +264,7 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     """
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
+    config.check(scene_stages + build_stages)  # a value no stage can take fails before any runs
     seen, uris = set(), []
     for uri in scene_uris:
         parse_uri(uri)  # a malformed URI is a usage error for the whole build
@@ -237,7 +290,8 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
         report.results.extend(executor.run(config, tasks, data_dir, force=force,
                                            on_start=on_start, on_result=on_result,
                                            locks=LockOptions(build, lock_timeout),
-                                           on_progress=on_progress))
+                                           on_progress=on_progress,
+                                           verify_outputs=verify_outputs))
     for stage in build_stages:
         if on_start:
             on_start(f"build:{build}", stage)
@@ -248,6 +302,8 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
             f"{stage}: left out of build {build}: the scene has not finished "
             f"{', '.join(needs)}; a plain re-run (without --stages) builds it"))
             for sid, needs in result.summary.get("unfinished", {}).items() if sid not in failed_ids]
+        left_out += [StageResult(sid, stage, "failed", error=f"{stage}: left out of build {build}: {why}")
+                     for sid, why in result.summary.get("stale", {}).items() if sid not in failed_ids]
         for r in [*left_out, result]:
             report.results.append(r)
             if on_result:
@@ -256,4 +312,4 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
 
 
 __all__ = ["BuildReport", "default_selection", "run_build", "run_build_stage", "split_stages", "EXIT_OK",
-           "EXIT_FAILED", "EXIT_USAGE", "EXIT_PARTIAL", "ConfigError", "StageNotImplemented"]
+           "EXIT_FAILED", "EXIT_USAGE", "EXIT_PARTIAL", "EXIT_INTERRUPTED", "ConfigError", "StageNotImplemented"]

@@ -13,7 +13,8 @@ attempts from them). ``data_dir`` is a :class:`~paradrive.storage.DataRoot`: a f
 worker sees, or a URL each worker copies scenes from and back. ``locks`` (the build's name and
 how long to wait for a scene another build holds) goes to every
 :func:`~paradrive.pipeline.runner.run_scene_stage`. ``on_progress(Snapshot)`` is called on the
-driver as a running stage advances (:mod:`paradrive.pipeline.progress`).
+driver as a running stage advances (:mod:`paradrive.pipeline.progress`). ``verify_outputs``
+makes every stage's up-to-date check read its outputs' sha256, not only their sizes.
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ class Executor(Protocol):
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None,
             locks: LockOptions | None = None,
-            on_progress: ProgressSink | None = None) -> list[StageResult]:
+            on_progress: ProgressSink | None = None,
+            verify_outputs: bool = False) -> list[StageResult]:
         ...
 
 
@@ -62,7 +64,8 @@ class LocalExecutor:
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None,
             locks: LockOptions | None = None,
-            on_progress: ProgressSink | None = None) -> list[StageResult]:
+            on_progress: ProgressSink | None = None,
+            verify_outputs: bool = False) -> list[StageResult]:
         results: list[StageResult] = []
         for task in tasks:
             failed: StageResult | None = None
@@ -73,7 +76,8 @@ class LocalExecutor:
                     if on_start:
                         on_start(task.scene_uri, stage)
                     result = run_scene_stage(config, stage, task.scene_uri, data_dir, force=force,
-                                             locks=locks, on_progress=on_progress)
+                                             locks=locks, on_progress=on_progress,
+                                             verify_outputs=verify_outputs)
                     if result.status == "failed":
                         failed = result
                 results.append(result)

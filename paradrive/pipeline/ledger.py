@@ -23,12 +23,21 @@ same time (each write is one short ``BEGIN IMMEDIATE`` transaction; a writer wai
 
 Build-scoped stages (the manifest) are rows with ``scene_id = scene_uri = 'build:<name>'``.
 Times are Unix seconds (float).
+
+The ledger is a record, the markers are the truth: a ledger file that is not a database (garbage,
+a torn copy) is moved aside (``ledger.sqlite.corrupt-<time>``) and rebuilt from the markers of
+the build and of the scenes its index names. A ledger that cannot be written (a read-only
+``--manifests``, a full disk) is a :class:`LedgerError`, one line naming the file and the fix;
+``paradrive status`` reads a ledger it cannot write (``readonly``).
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import os
+import shutil
 import sqlite3
 import sys
 import time
@@ -36,8 +45,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from collections.abc import Iterable, Iterator
 
-from paradrive.errors import ConfigError
-from paradrive.contracts.layout import LEDGER
+from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.contracts.layout import LEDGER, MARKER_DIR, BuildLayout
 from paradrive.redact import redact, redact_argv
 from paradrive.uri import parse_uri
 
@@ -45,6 +54,7 @@ SCHEMA_VERSION = 1
 LEDGER_FILE = LEDGER
 STATES = ("pending", "running", "done", "skipped", "failed", "blocked")
 FINISHED = ("done", "skipped")
+STAGE_SLOTS = range(100)  # positions of scene stages; build stages come after them
 BROKEN = ("failed", "blocked")
 
 _SCHEMA = f"""
@@ -96,18 +106,53 @@ def build_label(build: str) -> str:
     return f"build:{build}"
 
 
+class LedgerError(ParaDriveError):
+    """The ledger file cannot be opened or written; the message names it and the fix."""
+
+
+def ledger_error(path: Path, exc: BaseException) -> LedgerError:
+    """What went wrong with the ledger at ``path``, as one line that says what to do."""
+    text = str(exc)
+    low = text.lower()
+    if "full" in low or getattr(exc, "errno", None) == errno.ENOSPC or _nearly_full(path.parent):
+        fix = f"disk full; free space on {path.parent} and re-run (the markers keep what is done)"
+    elif "readonly" in low or "read-only" in low or "unable to open" in low \
+            or isinstance(exc, OSError):  # the folder cannot be made or written
+        fix = (f"cannot write there; make {path.parent} writable or pass a writable --manifests "
+               f"(the build folder holds the ledger)")
+    elif "locked" in low:
+        fix = "another process holds it too long; re-run once that build is done"
+    else:
+        fix = f"move {path.name} aside and re-run (it is rebuilt from the markers)"
+    return LedgerError(f"ledger {path}: {text}; {fix}")
+
+
 class Ledger:
     """The ledger of one build. Cheap to create; picklable (each process opens its own connection)."""
 
-    def __init__(self, path: str | Path, build: str | None = None, *, timeout: float = 60.0):
+    def __init__(self, path: str | Path, build: str | None = None, *, timeout: float = 60.0,
+                 readonly: bool = False):
         self.path = Path(path)
         self.build = build or self.path.parent.name
         self.timeout = timeout
+        self.readonly = readonly
+        self.recovered = ""  # where a corrupt ledger was moved before this one was rebuilt
         self.run_id: int | None = None
         self._conn: sqlite3.Connection | None = None
         self._pid: int | None = None
         self._ids: dict[str, str] = {}
-        self._init_schema()
+        try:
+            self._init_schema()
+        except sqlite3.OperationalError as exc:
+            self.close()
+            raise ledger_error(self.path, exc) from exc
+        except sqlite3.DatabaseError as exc:  # not a database at all: the markers hold the truth
+            self.close()
+            if readonly:
+                raise ledger_error(self.path, exc) from exc
+            self._recover(exc)
+        except OSError as exc:  # the build folder itself cannot be made
+            raise ledger_error(self.path, exc) from exc
 
     @classmethod
     def for_build(cls, manifests_dir: str | Path, build: str) -> Ledger:
@@ -121,7 +166,13 @@ class Ledger:
             builds = sorted(p.parent.name for p in Path(manifests_dir).glob(f"*/{LEDGER_FILE}"))
             raise ConfigError(f"no ledger for build '{build}' at {path}; builds with a ledger "
                               f"under {manifests_dir}: {', '.join(builds) or 'none'}")
-        return cls(path, build)
+        return cls.for_reading(path, build)
+
+    @classmethod
+    def for_reading(cls, path: Path, build: str | None = None) -> Ledger:
+        """The ledger at ``path``, read-only where its folder cannot be written (a read-only
+        mount of a finished build), recovered like any other where it is corrupt."""
+        return cls(path, build, readonly=not os.access(path.parent, os.W_OK) or _read_only_mount(path))
 
     # -- connection -------------------------------------------------------------------------
 
@@ -134,23 +185,43 @@ class Ledger:
     def _connection(self) -> sqlite3.Connection:
         # A connection never crosses a fork: a child (or a Ray worker) opens its own.
         if self._conn is None or self._pid != os.getpid():
-            conn = sqlite3.connect(self.path, timeout=self.timeout, isolation_level=None)
+            conn = self._read_only() if self.readonly else sqlite3.connect(
+                self.path, timeout=self.timeout, isolation_level=None)
             conn.row_factory = sqlite3.Row
             conn.execute(f"PRAGMA busy_timeout = {int(self.timeout * 1000)}")
             conn.execute("PRAGMA synchronous = NORMAL")
             self._conn, self._pid = conn, os.getpid()
         return self._conn
 
+    def _read_only(self) -> sqlite3.Connection:
+        """A connection that writes nothing: read-only with the write-ahead log where SQLite can
+        use it there, else as an immutable file (no process can write that folder either)."""
+        conn = sqlite3.connect(f"file:{self.path}?mode=ro", timeout=self.timeout,
+                               isolation_level=None, uri=True)
+        try:
+            conn.execute("SELECT count(*) FROM meta").fetchone()
+            return conn
+        except sqlite3.OperationalError:
+            conn.close()
+        return sqlite3.connect(f"file:{self.path}?immutable=1", timeout=self.timeout,
+                               isolation_level=None, uri=True)
+
     @contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
-        conn = self._connection()
-        conn.execute("BEGIN IMMEDIATE")
+        try:
+            conn = self._connection()
+            conn.execute("BEGIN IMMEDIATE")
+        except sqlite3.OperationalError as exc:
+            raise ledger_error(self.path, exc) from exc
         try:
             yield conn
-        except BaseException:
-            conn.execute("ROLLBACK")
+            conn.execute("COMMIT")
+        except BaseException as exc:
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            if isinstance(exc, sqlite3.OperationalError):  # a full disk, a file made read-only
+                raise ledger_error(self.path, exc) from exc
             raise
-        conn.execute("COMMIT")
 
     def close(self) -> None:
         if self._conn is not None and self._pid == os.getpid():
@@ -158,6 +229,9 @@ class Ledger:
         self._conn = None
 
     def _init_schema(self) -> None:
+        if self.readonly:
+            self._check_version()
+            return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         conn = self._connection()
         mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
@@ -170,10 +244,72 @@ class Ledger:
             c.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
             c.execute("INSERT OR IGNORE INTO meta VALUES ('build', ?)", (self.build,))
             c.execute("INSERT OR IGNORE INTO meta VALUES ('created_at', ?)", (str(time.time()),))
+        self._check_version()
+
+    def _check_version(self) -> None:
         found = self.meta().get("schema_version")
         if found != str(SCHEMA_VERSION):
             raise ConfigError(f"{self.path}: ledger schema_version {found} is not {SCHEMA_VERSION}; "
                               f"move the old ledger aside and re-run the build (outputs are kept)")
+
+    def _recover(self, exc: sqlite3.DatabaseError) -> None:
+        """Move the unreadable file aside, start a new ledger and fill it from the markers."""
+        aside = self.path.with_name(f"{self.path.name}.corrupt-{time.strftime('%Y%m%d-%H%M%S')}")
+        try:
+            for suffix in ("", "-wal", "-shm"):
+                old = self.path.with_name(self.path.name + suffix)
+                if old.exists():
+                    os.replace(old, aside.with_name(aside.name + suffix))
+            self._init_schema()
+            rebuilt = self._rebuild_from_markers()
+        except (OSError, sqlite3.Error) as again:
+            raise ledger_error(self.path, again) from exc
+        self.recovered = (f"ledger {self.path}: not a database ({exc}); moved aside to "
+                          f"{aside.name} and rebuilt from the markers of {rebuilt} scene(s)")
+        logging.getLogger(__name__).warning("%s", self.recovered)
+
+    def _rebuild_from_markers(self) -> int:
+        """Rows for the scenes the build's index names, from their stages' markers (done, with
+        the seconds each took), and for the build's own stages; returns how many scenes."""
+        layout = BuildLayout(self.path.parent)
+        try:
+            scenes = json.loads(layout.index_json.read_text()).get("scenes", [])
+        except (OSError, ValueError, AttributeError):
+            scenes = []
+        now = time.time()
+        with self._write() as c:
+            for i, scene in enumerate(scenes):
+                sid, uri = scene.get("scene_id"), scene.get("scene_uri") or scene.get("scene_id")
+                if not sid:
+                    continue
+                c.execute("INSERT OR IGNORE INTO scenes VALUES (?, ?, ?, 1, ?)", (sid, uri, i, now))
+                self._insert_done(c, sid, uri, Path(str(scene.get("scene_dir", ""))) / MARKER_DIR, 0)
+            label = build_label(self.build)
+            self._insert_done(c, label, label, self.path.parent / MARKER_DIR, len(STAGE_SLOTS))
+        return len(scenes)
+
+    @staticmethod
+    def _insert_done(c, sid: str, uri: str, marker_dir: Path, first: int) -> None:
+        markers = []
+        for path in marker_dir.glob("*.json"):
+            try:
+                markers.append(json.loads(path.read_text()))
+            except (OSError, ValueError):
+                continue  # an unreadable marker: the stage is not done, the next run redoes it
+        markers = [m for m in markers if isinstance(m, dict) and m.get("stage")]
+        needs = {m["stage"]: list(m.get("upstream_runs") or {}) for m in markers}
+
+        def depth(stage: str, seen: frozenset = frozenset()) -> int:  # pipeline order
+            return 1 + max((depth(n, seen | {stage}) for n in needs.get(stage, [])
+                            if n not in seen), default=0)
+
+        markers.sort(key=lambda m: (depth(m["stage"]), m["stage"]))
+        for pos, m in enumerate(markers, first):
+            c.execute("INSERT OR IGNORE INTO tasks (scene_id, stage, scene_uri, position, state, "
+                      "attempts, seconds, fingerprint, updated_at) "
+                      "VALUES (?, ?, ?, ?, 'done', 1, ?, ?, ?)",
+                      (sid, m["stage"], uri, pos, m.get("seconds"), m.get("fingerprint", ""),
+                       time.time()))
 
     # -- writing ----------------------------------------------------------------------------
 
@@ -208,11 +344,15 @@ class Ledger:
         return [e for e in self.events() if e["state"] == "takeover"]
 
     def end_run(self, exit_code: int) -> None:
+        """Close the run's row; best effort (a run that failed on its ledger has said why)."""
         if self.run_id is None:
             return
-        with self._write() as c:
-            c.execute("UPDATE runs SET finished_at = ?, exit_code = ? WHERE run_id = ?",
-                      (time.time(), exit_code, self.run_id))
+        try:
+            with self._write() as c:
+                c.execute("UPDATE runs SET finished_at = ?, exit_code = ? WHERE run_id = ?",
+                          (time.time(), exit_code, self.run_id))
+        except LedgerError as exc:
+            logging.getLogger(__name__).warning("%s", exc)
 
     def register(self, scene_uris: Iterable[str], scene_stages: Iterable[str],
                  build_stages: Iterable[str] = (), *, replace: bool = True) -> None:
@@ -398,6 +538,22 @@ class Ledger:
                 "failures": failures, "build_stages": build_rows,
                 "scene_table": list(per_scene.values()),
                 "last_run": runs[-1] if runs else None}
+
+
+def _nearly_full(folder: Path) -> bool:
+    """SQLite reports some writes on a full disk as a plain 'disk I/O error': look at the disk."""
+    try:
+        return shutil.disk_usage(folder).free < 1 << 20
+    except OSError:
+        return False
+
+
+def _read_only_mount(path: Path) -> bool:
+    """True on a file system mounted read-only (root's permission bits allow everything)."""
+    try:
+        return bool(os.statvfs(path.parent).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
 
 
 def scene_state(stage_states: list[str]) -> str:

@@ -217,8 +217,7 @@ class _Lease:
         """Write ``holder`` if no lease exists; True when it is ours afterwards."""
         data = holder.dumps().encode()
         try:
-            with self.fs.open(self.path, "xb") as f:
-                f.write(data)
+            self._create(data)
         except FileExistsError:
             return False
         except (ValueError, NotImplementedError):  # a backend without exclusive create
@@ -229,6 +228,15 @@ class _Lease:
         # whose record is there holds it.
         found = self.read()
         return found is not None and found.token == holder.token
+
+    def _create(self, data: bytes) -> None:
+        try:
+            with self.fs.open(self.path, "xb") as f:
+                f.write(data)
+        except FileNotFoundError:  # a fresh local:// root (no auto_mkdir): make locks/ first
+            self.fs.makedirs(self.path.rsplit("/", 1)[0], exist_ok=True)
+            with self.fs.open(self.path, "xb") as f:
+                f.write(data)
 
     def renew(self, holder: Holder) -> Holder | None:
         """A later expiry for our lease; None when it is no longer ours."""

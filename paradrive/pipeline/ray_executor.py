@@ -123,12 +123,12 @@ def task_resources(stage: str, declared: Resources, capacity: Capacity,
 
 def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
               force: bool, locks: LockOptions | None = None,
-              board: Any = None) -> tuple[StageResult, dict]:
+              board: Any = None, verify_outputs: bool = False) -> tuple[StageResult, dict]:
     """The body of one Ray task (runs on a worker); its progress goes to ``board``."""
     started = time.time()
     relay = _Relay(board) if board is not None else None
     result = run_scene_stage(config, stage, scene_uri, data_dir, force=force, locks=locks,
-                             on_progress=relay)
+                             on_progress=relay, verify_outputs=verify_outputs)
     return result, {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
 
 
@@ -245,26 +245,27 @@ class RayExecutor:
             force: bool = False, on_start: StartCallback | None = None,
             on_result: ResultCallback | None = None,
             locks: LockOptions | None = None,
-            on_progress: ProgressSink | None = None) -> list[StageResult]:
+            on_progress: ProgressSink | None = None,
+            verify_outputs: bool = False) -> list[StageResult]:
         if not tasks:
             return []
         ray, started_here = self._connect()
         try:
             return self._run(ray, config, tasks, DataRoot.of(data_dir), force, on_start, on_result,
-                             locks, on_progress)
+                             locks, on_progress, verify_outputs)
         finally:
             if started_here:
                 ray.shutdown()
 
     def _run(self, ray, config, tasks, data_dir, force, on_start, on_result,
-             locks, on_progress=None) -> list[StageResult]:
+             locks, on_progress=None, verify_outputs=False) -> list[StageResult]:
         capacity = Capacity.of_nodes(ray.nodes())
         all_stages = sorted({s for t in tasks for s in t.stages})
         total = ray.cluster_resources()  # the whole cluster: enough queued to keep every node busy
         window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
         board = ray.remote(num_cpus=0)(ProgressBoard).remote() if on_progress else None
         dispatch = _Dispatch(self, ray, self.plan(config, all_stages, capacity), ray.put(config),
-                             (data_dir, force, locks, board), on_start, on_result)
+                             (data_dir, force, locks, board, verify_outputs), on_start, on_result)
         queue = deque(t for t in tasks if t.stages)
         try:
             while queue or dispatch.in_flight:

@@ -39,8 +39,8 @@ from typing import Any
 from collections.abc import Callable, Iterator
 
 import paradrive
-from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented
-from paradrive.io import remove_stale_temporaries, write_json
+from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented, os_error_fix
+from paradrive.io import remove_stale_temporaries, sha256_file, write_json
 from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
 from paradrive.metrics import peak_rss_mb
@@ -114,19 +114,21 @@ def outputs_present(scene_dir: Path, spec: StageSpec, params: dict,
 def written_outputs(folder: Path, before: dict[str, tuple[int, int]], declared: list[str],
                     hashes: dict[str, str] | None = None) -> dict[str, dict]:
     """What a stage wrote under ``folder``: files new or changed since ``before`` and files its
-    declared outputs name, as relative path -> {"bytes"[, "sha256"]} (markers left out)."""
+    declared outputs name, as relative path -> {"bytes", "sha256"} (markers left out). The
+    sha256 the stage computed while writing (``hashes``) is kept; the others are read here."""
     out: dict[str, dict] = {}
     for rel, stat in sorted(file_stats(folder).items()):
         if rel.startswith(MARKER_DIR + "/") or (before.get(rel) == stat and not matches(rel, declared)):
             continue
-        out[rel] = {"bytes": stat[0]}
-        if hashes and rel in hashes:
-            out[rel]["sha256"] = hashes[rel]
+        digest = (hashes or {}).get(rel) or sha256_file(Path(folder) / rel)
+        out[rel] = {"bytes": stat[0], "sha256": digest}
     return out
 
 
-def damaged_outputs(marker: dict, size_of: Callable[[str], int | None]) -> dict[str, str]:
-    """The recorded outputs of ``marker`` that are missing or changed size: rel -> what is wrong."""
+def damaged_outputs(marker: dict, size_of: Callable[[str], int | None],
+                    sha_of: Callable[[str], str | None] | None = None) -> dict[str, str]:
+    """The recorded outputs of ``marker`` that are missing or changed: rel -> what is wrong.
+    Sizes always; with ``sha_of``, the content of each file whose size still matches."""
     problems = {}
     for rel, info in marker.get("outputs", {}).items():
         size = size_of(rel)
@@ -134,6 +136,8 @@ def damaged_outputs(marker: dict, size_of: Callable[[str], int | None]) -> dict[
             problems[rel] = f"{rel} is missing"
         elif size != info["bytes"]:
             problems[rel] = f"{rel} is {size} bytes, {info['bytes']} when written"
+        elif sha_of is not None and info.get("sha256") and sha_of(rel) != info["sha256"]:
+            problems[rel] = f"{rel} has changed since it was written (sha256 differs, same size)"
     return problems
 
 
@@ -146,8 +150,26 @@ def local_size(folder: Path) -> Callable[[str], int | None]:
     return size_of
 
 
+def local_sha256(folder: Path) -> Callable[[str], str | None]:
+    def sha_of(rel: str) -> str | None:
+        try:
+            return sha256_file(Path(folder) / rel)
+        except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
+            return None
+    return sha_of
+
+
+def hashes_checked(config: ResolvedConfig, stage: str, verify_outputs: bool = False) -> bool:
+    """Whether deciding that ``stage`` is up to date re-reads its outputs' sha256, not only
+    their sizes: always for the stages a build stage publishes from (the clips, so that a
+    same-size damage never reaches a manifest), for every stage with ``verify_outputs``."""
+    specs = config.registry().specs
+    return verify_outputs or any(stage in s.needs for s in specs.values() if s.scope == "build")
+
+
 def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
-                 size_of: Callable[[str], int | None], missing_declared: Callable[[], list[str]]) -> str:
+                 size_of: Callable[[str], int | None], missing_declared: Callable[[], list[str]],
+                 sha_of: Callable[[str], str | None] | None = None) -> str:
     """Why a stage is not up to date ('' when it is): see the module doc."""
     if marker is None:
         return "not run yet"
@@ -157,7 +179,7 @@ def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
         if marker.get("upstream_runs", {}).get(need) != up.get("run"):
             return f"'{need}' was redone since"
     if "outputs" in marker:
-        damaged = list(damaged_outputs(marker, size_of).values())
+        damaged = list(damaged_outputs(marker, size_of, sha_of).values())
         if not damaged:
             return ""
         return damaged[0] + (f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else "")
@@ -179,10 +201,12 @@ def why_stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Pat
 
 def _stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path, marker: dict | None,
            fp: str, upstream: dict[str, dict], size_of: Callable[[str], int | None],
-           exists: Callable[[str], bool] | None) -> str:
+           exists: Callable[[str], bool] | None,
+           sha_of: Callable[[str], str | None] | None = None) -> str:
     specs = config.registry().specs
     reason = stale_reason(marker, fp, upstream, size_of,
-                          lambda: outputs_present(scene_dir, specs[stage], config.params[stage], exists))
+                          lambda: outputs_present(scene_dir, specs[stage], config.params[stage], exists),
+                          sha_of)
     if reason or marker is None or not marker.get("dropped"):
         return reason
     dropped = marker["dropped"]
@@ -247,6 +271,12 @@ def remove_files(folder: Path, rels: list[str]) -> None:
                 parent.rmdir()
 
 
+def _remove_if_empty(scene_dir: Path, made: bool) -> None:
+    if made:
+        with contextlib.suppress(OSError):  # not empty: what is there stays
+            scene_dir.rmdir()
+
+
 def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
     """``<data>/scenes/<scene_id>``; an id that is not a plain file name is refused."""
     return SceneLayout.of(data_dir, scene_id).root
@@ -289,6 +319,26 @@ def check_inputs(scene_id: str, stage: str, upstream: dict[str, dict],
                              scene_id=scene_id,
                              fix=f"re-run the build with every stage (a plain re-run redoes "
                                  f"{need}, then {stage})")
+
+
+def admit_scene(config: ResolvedConfig, stage: str, scene_dir: Path) -> None:
+    """Before a stage that needs another spends compute on a scene, every scene stage module's
+    ``admit(layout, ingested, params)`` (render: can the scene give a clip?) judges what the
+    first stage recorded, so a scene that can never give pairs fails now, not after its fit.
+    A module that does not load is left to :func:`load_entry` to report."""
+    specs = config.registry().specs
+    if not specs[stage].needs:
+        return
+    ingested: dict[str, Any] = {}
+    for name in (n for n, s in specs.items() if not s.needs):
+        ingested.update((read_marker(scene_dir, name) or {}).get("summary") or {})
+    for name, spec in specs.items():
+        try:
+            check = getattr(importlib.import_module(spec.entry.partition(":")[0]), "admit", None)
+        except ImportError:
+            continue
+        if spec.scope == "scene" and check is not None:
+            check(SceneLayout(scene_dir), ingested, typed_params(spec, config.params[name]))
 
 
 def load_entry(spec: StageSpec) -> Callable:
@@ -355,14 +405,15 @@ def scene_logger(scene_id: str, log_file: Path | None = None,
 def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                     data_dir: str | Path | DataRoot, *, force: bool = False,
                     on_progress: ProgressSink | None = None,
-                    locks: LockOptions | None = None) -> StageResult:
+                    locks: LockOptions | None = None, verify_outputs: bool = False) -> StageResult:
     """Run (or skip) one stage of one scene. Never raises for bad input: the result says failed.
 
     ``data_dir`` is a folder or a :class:`~paradrive.storage.DataRoot` (a URL root runs the
     stage on this node's copy of the scene and uploads the result, marker last). The scene's
     lock is held throughout; ``locks`` names the build and how long to wait for it. The stage's
     progress goes to the scene's log and, as it happens, to ``on_progress``
-    (:mod:`paradrive.pipeline.progress`).
+    (:mod:`paradrive.pipeline.progress`). Outputs are checked by size, and by sha256 where
+    :func:`hashes_checked` says (``verify_outputs``: every stage's; on a folder root only).
     """
     root = DataRoot.of(data_dir)
     try:
@@ -379,23 +430,27 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                                error=f"scene {scene_id}: {stage}: cannot lock "
                                      f"{root.scene_location(scene_id)}: {type(exc).__name__}: "
                                      f"{exc}; check the data root and re-run")
-        result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress)
+        result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress,
+                             verify_outputs)
         result.took_over = held.took_over
         return result
 
 
 def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str, root: DataRoot,
-                force: bool, on_progress: ProgressSink | None) -> StageResult:
+                force: bool, on_progress: ProgressSink | None, verify_outputs: bool) -> StageResult:
     mirror = root.mirror(scene_id)
     if mirror is None:
-        return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, on_progress)
+        return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, on_progress,
+                                hashes_checked(config, stage, verify_outputs))
     try:
         mirror.pull_log()
         mirror.sync([f"{MARKER_DIR}/*.json"])  # the remote markers are the truth
     except OSError as exc:  # StorageError: names the URL and the fix
         return StageResult(scene_id, stage, "failed", error=f"scene {scene_id}: {stage}: {exc}")
     try:
-        result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force, on_progress)
+        # A URL root is checked from one listing (sizes): hashing would download every file.
+        result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force,
+                                  on_progress, False)
     finally:
         with contextlib.suppress(OSError):
             mirror.push_log()
@@ -406,13 +461,14 @@ def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: st
 
 def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str,
                      root: DataRoot, mirror: SceneMirror | None, force: bool,
-                     on_progress: ProgressSink | None) -> StageResult:
+                     on_progress: ProgressSink | None, check_hashes: bool) -> StageResult:
     data_dir = root.local
     spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
     with scene_logger(scene_id, DataLayout(data_dir).log(scene_id), root.storage_options) as log:
         params = config.params[stage]
         t0 = time.time()
+        made = not scene_dir.exists()  # a first stage that fails leaves no empty scene folder
         try:
             fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
             marker = read_marker(scene_dir, stage)
@@ -420,7 +476,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                 else local_size(scene_dir)
             reason = "--force" if force else _stale(
                 config, stage, scene_uri, scene_dir, marker, fp, upstream, size_of,
-                mirror.exists if mirror else None)
+                mirror.exists if mirror else None, local_sha256(scene_dir) if check_hashes else None)
             if not reason:
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
                 release_outputs(config, stage, scene_dir, mirror, log)
@@ -429,6 +485,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             log.info("%s: to run: %s", stage, reason)
             check_inputs(scene_id, stage, upstream, size_of)
             func = load_entry(spec)
+            admit_scene(config, stage, scene_dir)
             scene_dir.mkdir(parents=True, exist_ok=True)
             marker_path(scene_dir, stage).unlink(missing_ok=True)
             marker_rel = marker_path(Path(), stage).as_posix()
@@ -474,13 +531,16 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
         except (SceneError, ConfigError, StageNotImplemented, OSError, ValueError) as exc:
             message = str(exc)
             if not isinstance(exc, ParaDriveError):
-                message = f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
+                message = (f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
+                           f"{os_error_fix(exc, scene_dir)}")
             message = redact(message, root.storage_options)
             log.error("%s: failed: %s", stage, message)
+            _remove_if_empty(scene_dir, made)
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
                                peak_rss_mb=peak_rss_mb())
         except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
             log.error("%s: crashed:\n%s", stage, traceback.format_exc())
+            _remove_if_empty(scene_dir, made)
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
                                error=redact(f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: "
                                             f"{exc} (traceback in {root}/logs/{scene_id}.log)",

@@ -12,8 +12,18 @@ A stage file::
     retention:                              # optional: a boolean parameter -> the outputs it keeps
       keep_frames: ["renders/*/*/*"]        # false: let them go once every stage needing this one is done
     params:
-      checkpoints: {default: [100, 500, 1000, 30000], doc: "paper §3: ..."}
+      checkpoints: {default: [100, 500, 1000, 30000], doc: "paper §3: ...", nonempty: true,
+                    items: {min: 1}}
       cameras: {default: auto, types: [str, list], doc: "..."}   # types: when one type is not enough
+      downscale: {default: 1, doc: "...", min: 1}
+
+What a value may be is declared beside its default: ``min`` / ``max`` (inclusive), ``above`` /
+``below`` (exclusive), ``choices``, ``pattern`` (a regular expression the whole string
+matches), ``nonempty`` (a list, string or mapping), ``items`` (the same rules for each element of
+a list or each value of a mapping) and ``nullable`` (null is taken although the default is not).
+A float is never NaN or infinite. The defaults are checked when the stage file is read, every
+profile and ``--set`` value when it is applied, so a build refuses a value that cannot work
+before any stage runs, naming the parameter, the value, what is allowed and where it came from.
 
 A profile overrides parameters by stage::
 
@@ -30,7 +40,9 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import math
 import os
+import re
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
@@ -49,13 +61,70 @@ class Resources(BaseModel):
     memory_gb: float = 2
 
 
-class Param(BaseModel):
+class Bounds(BaseModel):
+    """What a value (or each element of a list, with ``items``) may be."""
+
     model_config = ConfigDict(extra="forbid")
+    min: float | None = None
+    max: float | None = None
+    above: float | None = None   # exclusive bounds: a rate or a size that must be positive
+    below: float | None = None
+    choices: list[Any] | None = None
+    pattern: str | None = None   # a regular expression the whole string matches
+    nonempty: bool = False
+    items: Bounds | None = None  # rules of each element of a list (each value of a mapping)
+    among: str | None = None     # 'stage.param': the value (each element) must be one of its values
+
+    @field_validator("pattern")
+    @classmethod
+    def _compiles(cls, value: str | None) -> str | None:
+        if value is not None:
+            re.compile(value)
+        return value
+
+    def allowed(self) -> str:
+        """The rules in words: 'at least 1, at most 51'."""
+        words = [f"one of {self.choices}" if self.choices is not None else "",
+                 f"matching {self.pattern}" if self.pattern else "",
+                 f"at least {self.min:g}" if self.min is not None else "",
+                 f"more than {self.above:g}" if self.above is not None else "",
+                 f"at most {self.max:g}" if self.max is not None else "",
+                 f"less than {self.below:g}" if self.below is not None else "",
+                 "not empty" if self.nonempty else "",
+                 f"each element {self.items.allowed()}" if self.items is not None else "",
+                 f"among {self.among}" if self.among else ""]
+        return ", ".join(w for w in words if w) or "any finite value"
+
+    def problem(self, value: Any) -> str | None:
+        """Why ``value`` breaks these rules, or None."""
+        if isinstance(value, float) and not math.isfinite(value):
+            return "is not a finite number"
+        if self.choices is not None and value not in self.choices:
+            return "is not allowed"
+        if self.pattern is not None and isinstance(value, str) and not re.fullmatch(self.pattern, value):
+            return "is not allowed"
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and (
+                (self.min is not None and value < self.min) or (self.max is not None and value > self.max)
+                or (self.above is not None and value <= self.above)
+                or (self.below is not None and value >= self.below)):
+            return "is out of range"
+        if self.nonempty and isinstance(value, (str, list, tuple, dict)) and not value:
+            return "is empty"
+        elements = list(value.values()) if isinstance(value, dict) else list(value) \
+            if isinstance(value, (list, tuple)) else []
+        rule = self.items or Bounds()   # without rules of their own, elements are still finite
+        for element in elements:
+            if element is not None and (why := rule.problem(element)):
+                return f"has an element {element!r} that {why}"
+        return None
+
+
+class Param(Bounds):
     default: Any = None
     doc: str = Field(min_length=1)
-    choices: list[Any] | None = None
     # value types taken when the default's own type is not the only one, e.g. [str, list]
     types: list[Literal["str", "int", "float", "bool", "list", "dict"]] | None = None
+    nullable: bool = False   # null is taken although the default is not null
 
 
 class StageSpec(BaseModel):
@@ -124,12 +193,26 @@ def default_stages_dir() -> Path:
 
 def _read_yaml(path: Path) -> dict:
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text file (byte {exc.object[exc.start]:#04x} at offset "
+                          f"{exc.start} is not UTF-8); give a YAML file") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from exc
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+        raise ConfigError(f"{path}{yaml_problem(exc)}; fix the YAML there") from exc
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     return doc
+
+
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """A YAML error in one line: ``:3:7: mapping values are not allowed here`` (line and column
+    from 1, as editors count)."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    return f"{where}: not valid YAML: {problem}"
 
 
 def _pydantic_message(path: Path, exc: ValidationError) -> str:
@@ -149,21 +232,36 @@ def _suggest(name: str, options) -> str:
 
 
 def coerce(stage: str, key: str, param: Param, value: Any, origin: str) -> Any:
-    """Check an override against the default's type (ints pass where floats are expected)."""
-    default = param.default
-    if isinstance(value, bool) and isinstance(default, str):
+    """Check a value against the parameter's type (the default's, or ``types``; ints pass where
+    floats are expected) and its declared rules; ``origin`` says where it came from."""
+    if isinstance(value, bool) and isinstance(param.default, str):
         # YAML 1.1 reads an unquoted on / off / yes / no as a boolean: take the word back
         value = next((c for c in param.choices or () if c in (("on", "yes", "true") if value
                                                                  else ("off", "no", "false"))), value)
-    if param.choices is not None and value not in param.choices:
-        raise ConfigError(f"{origin}: {stage}.{key} = {value!r} is not one of {param.choices}")
-    if param.types is not None and value is not None:
+    if value is None:
+        if param.default is not None and not param.nullable:
+            raise ConfigError(f"{origin}: {stage}.{key} = null is not allowed (allowed: "
+                              f"{param.allowed()}); change it to a value like the default "
+                              f"{param.default!r}")
+        return value
+    value = _typed(stage, key, param, value, origin)
+    why = param.problem(value)
+    if why:
+        raise ConfigError(f"{origin}: {stage}.{key} = {value!r} {why} (allowed: {param.allowed()}); "
+                          f"change it to an allowed value")
+    return value
+
+
+def _typed(stage: str, key: str, param: Param, value: Any, origin: str) -> Any:
+    """``value`` if its type fits the parameter (an int taken as a float where a float is due)."""
+    default = param.default
+    if param.types is not None:
         kind = "float" if type(value) is int and "float" in param.types else type(value).__name__
         if kind not in param.types:
             raise ConfigError(f"{origin}: {stage}.{key} = {value!r} has type "
                               f"{type(value).__name__}, expected one of {', '.join(param.types)}")
         return value
-    if default is None or value is None:
+    if default is None:
         return value
     if isinstance(default, bool):
         ok = isinstance(value, bool)
@@ -211,8 +309,21 @@ class StageRegistry:
                 if need not in specs:
                     raise ConfigError(f"{spec.file}: needs unknown stage '{need}'"
                                       f"{_suggest(need, specs)}")
+            self._check_rules(spec, specs)
         self._check_acyclic(specs)
         return specs
+
+    @staticmethod
+    def _check_rules(spec: StageSpec, specs: dict[str, StageSpec]) -> None:
+        """Each default keeps its own rules; ``among`` names a parameter that exists."""
+        for key, param in spec.params.items():
+            stage, _, name = (param.among or ".").partition(".")
+            if param.among and name not in (specs[stage].params if stage in specs else {}):
+                raise ConfigError(f"{spec.file}: {spec.name}.{key} is declared among unknown "
+                                  f"parameter '{param.among}'; name one as stage.param")
+            if param.default is not None and (why := param.problem(param.default)):
+                raise ConfigError(f"{spec.file}: {spec.name}.{key} default {param.default!r} {why} "
+                                  f"(allowed: {param.allowed()}); fix the default or the rule")
 
     @staticmethod
     def _check_acyclic(specs: dict[str, StageSpec]) -> None:
@@ -274,9 +385,10 @@ class StageRegistry:
         prof = self.profile(profile)
         params = {name: spec.defaults() for name, spec in self.specs.items()}
         origins = {name: {k: "default" for k in spec.params} for name, spec in self.specs.items()}
-        layers = [(prof.stages, f"profile {prof.name} ({prof.file})"),
-                  (overrides or {}, "command line")]
-        for layer, origin in layers:
+        # (what a message says, what `paradrive stages` shows in its "from" column)
+        layers = [(prof.stages, f"profile {prof.name} ({prof.file})", f"profile {prof.name}"),
+                  (overrides or {}, "--set", "command line")]
+        for layer, origin, shown in layers:
             for stage, values in layer.items():
                 if stage not in self.specs:
                     raise ConfigError(f"{origin}: unknown stage '{stage}'{_suggest(stage, self.specs)}")
@@ -288,7 +400,7 @@ class StageRegistry:
                         raise ConfigError(f"{origin}: stage '{stage}' has no parameter '{key}'"
                                           f"{_suggest(key, spec.params)}; see {spec.file}")
                     params[stage][key] = coerce(stage, key, spec.params[key], value, origin)
-                    origins[stage][key] = origin.split(" (")[0]
+                    origins[stage][key] = shown
         return ResolvedConfig(profile=prof.name, params=params, origins=origins,
                               stages_dir=str(self.dir))
 
@@ -303,6 +415,39 @@ class ResolvedConfig(BaseModel):
 
     def registry(self) -> StageRegistry:
         return StageRegistry(self.stages_dir)
+
+    def check(self, stages: list[str] | None = None) -> None:
+        """Every parameter of ``stages`` (default: all) through its stage's typed ``Params``, so
+        a value the declared rules let through but the stage cannot take fails before any stage
+        runs, naming where the value came from."""
+        registry = self.registry()
+        selected = registry.order(stages)
+        for stage in selected:
+            self._check_among(registry.specs[stage], selected)
+            try:
+                typed_params(registry.specs[stage], self.params[stage])
+            except ImportError:
+                continue   # a stage not implemented here: it fails as it runs, naming its entry
+            except ConfigError as exc:
+                key = next((k for k in self.params[stage]
+                            if str(exc).startswith((f"{stage}.{k}:", f"{stage}.{k}."))), None)
+                origin = self.origins[stage].get(key or "", "")
+                source = {"default": registry.specs[stage].file, "command line": "--set"}.get(origin, origin)
+                raise ConfigError(f"{exc} (from {source})" if source else str(exc)) from exc
+
+    def _check_among(self, spec: StageSpec, selected: list[str]) -> None:
+        """Values declared ``among`` another selected stage's parameter are among its values."""
+        for key, param in spec.params.items():
+            stage, _, name = (param.among or "").partition(".")
+            if stage not in selected:
+                continue
+            value, pool = self.params[spec.name][key], self.params[stage][name]
+            missing = [v for v in (value if isinstance(value, list) else [value]) if v not in pool]
+            if missing:
+                origins = {self.origins[spec.name][key], self.origins[stage][name]}
+                raise ConfigError(f"{spec.name}.{key} = {value!r} is not among {param.among} = "
+                                  f"{pool!r} (values from: {', '.join(sorted(origins))}); "
+                                  f"add {missing[0]!r} to {param.among} or change {spec.name}.{key}")
 
     def typed(self, stage: str) -> Any:
         """The stage's parameters as its module's typed ``Params``."""
@@ -329,6 +474,8 @@ def parse_overrides(items: list[str] | None) -> dict[str, dict[str, Any]]:
         try:
             value = yaml.safe_load(raw)
         except yaml.YAMLError as exc:
-            raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from exc
+            problem = getattr(exc, "problem", None) or "unreadable"
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML ({problem}); write it "
+                              f"as YAML, e.g. render.offsets_m=[1,-1] or ingest.image_ext=png") from exc
         out.setdefault(stage, {})[name] = value
     return out

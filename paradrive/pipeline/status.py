@@ -16,9 +16,10 @@ from collections.abc import Sequence
 import typer
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
-from paradrive.errors import ConfigError
+from paradrive.errors import ParaDriveError
 from paradrive.pipeline.ledger import LEDGER_FILE, Ledger, dumps
 from paradrive.pipeline.locks import held_locks
 
@@ -30,9 +31,9 @@ def open_ledger(build: str, manifests: Path) -> Ledger:
     """A build name (under ``manifests``) or the path of a build folder / ledger file."""
     path = Path(build)
     if path.name == LEDGER_FILE and path.is_file():
-        return Ledger(path, path.parent.name)
+        return Ledger.for_reading(path, path.parent.name)
     if (path / LEDGER_FILE).is_file():
-        return Ledger(path / LEDGER_FILE, path.name)
+        return Ledger.for_reading(path / LEDGER_FILE, path.name)
     return Ledger.open_existing(manifests, build)
 
 
@@ -70,9 +71,9 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
     if run:
         finished = (f"finished {_when(run['finished_at'])}, exit code {run['exit_code']}"
                     if run["finished_at"] else "still running (or was killed)")
-        console.print(f"build [bold]{summary['build']}[/] — last run started "
+        console.print(f"build [bold]{escape(summary['build'])}[/] — last run started "
                       f"{_when(run['started_at'])} ({run['executor'] or '?'} executor), {finished}")
-    console.print(f"ledger: {summary['ledger']}")
+    console.print(f"ledger: {summary['ledger']}", markup=False)
     console.print(f"[bold]{summary['scenes']}[/] scenes: [green]{counts['done']} done[/], "
                   f"[red]{counts['failed']} failed[/], [cyan]{counts['running']} running[/], "
                   f"{counts['pending']} pending")
@@ -100,7 +101,7 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
         table.add_column("time", justify="right")
         table.add_column("state")
         for s in slow:
-            table.add_row(s["scene_id"], _secs(s["seconds"]),
+            table.add_row(escape(s["scene_id"]), _secs(s["seconds"]),
                           f"[{STATE_STYLE[s['state']]}]{s['state']}")
         console.print(table)
 
@@ -113,7 +114,7 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
         table.add_column("time", justify="right")
         for sc in summary["scene_table"]:
             cells = [sc["stages"].get(n, "") for n in names]
-            table.add_row(sc["scene_id"], *[f"[{STATE_STYLE.get(c, 'dim')}]{c}" for c in cells],
+            table.add_row(escape(sc["scene_id"]), *[f"[{STATE_STYLE.get(c, 'dim')}]{c}" for c in cells],
                           _secs(sc["seconds"]))
         console.print(table)
 
@@ -124,24 +125,24 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
         table.add_column("attempts", justify="right")
         table.add_column("reason", overflow="fold")
         for f in summary["failures"]:
-            table.add_row(f["scene_id"], f["stage"], str(f["attempts"]), f["error"])
+            table.add_row(escape(f["scene_id"]), f["stage"], str(f["attempts"]), escape(f["error"]))
         console.print(table)
         console.print(f"retry them: paradrive build --build {summary['build']} --retry-failed "
-                      f"(with the same --data, --manifests and --profile)")
+                      f"(with the same --data, --manifests and --profile)", markup=False)
     if summary.get("locks"):
         table = Table(title="locked scenes [dim](a stage of them runs now)[/]", title_justify="left",
                       box=box.SIMPLE_HEAD)
         table.add_column("scene")
         table.add_column("held by", overflow="fold")
         for lock in summary["locks"]:
-            table.add_row(lock["scene_id"], lock["holder"])
+            table.add_row(escape(lock["scene_id"]), escape(lock["holder"]))
         console.print(table)
     for t in summary.get("takeovers", []):
-        console.print(f"[yellow]{t['scene_id']} {t['stage']}[/] at {_when(t['at'])}: {t['error']}")
+        console.print(f"[yellow]{escape(t['scene_id'])} {t['stage']}[/] at {_when(t['at'])}: {escape(t['error'])}")
     for b in summary["build_stages"]:
         style = STATE_STYLE.get(b["state"], "dim")
         console.print(f"{b['stage']}: [{style}]{b['state']}[/]"
-                      + (f" — {b['error']}" if b["error"] else ""))
+                      + (f" — {escape(b['error'])}" if b["error"] else ""))
 
 
 def _is_build_stage(summary: dict, stage: str) -> bool:
@@ -164,8 +165,8 @@ def status(
         summary["takeovers"] = [{k: t[k] for k in ("scene_id", "stage", "at", "error")}
                                 for t in ledger.takeovers()]
         summary["locks"] = scene_locks(ledger, data, storage_option)
-    except (ConfigError, OSError) as exc:
-        Console(stderr=True).print(f"[bold red]error:[/] {exc}")
+    except (ParaDriveError, OSError) as exc:
+        Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}")
         raise typer.Exit(2)
     if as_json:
         print(dumps(summary))

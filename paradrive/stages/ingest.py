@@ -5,6 +5,9 @@ Each reader ``paradrive.ingest.<kind>.read(uri, out_dir, params, scene_id) -> Sc
 images under ``out_dir`` and returns the scene (with relative image paths). The stage writes
 everything into a temporary folder and moves it into ``<data>/scenes/<scene_id>/`` only when the
 whole scene is valid, so a failed ingest leaves nothing half-written.
+
+Credit: ``cameras: auto`` ingests the fit sets of DriveStudio's dataset configs (Waymo ``3cams``,
+nuScenes ``6cams``), which the ReCamDriving recipe keeps.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ import numpy as np
 from paradrive.actors import dynamic_mask, moving_actors
 from paradrive.io import temporary_name
 from paradrive.scene import Scene, load_scene, write_image, write_scene
-from paradrive.contracts.base import StageContext, StageParams
+from paradrive.contracts.base import StageContext
+from paradrive.contracts.params import IngestParams as Params
 from paradrive.contracts.layout import SceneLayout
 from paradrive.uri import parse_uri
 
@@ -36,22 +40,6 @@ READERS = {
 INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
 
 
-class Params(StageParams):
-    cameras: str | list[str] | None
-    camera_sets: dict[str, list[str]]
-    max_frames: int | None
-    image_ext: str
-    jpeg_quality: int
-    lidar: bool
-    sky_masks: bool
-    synthetic_frames: int
-    synthetic_width: int
-    synthetic_height: int
-    synthetic_curvature: float
-    moving_threshold_m: float | None
-    keep_lidar: bool
-
-
 def params_of(values: Mapping[str, Any] | None = None) -> Params:
     """Ingest parameters from a recorded mapping (a scene's ingest marker); the YAML's values
     fill what an older marker lacks, and keys the YAML no longer has are left out."""
@@ -61,15 +49,21 @@ def params_of(values: Mapping[str, Any] | None = None) -> Params:
     return Params.of("ingest", {**StageRegistry().resolve(None).params["ingest"], **known})
 
 
-def recorded_params(layout: SceneLayout) -> Params:
-    """The parameters the scene at ``layout`` was ingested with (its stage marker), typed; the
-    YAML's values where it has no marker (a scene folder made without the runner)."""
+def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
+    """The parameter mapping the scene at ``layout`` was ingested with (its stage marker), or
+    None where it has no readable marker (a scene folder made without the runner)."""
     try:
         doc = json.loads(layout.marker("ingest").read_text())
     except (FileNotFoundError, json.JSONDecodeError):
-        doc = None
+        return None
     values = doc.get("params") if isinstance(doc, dict) else None
-    return params_of(values if isinstance(values, dict) else None)
+    return values if isinstance(values, dict) else None
+
+
+def recorded_params(layout: SceneLayout) -> Params:
+    """The parameters the scene at ``layout`` was ingested with, typed; the YAML's values where
+    it has no marker."""
+    return params_of(recorded_values(layout))
 
 
 class IngestSummary(dict[str, Any]):

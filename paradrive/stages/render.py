@@ -6,6 +6,9 @@ Per camera of ``render.cameras`` and for the union of the frames its clip window
     target          the recorded frames, cropped and resized like the renders
     cond@000100 ..  the recorded trajectory rendered at each under-fitted checkpoint
     source+1m ..    the trajectory shifted laterally by each offset, at the source (final) checkpoint
+    source+long+1m  with ``transform: longitudinal``: the camera moved that far along its own
+                    recorded path instead (:func:`paradrive.streams.source_poses`); the clip
+                    windows then lie where every such source stays on the path
 
 Layout under ``<scene>/renders/``::
 
@@ -22,7 +25,7 @@ source), ``iteration``, ``offset_m``, folder and ``c2w`` per frame (16 floats, r
 ``<frame>`` is the frame's position in ``scene.json``'s ``frames`` list. Output size is
 ``width`` x ``height``: when the stored images have another aspect ratio they are centre-cropped
 to the output aspect, then resized; the pinhole intrinsics are shifted by the crop and scaled by
-the resize (DESIGN.md: fx, cx by sx; fy, cy by sy) and renders use the same ones, so render and
+the resize (docs/conventions.md, "Intrinsics": fx, cx by sx; fy, cy by sy) and renders use the same ones, so render and
 target pixels correspond. Depth of the target stream is not written (a log has no dense depth).
 
 Depth is the expected z-depth of the scene's Gaussians, leaving out the fit's sky dome (Gaussians
@@ -37,10 +40,10 @@ The whole ``renders/`` folder is assembled under a temporary name and renamed in
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -53,8 +56,9 @@ from paradrive.contracts.base import StageContext, StageParams
 from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
 from paradrive.contracts.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
                                       SkippedClip, SkyDomeRecord, WindowRecord)
-from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_windows, crop_resize,
-                               frames_needed, output_camera, plan_streams)
+from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_shortfall, crop_resize,
+                               frames_needed, output_camera, plan_streams, source_clip_windows,
+                               source_poses)
 
 if TYPE_CHECKING:
     from paradrive.gs.graph import FittedModel
@@ -70,6 +74,8 @@ class Params(StageParams):
     condition_checkpoints: list[int]
     source_checkpoint: int
     offsets_m: list[float]
+    transform: str
+    longitudinal_offsets_m: list[float]
     clips: list[str]
     clip_frames: int
     depth: bool
@@ -80,8 +86,14 @@ class Params(StageParams):
     threads: int
     keep_frames: bool
 
+    @property
+    def source_offsets(self) -> list[float]:
+        """The offsets of the chosen transform: ``offsets_m`` or ``longitudinal_offsets_m``."""
+        return self.longitudinal_offsets_m if self.transform == "longitudinal" else self.offsets_m
+
     def streams(self) -> list[StreamPlan]:
-        return plan_streams(self.condition_checkpoints, self.source_checkpoint, self.offsets_m)
+        return plan_streams(self.condition_checkpoints, self.source_checkpoint, self.source_offsets,
+                            self.transform)
 
 
 @dataclass
@@ -106,8 +118,9 @@ def check_params(params: Params, scene: Scene, layout: SceneLayout) -> None:
                          scene_id=sid, fix="set render.clip_frames >= 1")
     streams = params.streams()
     if len({s.name for s in streams}) != len(streams):
-        raise SceneError(f"render.offsets_m {params.offsets_m} repeats an offset", scene_id=sid,
-                         fix="list each lateral offset once")
+        key = "longitudinal_offsets_m" if params.transform == "longitudinal" else "offsets_m"
+        raise SceneError(f"render.{key} {params.source_offsets} repeats an offset", scene_id=sid,
+                         fix="list each offset once")
     nodes = FitRecord.load(layout.fit_json).actors if layout.fit_json.is_file() else []
     for it in sorted({s.iteration for s in streams if s.iteration is not None}):
         for path in [layout.checkpoint(it)] + [layout.actor_checkpoint(it, a.file) for a in nodes]:
@@ -123,9 +136,31 @@ def check_params(params: Params, scene: Scene, layout: SceneLayout) -> None:
                          fix="ingest those cameras (ingest.cameras) or drop them from render.cameras")
 
 
+def admit(layout: SceneLayout, ingested: Mapping[str, Any], params: Params) -> None:
+    """Refuse a scene that can give no clip before any stage spends compute on it (the runner
+    asks before the fit): ``ingested`` is ingest's summary (``frames``, ``cameras``)."""
+    if not ingested:
+        return  # nothing recorded to judge by; render itself reports what it finds
+    short = clip_shortfall(int(ingested.get("frames", 0)), list(ingested.get("cameras", [])),
+                           params.cameras, params.clip_frames)
+    if short is not None:
+        raise SceneError(short.what, scene_id=layout.root.name, path=layout.scene_json, fix=short.fix)
+    if params.transform == "longitudinal" and layout.scene_json.is_file():
+        scene = load_scene(layout.root)  # the path's length decides where sources stay on it
+        for name in params.cameras:
+            windows, skipped = source_clip_windows(scene.c2w(name), params.clip_frames, params.clips,
+                                                   params.source_offsets, params.transform)
+            if not windows:
+                raise SceneError(f"camera {name}: {skipped[0]['reason']}", scene_id=scene.scene_id,
+                                 path=layout.scene_json,
+                                 fix="set a shorter render.clip_frames, smaller "
+                                     "render.longitudinal_offsets_m, or use another scene")
+
+
 def plan_camera(scene: Scene, name: str, params: Params, log: logging.Logger) -> CameraPlan:
     try:
-        windows, skipped = clip_windows(len(scene.frames), params.clip_frames, params.clips)
+        windows, skipped = source_clip_windows(scene.c2w(name), params.clip_frames, params.clips,
+                                               params.source_offsets, params.transform)
     except ValueError as exc:
         raise SceneError(str(exc), scene_id=scene.scene_id, fix="fix render.clips") from exc
     for s in skipped:
@@ -159,11 +194,12 @@ class _Renderer:
 
     def camera(self, plan: CameraPlan) -> RenderedCamera:
         frames = plan.frames
-        recorded = self.scene.c2w(plan.name)[frames] if frames else np.zeros((0, 4, 4))
-        ego = self.scene.ego2world()[frames] if frames else np.zeros((0, 4, 4))
+        path = self.scene.c2w(plan.name)
+        recorded = path[frames] if frames else np.zeros((0, 4, 4))
         streams = {}
         for stream in self.streams if frames else []:
-            c2w = (geometry.lateral_shift(recorded, ego, stream.offset_m)
+            # the whole path: a longitudinal source is found along it (windows keep it on the path)
+            c2w = (source_poses(path, self.scene.ego2world(), stream.offset_m, stream.transform)[0][frames]
                    if stream.offset_m is not None else recorded)
             folder = self.root / stream_dir(plan.name, stream.name)
             folder.mkdir(parents=True)
@@ -244,7 +280,7 @@ def render_scene(layout: SceneLayout | Path, params: Params, *, log: logging.Log
         record = RendersRecord(
             scene_id=scene.scene_id, width=params.width, height=params.height,
             condition_checkpoints=params.condition_checkpoints,
-            source_checkpoint=params.source_checkpoint, offsets_m=params.offsets_m,
+            source_checkpoint=params.source_checkpoint, offsets_m=params.source_offsets,
             clip_frames=params.clip_frames, depth=params.depth, alpha=params.alpha,
             sky_dome=None if sky is None else SkyDomeRecord(centre=[float(x) for x in sky.centre],
                                                             radius_m=sky.radius),

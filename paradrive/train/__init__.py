@@ -4,6 +4,9 @@
 embedding, stage-2 Rendering / Cross Attention), ``flow`` (rectified-flow loss, Euler sampler),
 ``trainer`` (loop, freezing, checkpoints, exact resume, sampling), ``cli`` (``paradrive train``).
 Data comes only through :mod:`paradrive.data`.
+
+Credit: the two-stage model and its schedule follow ReCamDriving (Li et al.); the camera condition
+of ``pose_format="recammaster"`` follows ReCamMaster (Bai et al.); the latent shapes follow Wan2.1.
 """
 
 from paradrive.train.autoencoder import PatchAutoencoder, VideoEncoder, make_autoencoder

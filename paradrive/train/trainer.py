@@ -201,7 +201,7 @@ def torch_threads(n: int) -> Iterator[None]:
 
 # -- the trainer ---------------------------------------------------------------------------------
 class Trainer:
-    """Trains one stage on a map-style dataset of pair dicts (see DESIGN.md, "Dataset adapter").
+    """Trains one stage on a map-style dataset of pair dicts (see docs/manifest.md, "The dataset adapter").
 
     ``init``: weights to start from (a trainer checkpoint or a bare state dict). Stage 2 needs the
     stage-1 weights; its new modules start fresh. A ``last.pt`` in ``out_dir`` takes precedence:

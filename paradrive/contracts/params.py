@@ -1,0 +1,113 @@
+"""The typed parameters of the stages whose work a library below the stages does: the ingest
+readers (:mod:`paradrive.ingest`), the fit (:mod:`paradrive.gs.fit`) and the manifest writer
+(:mod:`paradrive.manifest`) take them, and the stage modules run with them. Their fields are
+exactly the parameters of ``stages/<name>.yaml``, with no defaults: the values live only there.
+"""
+
+from __future__ import annotations
+
+from pydantic import field_validator
+
+from paradrive.contracts.base import StageParams
+
+
+class IngestParams(StageParams):
+    cameras: str | list[str] | None
+    camera_sets: dict[str, list[str]]
+    max_frames: int | None
+    image_ext: str
+    jpeg_quality: int
+    lidar: bool
+    sky_masks: bool
+    synthetic_frames: int
+    synthetic_width: int
+    synthetic_height: int
+    synthetic_curvature: float
+    moving_threshold_m: float | None
+    keep_lidar: bool
+
+
+class FitParams(StageParams):
+    checkpoints: list[int]
+    cameras: list[str] | None
+    downscale: float
+    seed: int
+    threads: int
+    device: str
+    backend: str
+    sh_degree: int
+    sh_degree_interval: int
+    ssim_lambda: float
+    lr_means: float
+    lr_means_final: float
+    lr_scales: float
+    lr_quats: float
+    lr_opacities: float
+    lr_sh0: float
+    lr_shN: float
+    grow_grad2d: float
+    grow_scale3d: float
+    prune_scale3d: float
+    prune_opa: float
+    refine_start_iter: int
+    refine_stop_iter: int
+    refine_every: int
+    reset_every: int
+    max_gaussians: int
+    init: str
+    init_points: int
+    init_opacity: float
+    init_depth_min: float
+    init_depth_max: float
+    init_depth_candidates: int
+    init_ground_margin: float | None
+    lidar_voxel: float
+    lidar_max_points: int
+    sky_points: int
+    sky_radius: float
+    sky_depth_weight: float
+    depth_weight: float
+    depth_inverse: bool
+    flatten_weight: float
+    shape_ratio_weight: float
+    shape_ratio_max: float
+    shape_ratio_every: int
+    eval_views: int
+    state_interval: int
+    keep_state: bool
+    dynamic: str
+    nonrigid: str
+    actor_init_points: int
+    actor_pose_lr: float
+
+    @field_validator("checkpoints")
+    @classmethod
+    def _positive_sorted(cls, value: list[int]) -> list[int]:
+        its = sorted(set(value))
+        if not its or its[0] <= 0:
+            raise ValueError(f"checkpoints must be positive iterations, got {value!r}")
+        return its
+
+    @field_validator("downscale")
+    @classmethod
+    def _at_least_one(cls, value: float) -> float:
+        if value < 1.0:
+            raise ValueError(f"downscale must be >= 1, got {value!r}")
+        return value
+
+    @property
+    def iterations(self) -> int:
+        """The run length: the last checkpoint."""
+        return self.checkpoints[-1]
+
+
+class ManifestParams(StageParams):
+    shard_rows: int
+    shard_bytes: int | None
+    row_group_rows: int
+    compression: str
+    media: str
+    verify_inputs: bool
+    quality: bool
+    kind: str
+    exclude_splits: list[str]

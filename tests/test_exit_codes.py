@@ -1,0 +1,141 @@
+"""A build's exit code is the README's: 0 every scene landed, 1 no scene landed, 2 a usage or
+configuration error, 3 some scenes landed and some failed, 130 interrupted (Ctrl-C), with a line
+that says what was stopped and that a plain re-run resumes."""
+
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL
+from paradrive.pipeline.build import BuildReport
+from paradrive.pipeline.runner import StageResult
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["--profile", "smoke", "--set", "ingest.synthetic_frames=10", "--set", "ingest.synthetic_width=64",
+        "--set", "ingest.synthetic_height=48"]
+
+
+def _command(root: Path, *args: str) -> list[str]:
+    return [sys.executable, "-m", "paradrive.cli", "build", "--data", str(root / "data"),
+            "--manifests", str(root / "m"), "--build", "K", *TINY, *args]
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "250"}
+
+
+def _run(root: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(_command(root, *args), cwd=REPO, env=_env(), capture_output=True, text=True,
+                          timeout=600)
+
+
+@pytest.mark.slow
+def test_scenes_that_all_failed_after_their_ingest_exit_1(tmp_path):
+    # the ingest of both scenes lands, then every fit fails: no scene was built
+    res = _run(tmp_path, "--scene", "synthetic:p1?seed=3", "--scene", "synthetic:p1?seed=4",
+               "--stages", "ingest,fit", "--set", "fit.init=lidar", "--set", "ingest.lidar=false")
+    assert res.returncode == EXIT_FAILED, res.stdout + res.stderr
+    assert res.stderr.count("done ingest") == 2 and res.stderr.count("failed fit") == 2
+    assert "0 of 2 scenes done; exit code 1 (no scene built)" in res.stdout
+    assert list((tmp_path / "data" / "scenes").iterdir())   # the ingests are kept for a re-run
+
+
+def _small_disk() -> None:
+    """In the child: files stop growing past 500 kB, as on a full disk (EFBIG, not a signal)."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (500_000, 500_000))
+
+
+@pytest.mark.slow
+def test_every_scene_failing_on_a_full_disk_exits_1_naming_the_folder_and_the_fix(tmp_path):
+    res = subprocess.run(_command(tmp_path, "--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit"),
+                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=600,
+                         preexec_fn=_small_disk)
+    assert res.returncode == EXIT_FAILED, res.stdout + res.stderr
+    scene = tmp_path / "data" / "scenes" / "synthetic-p1-s3"
+    assert (f"failed fit      synthetic-p1-s3 — scene synthetic-p1-s3: fit failed: OSError: [Errno 27] "
+            f"File too large; no room to write in {scene}: free space there (or pass another --data) "
+            f"and re-run") in [line.strip() for line in res.stderr.splitlines()]
+
+
+def _mount_namespaces() -> bool:
+    """Whether this user may mount in a namespace of its own (``unshare -rm``)."""
+    try:
+        return subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode == 0
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not _mount_namespaces(), reason="needs unshare -rm (a mount namespace)")
+def test_a_read_only_data_folder_fails_every_scene_with_exit_1(tmp_path):
+    (tmp_path / "data").mkdir()
+    command = " ".join(f"'{arg}'" for arg in _command(tmp_path, "--scene", "synthetic:p1?seed=3",
+                                                        "--scene", "synthetic:p1?seed=4", "--stages", "ingest"))
+    # --data is an empty read-only file system, seen by this build only
+    res = subprocess.run(["unshare", "-rm", "sh", "-c",
+                          f"mount -t tmpfs -o size=1m,ro tmpfs '{tmp_path / 'data'}' && exec {command}"],
+                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=600)
+    assert res.returncode == EXIT_FAILED, res.stdout + res.stderr
+    assert res.stderr.count("Read-only file system") == 2 and "0 of 2 scenes done" in res.stdout
+
+
+def test_some_scenes_failed_and_some_landed_exits_3(tmp_path):
+    res = _run(tmp_path, "--scene", "synthetic:demo?seed=4&colour=red", "--scene", "synthetic:demo?seed=5",
+               "--stages", "ingest")
+    assert res.returncode == EXIT_PARTIAL, res.stdout + res.stderr
+    assert "1 of 2 scenes done; exit code 3 (partial build)" in res.stdout
+
+
+def test_the_exit_code_counts_scenes_not_stages():
+    def results(*rows):
+        return BuildReport(results=[StageResult(sid, stage, status) for sid, stage, status in rows])
+
+    assert results(("a", "ingest", "done"), ("a", "fit", "failed"),
+                   ("b", "ingest", "skipped"), ("b", "fit", "failed")).exit_code == EXIT_FAILED
+    assert results(("a", "ingest", "done"), ("a", "fit", "failed"),
+                   ("b", "ingest", "done"), ("b", "fit", "done")).exit_code == EXIT_PARTIAL
+    assert results(("build:K", "manifest", "failed")).exit_code == EXIT_FAILED
+    assert results(("a", "ingest", "done"), ("build:K", "manifest", "done")).exit_code == EXIT_OK
+
+
+def _running(ledger: Path) -> list[tuple[str, str]]:
+    with sqlite3.connect(f"file:{ledger}?mode=ro", uri=True) as db:
+        return db.execute("SELECT scene_id, stage FROM tasks WHERE state = 'running'").fetchall()
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_what_it_stopped_and_a_plain_rerun_finishes(tmp_path):
+    args = ("--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit")
+    proc = subprocess.Popen(_command(tmp_path, *args), cwd=REPO, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        # the fit starts right after the ingest's line; the ledger says when it has
+        for line in proc.stderr:
+            if "done ingest" in line:
+                break
+        ledger = tmp_path / "m" / "K" / "ledger.sqlite"
+        while ("synthetic-p1-s3", "fit") not in _running(ledger):
+            assert proc.poll() is None, "the build ended before the fit started"
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=300)   # what was printed after the lines read above
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == EXIT_INTERRUPTED, out + err
+    assert ("interrupted: stopped fit of synthetic-p1-s3; finished stages are kept: run the same "
+            "command again to resume (a fit goes on from its last saved state)") in err.splitlines()
+    with sqlite3.connect(f"file:{ledger}?mode=ro", uri=True) as db:
+        (code,) = db.execute("SELECT exit_code FROM runs ORDER BY run_id DESC LIMIT 1").fetchone()
+    assert code == EXIT_INTERRUPTED
+
+    again = _run(tmp_path, *args)
+    assert again.returncode == EXIT_OK, again.stdout + again.stderr
+    assert "skipped ingest" in again.stderr and "done fit" in again.stderr
