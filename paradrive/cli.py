@@ -15,7 +15,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, Text
 from rich.table import Table
 
 from paradrive import __version__
-from paradrive.errors import EXIT_INTERRUPTED, EXIT_USAGE, ConfigError, ParaDriveError
+from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, ConfigError, ParaDriveError
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S
 from paradrive.redact import remember
 from paradrive.storage import data_root
@@ -352,6 +352,35 @@ def export_cmd(
     except (ValueError, SceneError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2)
+
+
+@app.command("view")
+def view_cmd(
+    target: str = typer.Argument(..., help="A scene folder (<data>/scenes/<id>) or scene URI after ingest, or a build folder (<manifests>/<build>)."),
+    data: Path = typer.Option(DEFAULT_DATA, "--data", help="Where a scene URI's folder is (<data>/scenes/<scene_id>)."),
+    pair: list[str] = typer.Option([], "--pair", help="A build: show this pair (its pair_id); repeatable. Default: the build's first pairs by pair id."),
+    save: Path | None = typer.Option(None, "--save", help="Write the recording (.rrd) here; default: beside the scene or build folder, <folder>.rrd."),
+    spawn: bool = typer.Option(False, "--spawn", help="Then open it in the Rerun viewer (needs a display; else run `rerun FILE.rrd` where there is one)."),
+) -> None:
+    """Write a scene (cameras, LiDAR, actors, the fit's Gaussians, renders and clips) or a build's
+    pairs (source, condition and target videos, both cameras, scores) as a Rerun recording."""
+    from paradrive import view
+
+    try:
+        kind, folder = view.resolve_target(target, data)
+        if pair and kind != "build":
+            raise ConfigError(f"--pair picks pairs of a build; {folder} is a scene folder")
+        out_file = save or view.default_output(folder)
+        report = view.view_build(folder, out_file, pair_ids=pair) if kind == "build" else view.view_scene(folder, out_file)
+        out.print(view.describe(report), markup=False, highlight=False, soft_wrap=True)
+        for line in report.left_out:
+            console.print(f"left out: {line}", markup=False, highlight=False, soft_wrap=True)
+        if spawn:
+            view.open_viewer(report.path)
+    except ConfigError as exc:
+        fail(str(exc))
+    except ParaDriveError as exc:
+        fail(str(exc), EXIT_FAILED)
 
 
 COMMAND_MODULES = [

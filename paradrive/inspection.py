@@ -65,7 +65,10 @@ def summarize(build_dir: str | Path) -> dict:
         by_scene[sid][it][0].append(cols["condition_psnr"][i])
         by_scene[sid][it][1].append(cols["condition_ssim"][i])
         fit[sid] = (cols["fit_train_psnr"][i], cols["fit_train_ssim"][i])
+    held = {s.scene_id: s for s in index.scenes}
     quality = {sid: {"fit_train_psnr": fit[sid][0], "fit_train_ssim": fit[sid][1],
+                     "heldout_psnr": held[sid].heldout_psnr if sid in held else None,
+                     "heldout_ssim": held[sid].heldout_ssim if sid in held else None,
                      "condition": {it: {"psnr": _mean(p), "ssim": _mean(s)}
                                    for it, (p, s) in sorted(cps.items())}}
                for sid, cps in sorted(by_scene.items())}
@@ -87,6 +90,7 @@ def summarize(build_dir: str | Path) -> dict:
         "transform": sorted({s.transform for s in index.scenes}),
         "exclude_splits": [s.model_dump() for s in index.exclude_splits],
         "excluded_scenes": [s.model_dump() for s in index.excluded_scenes],
+        "heldout_filter": index.heldout_filter.model_dump() if index.heldout_filter else None,
     }
 
 
@@ -275,6 +279,7 @@ def _print_tables(summary: dict, console) -> None:
               title_justify="left")
     q.add_column("scene")
     q.add_column("fit PSNR", justify="right")
+    q.add_column("held-out PSNR", justify="right")
     for it in its:
         q.add_column(f"cond {it} PSNR / SSIM", justify="right")
 
@@ -282,15 +287,19 @@ def _print_tables(summary: dict, console) -> None:
         return "-" if v is None else f"{v:.{digits}f}"
 
     for sid, s in summary["quality"]["scenes"].items():
-        q.add_row(escape(sid), fmt(s["fit_train_psnr"], 2),
+        q.add_row(escape(sid), fmt(s["fit_train_psnr"], 2), fmt(s.get("heldout_psnr"), 2),
                   *[f"{fmt(s['condition'].get(it, {}).get('psnr'), 2)} / "
                     f"{fmt(s['condition'].get(it, {}).get('ssim'), 3)}" for it in its])
     allq = summary["quality"]["by_checkpoint"]
-    q.add_row("[bold]all", "", *[f"{fmt(allq[it]['psnr'], 2)} / {fmt(allq[it]['ssim'], 3)}"
+    q.add_row("[bold]all", "", "", *[f"{fmt(allq[it]['psnr'], 2)} / {fmt(allq[it]['ssim'], 3)}"
                                   for it in its])
     console.print(q)
     for s in summary["skipped_scenes"]:
         console.print(f"[yellow]skipped scene[/] {escape(s['scene_id'])}: {escape(s['reason'])}")
+    if summary.get("heldout_filter"):
+        f = summary["heldout_filter"]
+        console.print(f"held-out PSNR filter: at least {f['min_psnr']:g} dB, "
+                      f"{len(f['dropped'])} scene(s) left out", markup=False)
     splits = ", ".join(f"{s['name']} (sha256 {s['sha256'][:12]}…, {s['scenes']} scenes)"
                        for s in summary["exclude_splits"]) or "none"
     console.print(f"{summary['kind']} build; excluded splits: {splits}", markup=False)

@@ -454,19 +454,22 @@ def _land(layout: BuildLayout, staging: Path, index: dict) -> str:
 def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             scenes: list[dict], skipped: list[dict], params: ManifestParams, fingerprint: str = "",
             build: str | None = None, log=None, selection: dict | None = None,
-            data_root: str | Path | None = None, staging: Path | None = None) -> IndexRecord:
+            data_root: str | Path | None = None, staging: Path | None = None,
+            heldout_filter: dict | None = None) -> IndexRecord:
     """Write shards, media and index as a new version of the build; returns the index.
 
     ``staging`` is a folder from :func:`staging_version` that may already hold files (truth
     views); without one, a new one is made. ``selection`` ({exclude_splits, excluded_scenes})
     records which split files left which scenes out of the build. ``data_root`` is the data
-    folder the scenes live in: a ``symlink`` build's links may only lead there."""
+    folder the scenes live in: a ``symlink`` build's links may only lead there.
+    ``heldout_filter`` ({min_psnr, dropped}): the held-out PSNR threshold and the scenes it left
+    out, recorded in the index when set."""
     build = build or Path(build_dir).name
     if staging is None:
         with staging_version(build_dir, build) as fresh:
             return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
                            fingerprint=fingerprint, build=build, log=log, selection=selection,
-                           data_root=data_root, staging=fresh)
+                           data_root=data_root, staging=fresh, heldout_filter=heldout_filter)
     layout = BuildLayout(Path(build_dir))
     table = rows_to_table(rows)
     ids = table.column("pair_id").to_pylist()
@@ -492,7 +495,8 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
                   "data_root": str(Path(data_root).resolve()) if data_root and mode == "symlink"
                   else None},
         "scenes": scenes, "skipped_scenes": skipped,
-        **(selection or {"exclude_splits": [], "excluded_scenes": []})}
+        **(selection or {"exclude_splits": [], "excluded_scenes": []}),
+        **({"heldout_filter": heldout_filter} if heldout_filter is not None else {})}
     version = _land(layout, staging, index)
     if log is not None:
         log.info("manifest: %d rows in %d shards, %d media files (%s) in %s", table.num_rows,

@@ -59,9 +59,9 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.pipeline.locks", "paradrive.pipeline.progress", "paradrive.pipeline.ray_executor",
         "paradrive.pipeline.runner", "paradrive.pipeline.scenes", "paradrive.pipeline.status",
     ),
-    # the commands: build, inspect, eval, train
+    # the commands: build, inspect, eval, view, train
     "cli": (
-        "paradrive.cli", "paradrive.evaluation", "paradrive.inspection",
+        "paradrive.cli", "paradrive.evaluation", "paradrive.inspection", "paradrive.view",
         "paradrive.train", "paradrive.train.cli", "paradrive.train.trainer",
     ),
 }

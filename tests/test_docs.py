@@ -10,7 +10,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 CITING_DIRS = ("paradrive", "tests", "bench", "scripts", "stages")
-CITING_FILES = ("Makefile", "pyproject.toml", ".ci/run")
+CITING_FILES = ("Makefile", "pyproject.toml", ".ci/run", "manifests/SCHEMA.md")
 TEXT_SUFFIXES = {".py", ".yaml", ".yml", ".cpp", ".h", ".sh", ".txt", ".md", ".toml", ".cfg", ".json"}
 SKIPPED_DIRS = {"__pycache__", ".pytest_cache", ".hypothesis", "results"}
 
@@ -49,7 +49,7 @@ def resolves(reference: str, citing: Path, names: set[str]) -> bool:
 
 
 def markdown_pages() -> list[Path]:
-    return [ROOT / "README.md", ROOT / "bench" / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    return [ROOT / "README.md", ROOT / "bench" / "README.md", ROOT / "manifests" / "SCHEMA.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 
 def heading_anchors(page: Path) -> set[str]:

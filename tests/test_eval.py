@@ -133,15 +133,17 @@ def test_eval_with_another_profile_names_the_checkpoints_and_the_profile_flag(ev
     assert str(have) in text and "--profile NAME" in text and "PROFILE=NAME" in text
 
 
-def test_cli_refuses_a_scene_without_ground_truth(tmp_path):
+def test_cli_refuses_a_real_log_that_was_never_ingested(tmp_path):
+    """A real log is measured on its fit's held-out views (tests/test_heldout.py); one that is
+    not in the data folder is an error naming the file and the fix."""
     from typer.testing import CliRunner
 
     from paradrive.cli import app
 
     result = CliRunner().invoke(app, ["eval", "--scene", "waymo:/logs/x.tfrecord",
-                                      "--data", str(tmp_path)])
+                                      "--data", str(tmp_path)], env={"COLUMNS": "300"})
     assert result.exit_code == 2
-    assert "synthetic" in result.output
+    assert "scene.json is missing" in result.output and "ingest" in result.output
 
 
 def test_signed_depth_error_of_a_scaled_true_depth():

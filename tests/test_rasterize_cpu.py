@@ -192,21 +192,23 @@ def test_fused_shading_colours_only_the_gaussians_a_view_draws(kernels):
     assert coeffs.grad[never].abs().max() == 0 and means.grad[never].abs().max() == 0
 
 
-def test_with_the_fused_kernels_torch_runs_on_one_thread_and_the_kernels_on_the_rest():
+def test_with_the_fused_kernels_torch_runs_on_one_thread_and_the_kernels_on_the_rest(kernels):
     """deterministic_torch(n, 'cpu'): the kernels take the n threads, torch's own operations
-    one (its idle workers would spin on the kernels' cores); both restored afterwards."""
+    one (its idle workers would spin on the kernels' cores); both restored afterwards. Without
+    kernels torch's operations do the work, on the n threads."""
     from paradrive.devices import cpu_kernel_threads
     from paradrive.gs.model import deterministic_torch
 
+    torch_threads = 3 if kernels == "torch" else 1
     old = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
         with deterministic_torch(3, "cpu"):
-            assert torch.get_num_threads() == 1 and cpu_kernel_threads() == 3
+            assert torch.get_num_threads() == torch_threads and cpu_kernel_threads() == 3
             scene = _leaves(make_scene(n=50, seed=31, sh_k=16))
             r, a, _ = rasterize(*scene, *make_cameras(), W, H, sh_degree=3, backend="cpu")
             (r.sum() + a.sum()).backward()
-            assert torch.get_num_threads() == 1
+            assert torch.get_num_threads() == torch_threads
         assert torch.get_num_threads() == 2 and cpu_kernel_threads() == 2
         with deterministic_torch(3, "torch"):
             assert torch.get_num_threads() == 3 and cpu_kernel_threads() == 3

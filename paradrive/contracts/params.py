@@ -73,6 +73,8 @@ class FitParams(StageParams):
     shape_ratio_max: float
     shape_ratio_every: int
     eval_views: int
+    holdout_every: int
+    holdout_cameras: list[str]
     state_interval: int
     keep_state: bool
     dynamic: str
@@ -111,3 +113,4 @@ class ManifestParams(StageParams):
     quality: bool
     kind: str
     exclude_splits: list[str]
+    min_heldout_psnr: float | None

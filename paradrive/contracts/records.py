@@ -100,6 +100,31 @@ class ActorNode(Part):
     init_points: int
 
 
+class HeldoutCamera(Part):
+    """A camera's held-out images against a checkpoint's renders at their poses: ``kind`` frames
+    (its held-out frames) or camera (a camera left out of the fit, every frame)."""
+
+    kind: str
+    views: int
+    psnr: float
+    ssim: float
+    psnr_static: float | None = None    # outside the moving actors' boxes, where there are any
+    psnr_dynamic: float | None = None   # inside them
+
+
+class HeldoutRecord(Part):
+    """What a fit held out (``every``-th frame, ``cameras``) and the checkpoint ``iteration``'s
+    mean PSNR / SSIM over the ``views`` held-out images, and per camera."""
+
+    every: int
+    cameras: list[str]
+    iteration: int
+    views: int
+    psnr: float
+    ssim: float
+    per_camera: dict[str, HeldoutCamera]
+
+
 class FitRecord(Record):
     WHAT: ClassVar[str] = "fit.json"
     FIX: ClassVar[str] = "re-run the fit stage for this scene"
@@ -119,11 +144,17 @@ class FitRecord(Record):
     densify: dict[str, int]
     dynamic: bool = False
     actors: list[ActorNode] = []
+    heldout: HeldoutRecord | None = None   # only a fit that held views out has it
+
+    def save(self, path: str | Path) -> None:
+        write_json(path, self.model_dump(exclude={"heldout"} if self.heldout is None else None))
 
     def summary(self) -> dict[str, Any]:
         last = self.at(None)
+        held = {"heldout_psnr": self.heldout.psnr} if self.heldout is not None else {}
         return {"iterations": self.iterations, "complete": self.complete,
-                "psnr": last.psnr if last else None, "num_gaussians": last.num_gaussians if last else None}
+                "psnr": last.psnr if last else None, "num_gaussians": last.num_gaussians if last else None,
+                **held}
 
     def at(self, iteration: int | None) -> CheckpointMetrics | None:
         """The metrics of ``iteration``, else of the last checkpoint (None before the first)."""
@@ -320,6 +351,14 @@ class IndexScene(BaseModel):
     clips: list[str]
     skipped_clips: list[CameraSkippedClip]
     transform: str = "lateral"   # how its sources were moved (render.transform)
+    heldout_psnr: float | None = None   # its fit's final checkpoint on the views it held out
+    heldout_ssim: float | None = None
+
+    @model_serializer(mode="wrap")
+    def _heldout_when_known(self, handler: Any) -> dict[str, Any]:
+        # a scene fitted without a holdout reads as before: no held-out keys at all
+        return {k: v for k, v in handler(self).items()
+                if v is not None or k not in ("heldout_psnr", "heldout_ssim")}
 
 
 class SkippedScene(BaseModel):
@@ -345,6 +384,14 @@ class ExcludedScene(BaseModel):
     line: str
 
 
+class HeldoutFilter(BaseModel):
+    """``manifest.min_heldout_psnr`` at publish time and the scenes it left out."""
+
+    model_config = ConfigDict(extra="forbid")
+    min_psnr: float
+    dropped: list[SkippedScene]
+
+
 class IndexRecord(BaseModel):
     """A published build's ``index.json``: its shards, media, scenes and how it was made."""
 
@@ -367,6 +414,7 @@ class IndexRecord(BaseModel):
     skipped_scenes: list[SkippedScene]
     exclude_splits: list[SplitFile]
     excluded_scenes: list[ExcludedScene]
+    heldout_filter: HeldoutFilter | None = None   # manifest.min_heldout_psnr, when it was set
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.model_dump())

@@ -50,7 +50,7 @@ from . import init as gsinit
 from ._fit_loss import FitLossTerms, fit_loss, fit_loss_kernels, fit_loss_torch
 from .graph import (BACKGROUND, FittedModel, NodeRows, actor_points_init, boxes_containing,
                     node_poses, place, save_model)
-from .init import View
+from .init import Holdout, View
 from .losses import DepthTarget, flatten_loss, lidar_depth_target, shape_ratio_loss
 from .model import (PARAM_KEYS, Gaussians, Params, cat_params, deterministic_torch, new_params, render_gaussians,
                     scene_scale_of, sh_degree_of)
@@ -68,8 +68,13 @@ log_default = logging.getLogger("paradrive.gs.fit")
 
 # --------------------------------------------------------------------------- parameters
 
+HOLDOUT_KEYS = ("holdout_every", "holdout_cameras")
+
+
 def _fingerprint(p: dict[str, Any]) -> str:
-    keep = {k: p[k] for k in sorted(p) if k not in ("keep_state", "state_interval", "eval_views")}
+    # a holdout left at its default (nothing held out) keeps the fingerprints of earlier fits
+    keep = {k: p[k] for k in sorted(p) if k not in ("keep_state", "state_interval", "eval_views")
+            and not (k in HOLDOUT_KEYS and not p[k])}
     return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -83,8 +88,10 @@ def _resize(x: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return y[0].permute(1, 2, 0)
 
 
-def load_views(scene, cameras: Sequence[str] | None, downscale: float) -> list[View]:
-    """All (frame, camera) images of ``scene`` at 1/``downscale`` resolution, frame-major order."""
+def load_views(scene, cameras: Sequence[str] | None, downscale: float,
+               keep: Callable[[int, str], bool] | None = None) -> list[View]:
+    """All (frame, camera) images of ``scene`` at 1/``downscale`` resolution, frame-major order;
+    with ``keep(frame position, camera)``, only those it accepts (the others are not read)."""
     names = list(scene.cameras) if not cameras else list(cameras)
     unknown = [c for c in names if c not in scene.cameras]
     if unknown:
@@ -93,7 +100,7 @@ def load_views(scene, cameras: Sequence[str] | None, downscale: float) -> list[V
     views = []
     for fi, frame in enumerate(scene.frames):
         for name in names:
-            if name not in frame.cameras:
+            if name not in frame.cameras or (keep is not None and not keep(fi, name)):
                 continue
             cam = scene.cameras[name]
             w = max(1, int(round(cam.width / downscale)))
@@ -116,7 +123,8 @@ def load_views(scene, cameras: Sequence[str] | None, downscale: float) -> list[V
                               frame_index=frame.index))
     if not views:
         raise SceneError("fit: the scene has no images for the chosen cameras",
-                         scene_id=scene.scene_id, fix="check scene.json frames / 'cameras'")
+                         scene_id=scene.scene_id, fix="check scene.json frames / 'cameras'"
+                         + (" / 'holdout_every' / 'holdout_cameras'" if keep is not None else ""))
     return views
 
 
@@ -448,7 +456,10 @@ class _Fit:
         self.files = actor_files(ids)
         self.poses = node_poses(scene, graph.nodes).to(device) if graph.nodes else None
         self.node_rows: NodeRows | None = None   # the rows place() moves, kept between refinements
-        self.views = views = load_views(scene, p.cameras, p.downscale)
+        holdout = Holdout.of(p)   # held-out images are never read: no loss, densification or init
+        holdout.check(scene)
+        self.views = views = load_views(scene, p.cameras, p.downscale,
+                                        keep=holdout.trained if holdout.active else None)
         scene_scale = scene_scale_of(torch.stack([v.c2w for v in views]))
         self.strategy = DensifyStrategy(
             prune_opa=p.prune_opa, grow_grad2d=p.grow_grad2d, grow_scale3d=p.grow_scale3d,

@@ -3,7 +3,8 @@
 All functions are deterministic given their ``torch.Generator``: a fit restarted from scratch
 builds the very same initial model.
 
-A *view* here is a :class:`View`: one training image with its camera (see ``fit.py``).
+A *view* here is a :class:`View`: one training image with its camera (see ``fit.py``); the fit
+never passes a held-out one (:class:`Holdout`), so no initialisation sees it.
 """
 
 from __future__ import annotations
@@ -11,12 +12,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["View", "project", "knn_scales", "lidar_points_init", "frustum_points_init", "sky_dome",
+__all__ = ["View", "Holdout", "project", "knn_scales", "lidar_points_init", "frustum_points_init", "sky_dome",
            "colours_from_views"]
 
 
@@ -49,6 +51,49 @@ class View:
     def rgb(self) -> torch.Tensor:
         """(H, W, 3) float32 in [0, 1]."""
         return self.image.float() / 255.0
+
+
+@dataclass(frozen=True)
+class Holdout:
+    """The recorded views a fit leaves out to be evaluated on: every ``every``-th frame (frame
+    positions every-1, 2*every-1, ..., as DriveStudio's test_image_stride; 0 = none) of every
+    camera, and every frame of ``cameras``."""
+
+    every: int = 0
+    cameras: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, p: Any) -> Holdout:
+        """From the fit parameters' ``holdout_every`` and ``holdout_cameras``."""
+        return cls(every=int(p.holdout_every), cameras=tuple(p.holdout_cameras))
+
+    @property
+    def active(self) -> bool:
+        return self.every > 0 or bool(self.cameras)
+
+    def frame_held(self, position: int) -> bool:
+        """Whether the frame at ``position`` (its place in scene.json) is held out."""
+        return self.every > 0 and (position + 1) % self.every == 0
+
+    def held(self, position: int, camera: str) -> bool:
+        """Whether the image of ``camera`` at frame ``position`` is held out."""
+        return camera in self.cameras or self.frame_held(position)
+
+    def trained(self, position: int, camera: str) -> bool:
+        return not self.held(position, camera)
+
+    def check(self, scene) -> None:
+        """Refuse held-out cameras the scene does not have (a typo would silently hold out none)."""
+        from paradrive.errors import SceneError
+
+        unknown = [c for c in self.cameras if c not in scene.cameras]
+        if unknown:
+            raise SceneError(f"fit: holdout_cameras {unknown} are not in the scene (has "
+                             f"{list(scene.cameras)})", scene_id=scene.scene_id,
+                             fix="fix the 'holdout_cameras' parameter of the fit stage")
+
+    def describe(self) -> dict:
+        return {"every": self.every, "cameras": list(self.cameras)}
 
 
 def knn_scales(points: torch.Tensor, k: int = 3, chunk: int = 1024,

@@ -2,7 +2,9 @@
 checkpoints at the configured iterations and ``gs/fit.json`` (:class:`FitRecord`).
 
 The training itself is :func:`paradrive.gs.fit.fit_scene`; the typed parameters are
-:class:`paradrive.contracts.params.FitParams`, which the fit takes too.
+:class:`paradrive.contracts.params.FitParams`, which the fit takes too. A fit that held views out
+(``holdout_every`` / ``holdout_cameras``) records its final checkpoint's PSNR / SSIM on them in
+fit.json (``heldout``), where publishing reads it (``manifest.min_heldout_psnr``).
 """
 
 from __future__ import annotations
@@ -14,8 +16,18 @@ from paradrive.contracts.records import FitRecord
 
 def run(ctx: StageContext[Params]) -> FitRecord:
     from paradrive.gs.fit import fit_scene
+    from paradrive.gs.init import Holdout
     from paradrive.stages.ingest import recorded_params
 
     threshold = recorded_params(ctx.layout).moving_threshold_m
-    return fit_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress,
-                     moving_threshold_m=threshold)
+    record = fit_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress,
+                       moving_threshold_m=threshold)
+    if record.complete and Holdout.of(ctx.params).active:
+        from paradrive.gs.views import heldout_record
+
+        held = heldout_record(ctx.layout, ctx.params, record, threshold)
+        ctx.log.info("fit: %s held out %d views: PSNR %.2f dB, SSIM %.4f at iteration %d",
+                     record.scene_id, held.views, held.psnr, held.ssim, held.iteration)
+        record = record.model_copy(update={"heldout": held})
+        record.save(ctx.layout.fit_json)
+    return record
