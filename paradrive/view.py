@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,7 +86,7 @@ class ViewReport:
 
     path: Path
     subject: str
-    counts: Counter = field(default_factory=Counter)
+    counts: Counter[str] = field(default_factory=Counter)
     left_out: list[str] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -177,7 +177,7 @@ def _video(rec: Any, entity: str, file: Path, frames: Sequence[int], seconds: Se
     return n
 
 
-def _write(out: Path, recording_id: str, subject: str, log) -> ViewReport:
+def _write(out: Path, recording_id: str, subject: str, log: Callable[[Any, ViewReport], None]) -> ViewReport:
     """Run ``log(rec, report)`` into a recording at ``out``; the report with the time it took."""
     start = time.perf_counter()
     report = ViewReport(Path(out), subject)
@@ -585,7 +585,9 @@ def _pair_blueprint(row: dict) -> Any:
     videos = [rrb.Spatial2DView(origin=f"{entity}/source/image", name="source"),
               rrb.Spatial2DView(origin=f"{entity}/condition", name="condition"),
               rrb.Spatial2DView(origin=f"{entity}/target/image", name="target")]
-    below = [rrb.Spatial3DView(origin=entity, name="rel_pose: source and target cameras"),
+    # the condition video has no camera of its own (it is the target camera's render): 2D only
+    below = [rrb.Spatial3DView(origin=entity, contents=["$origin/**", "- $origin/condition/**"],
+                               name="rel_pose: source and target cameras"),
              rrb.TextDocumentView(origin=f"{entity}/scores", name="scores")]
     return rrb.Blueprint(rrb.Vertical(rrb.Horizontal(*videos), rrb.Horizontal(*below)))
 

@@ -49,7 +49,8 @@ def resolves(reference: str, citing: Path, names: set[str]) -> bool:
 
 
 def markdown_pages() -> list[Path]:
-    return [ROOT / "README.md", ROOT / "bench" / "README.md", ROOT / "manifests" / "SCHEMA.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    return [ROOT / "README.md", ROOT / "bench" / "README.md", ROOT / "manifests" / "SCHEMA.md",
+            *sorted((ROOT / "docs").rglob("*.md"))]
 
 
 def heading_anchors(page: Path) -> set[str]:

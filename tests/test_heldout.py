@@ -46,7 +46,8 @@ def _magenta(scene_dir: Path, held) -> int:
 def _fit(scene_dir: Path, overrides: dict) -> dict[str, bytes]:
     from paradrive.gs.fit import fit_scene
 
-    p = stage_params("fit", {**TINY_FIT, **overrides}, profile="smoke")
+    # byte-identical fits are the CPU kernels' promise
+    p = stage_params("fit", {**TINY_FIT, "device": "cpu", **overrides}, profile="smoke")
     fit_scene(scene_dir, p, moving_threshold_m=None)
     return {f.name: f.read_bytes() for f in sorted(SceneLayout(scene_dir).gs_dir.glob("*.ply"))}
 
