@@ -46,7 +46,7 @@ def ingest(profile: str, root: Path) -> tuple[Path, dict]:
 def time_fit(scene_dir: Path, params: dict, backend: str, *, label: str | None = None,
              moving_threshold_m: float | None = None) -> dict:
     """One fit of the scene with ``backend``, from scratch (its gs/ folder removed first)."""
-    from paradrive.gs.fit import fit_scene
+    from paradrive.stages.fit import fit_scene
     from paradrive.stages.fit import Params
 
     shutil.rmtree(scene_dir / "gs", ignore_errors=True)

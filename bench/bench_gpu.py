@@ -47,7 +47,7 @@ def _ingest(root: Path, frames: int, width: int, height: int) -> Path:
 def _fit_rate(scene_dir: Path, device: str, backend: str, checkpoints: list[int]) -> dict:
     import shutil
 
-    from paradrive.gs.fit import fit_scene
+    from paradrive.stages.fit import fit_scene
     from paradrive.pipeline import StageRegistry
 
     shutil.rmtree(scene_dir / "gs", ignore_errors=True)

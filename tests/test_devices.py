@@ -23,7 +23,8 @@ from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import ConfigError
 from paradrive.gs import fit as fit_module
 from paradrive.gs import strategy as strategy_module
-from paradrive.gs.fit import fit_scene, render_checkpoint
+from paradrive.stages.fit import fit_scene
+from paradrive.gs.fit import render_checkpoint
 from paradrive.gs.ply import load_ply
 from paradrive.contracts.layout import SceneLayout
 

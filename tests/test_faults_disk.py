@@ -136,7 +136,7 @@ def test_a_full_disk_while_saving_the_fit_state_says_so_and_leaves_nothing(tiny_
     import shutil
 
     from conftest import stage_params
-    from paradrive.gs.fit import fit_scene
+    from paradrive.stages.fit import fit_scene
 
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)

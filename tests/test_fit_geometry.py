@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from paradrive.gs import init as gsinit
-from paradrive.gs.fit import fit_scene, lidar_depth_targets, load_views
+from paradrive.stages.fit import fit_scene
+from paradrive.gs.fit import lidar_depth_targets, load_views
 from paradrive.gs.losses import (DepthTarget, depth_loss, flatten_loss, lidar_depth_target,
                                  shape_ratio_loss)
 from paradrive.gs.ply import load_ply

@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from paradrive.gs import init as gsinit
-from paradrive.gs.fit import fit_scene, initial_model, load_views, render_checkpoint
+from paradrive.stages.fit import fit_scene
+from paradrive.gs.fit import initial_model, load_views, render_checkpoint
 from paradrive.gs.model import logit, new_params, scene_scale_of
 from paradrive.gs.ply import load_ply
 from paradrive.gs.strategy import DensifyStrategy
@@ -150,7 +151,7 @@ def _run_fit_process(scene_dir: Path, params, tmp: Path, hold: bool = False) -> 
     there until it is killed, so a kill lands at that point and not before the fit ends."""
     cfg = tmp / f"params-{scene_dir.name}.json"
     cfg.write_text(json.dumps(params.source))
-    code = ("import json, sys, threading\nfrom paradrive.gs.fit import fit_scene\n"
+    code = ("import json, sys, threading\nfrom paradrive.stages.fit import fit_scene\n"
             "from paradrive.stages.fit import Params\n"
             "def hold(done, total, **figures):\n"
             "    print(f'held at {done}', flush=True)\n"
@@ -504,3 +505,21 @@ def test_densification_decides_as_gsplats_default_strategy():
             p_theirs["means"][children] = p_ours["means"][children]
     assert changed["reset"] == 1
     assert float(p_ours["opacities"].detach().max()) <= float(logit(2 * knobs["prune_opa"])) + 1e-6
+
+
+def test_the_gs_library_returns_its_record_and_the_fit_stage_writes_fit_json(tiny_scene, tmp_path):
+    """The library fits a model and hands its record over; only the fit stage writes gs/fit.json."""
+    from paradrive.gs import fit as gsfit
+
+    params = fit_params("smoke", **{**TINY_FIT, "checkpoints": [5, 10]})
+    library, stage = _copy_scene(tiny_scene, tmp_path / "lib"), _copy_scene(tiny_scene, tmp_path / "stage")
+    handed: list = []
+    record = gsfit.fit_scene(library, params, on_record=handed.append)
+    assert record.complete and [c.iteration for c in record.checkpoints] == [5, 10]
+    assert not handed[0].complete and handed[-1] == record   # every checkpoint, then the end
+    assert sorted(p.name for p in (library / "gs").glob("ckpt_*.ply")) == ["ckpt_000005.ply", "ckpt_000010.ply"]
+    assert not (library / "gs" / "fit.json").exists()
+    written = fit_scene(stage, params)
+    from paradrive.contracts.records import FitRecord
+
+    assert FitRecord.load(stage / "gs" / "fit.json") == written

@@ -44,7 +44,7 @@ def _magenta(scene_dir: Path, held) -> int:
 
 
 def _fit(scene_dir: Path, overrides: dict) -> dict[str, bytes]:
-    from paradrive.gs.fit import fit_scene
+    from paradrive.stages.fit import fit_scene
 
     # byte-identical fits are the CPU kernels' promise
     p = stage_params("fit", {**TINY_FIT, "device": "cpu", **overrides}, profile="smoke")

@@ -332,7 +332,7 @@ def test_the_fit_loss_node_matches_the_torch_expression(terms):
 _FIT_CODE = """\
 import json, sys
 from paradrive.gs import _native
-from paradrive.gs.fit import fit_scene
+from paradrive.stages.fit import fit_scene
 from paradrive.stages.fit import Params
 fit_scene(sys.argv[1], Params.of('fit', json.load(open(sys.argv[2]))))
 print('kernels', _native.load().__name__)

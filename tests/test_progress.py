@@ -97,7 +97,7 @@ def test_render_logs_frames_and_clip_logs_streams(smoke_build):
 
 
 def test_the_fits_progress_figures_leave_its_checkpoints_unchanged(tiny_scene, tmp_path):
-    from paradrive.gs.fit import fit_scene
+    from paradrive.stages.fit import fit_scene
     from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 
     params = fit_params("smoke", **TINY_FIT)

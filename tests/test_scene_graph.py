@@ -13,7 +13,7 @@ from test_gs_fit import TINY_FIT, _copy_scene, fit_params
 
 from paradrive import geometry
 from paradrive.actors import Actor, box_footprint, is_moving
-from paradrive.gs.fit import fit_scene
+from paradrive.stages.fit import fit_scene
 from paradrive.gs.graph import BACKGROUND, FittedModel, NodePoses, NodeRows, load_model, place
 from paradrive.gs.model import new_params
 from paradrive.gs.strategy import DensifyStrategy

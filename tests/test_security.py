@@ -52,7 +52,8 @@ def _fit_params() -> dict:
 
 
 def test_a_pickled_fit_state_is_refused_and_the_fit_starts_over(tiny_scene, tmp_path, caplog):
-    from paradrive.gs.fit import STATE_VERSION, fit_scene
+    from paradrive.gs.fit import STATE_VERSION
+    from paradrive.stages.fit import fit_scene
 
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)

@@ -3,8 +3,10 @@
 Outputs under ``<scene>/gs/``:
 
 * ``ckpt_{iteration:06d}.ply`` at exactly the configured iterations (standard 3DGS PLY),
-* ``fit.json``: per checkpoint the training-view PSNR / SSIM (a fixed, evenly spaced subset of the
-  training views, ``eval_views``), the number of Gaussians, seconds of fitting and peak RSS,
+* the fit's :class:`FitRecord` (which the fit stage writes as ``fit.json``, handed over through
+  ``on_record`` at every checkpoint): per checkpoint the training-view PSNR / SSIM (a fixed,
+  evenly spaced subset of the training views, ``eval_views``), the number of Gaussians, seconds
+  of fitting and peak RSS,
 * ``state.pt`` while the fit runs: parameters, Adam moments, densification state, RNG states and
   the step, written atomically every ``state_interval`` iterations and at every checkpoint.
   A fit killed at any moment and started again resumes from it and writes byte-identical PLY
@@ -381,8 +383,11 @@ def _eval_indices(n_views: int, n_eval: int) -> list[int]:
 def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
               log: logging.Logger | None = None,
               progress: Callable[..., None] | None = None,
-              stop_after: int | None = None, moving_threshold_m: float | None = None) -> FitRecord:
-    """Fit the scene folder ``scene`` with the fit stage's parameters ``p``; returns fit.json.
+              stop_after: int | None = None, moving_threshold_m: float | None = None,
+              on_record: Callable[[FitRecord], None] | None = None) -> FitRecord:
+    """Fit the scene folder ``scene`` with the fit stage's parameters ``p``; returns the fit's
+    record. ``on_record`` is handed the record at every checkpoint and at the end (the fit stage
+    writes it as ``fit.json``); this library writes only the checkpoints and its resume state.
 
     Resumes from ``gs/state.pt`` when present and made with the same parameters.
     ``stop_after``: return after this many total iterations (tests; the state is saved).
@@ -398,7 +403,8 @@ def fit_scene(scene: SceneLayout | str | Path, p: FitParams, *,
     with deterministic_torch(p.threads, resolve_backend(p.backend, device)):
         loaded = load_scene(layout.root)
         graph = Graph.of(loaded, p, moving_threshold_m)
-        return _fit(_Fit(loaded, layout, p, device, log or log_default, graph), progress, stop_after)
+        run = _Fit(loaded, layout, p, device, log or log_default, graph, on_record)
+        return _fit(run, progress, stop_after)
 
 
 def _fit(run: _Fit, progress, stop_after) -> FitRecord:
@@ -446,8 +452,10 @@ class _Fit:
     order and the clocks; :meth:`iterate` takes one step, the rest writes what a step earned."""
 
     def __init__(self, scene, layout: SceneLayout, p: FitParams, device: torch.device,
-                 log: logging.Logger, graph: Graph | None = None):
+                 log: logging.Logger, graph: Graph | None = None,
+                 on_record: Callable[[FitRecord], None] | None = None):
         self.scene, self.layout, self.p, self.device, self.log = scene, layout, p, device, log
+        self.on_record = on_record
         self.graph = graph = graph or Graph()
         ids = [a.id for a in graph.nodes]
         self.fp = _fingerprint({**p.source, "checkpoints": p.checkpoints,
@@ -596,7 +604,7 @@ class _Fit:
         return loss, info
 
     def checkpoint(self) -> None:
-        """The PLY of this iteration, its metrics, the resume state and fit.json."""
+        """The PLY of this iteration, its metrics, the resume state and the record."""
         step, params, device = self.step, self.params, self.device
         model = self.model()
         save_model(self.layout, step, params, model.node, self.files, self.boxes)
@@ -636,7 +644,8 @@ class _Fit:
                            resolution=[views[0].width, views[0].height], n_views=len(views),
                            cameras=sorted({v.camera for v in views}), device=str(self.device),
                            **self.extra)
-        record.save(self.layout.fit_json)
+        if self.on_record is not None:
+            self.on_record(record)
         return record
 
 

@@ -9,13 +9,30 @@ fit.json (``heldout``), where publishing reads it (``manifest.min_heldout_psnr``
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
 from paradrive.contracts.base import StageContext
+from paradrive.contracts.layout import SceneLayout
 from paradrive.contracts.params import FitParams as Params
 from paradrive.contracts.records import FitRecord
 
 
+def fit_scene(scene: SceneLayout | str | Path, params: Params, *, log: logging.Logger | None = None,
+              progress: Callable[..., None] | None = None, stop_after: int | None = None,
+              moving_threshold_m: float | None = None) -> FitRecord:
+    """The fit of :func:`paradrive.gs.fit.fit_scene`, with its record written as ``gs/fit.json``
+    at every checkpoint (what the later stages and a resumed build read)."""
+    from paradrive.gs import fit as gsfit
+
+    layout = SceneLayout.at(scene)
+    return gsfit.fit_scene(layout, params, log=log, progress=progress, stop_after=stop_after,
+                           moving_threshold_m=moving_threshold_m,
+                           on_record=lambda record: record.save(layout.fit_json))
+
+
 def run(ctx: StageContext[Params]) -> FitRecord:
-    from paradrive.gs.fit import fit_scene
     from paradrive.gs.init import Holdout
     from paradrive.stages.ingest import recorded_params
 
