@@ -71,7 +71,9 @@ _REMEMBERED: set[str] = set()
 
 def remember(options: Mapping[str, Any] | None) -> None:
     """Mask the secrets of ``options`` in every later :func:`redact` of this process, also where
-    a writer does not have the options at hand (the ledger, a printed error)."""
+    a writer does not have the options at hand (the ledger, a printed error). Each command
+    remembers its own options: a later call replaces what an earlier one remembered."""
+    _REMEMBERED.clear()
     _found_in(options or {}, False, _REMEMBERED)
 
 
