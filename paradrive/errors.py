@@ -54,11 +54,15 @@ _NO_SPACE = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
 _NOT_WRITABLE = {errno.EROFS, errno.EACCES, errno.EPERM}
 
 
+class DiskFullError(OSError):
+    """A write that found the disk full, its message naming the file and the fix."""
+
+
 def os_error_fix(exc: BaseException, folder: object) -> str:
     """The fix of a write that failed for want of room or rights in ``folder``, as ``; …``
     (empty for other errors)."""
     code = getattr(exc, "errno", None)
-    if "re-run" in str(exc):   # the writer already said what to do (io's "disk full while writing …")
+    if isinstance(exc, DiskFullError):   # the writer already named the file and the fix
         return ""
     if code in _NO_SPACE:
         return f"; no room to write in {folder}: free space there (or pass another --data) and re-run"

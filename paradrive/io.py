@@ -15,7 +15,7 @@ import posixpath
 from typing import Any
 from collections.abc import Callable, Iterator
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import DiskFullError, ParaDriveError
 
 
 class PathEscapeError(ParaDriveError):
@@ -66,7 +66,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
         if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-            raise OSError(errno.ENOSPC, f"disk full while writing {path}; free space on "
+            raise DiskFullError(errno.ENOSPC, f"disk full while writing {path}; free space on "
                           f"{path.parent} and re-run (nothing half-written was kept)") from exc
         raise
 
