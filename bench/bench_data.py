@@ -1,13 +1,16 @@
-"""Throughput of the trainer's adapter (paradrive.data) on pairs of 3 x 121 frames at 480x832.
+"""Throughput of the trainer's adapter (paradrive.data) on pairs of 3 x 121 frames at the demo's
+320x192 and the paper's 480x832, and its construction over a 115K-row build.
 
-Makes its own build: synthetic moving frames encoded with PyAV (H.264 yuv420p, as the clip stage
-writes them) behind a real clips.json and a real manifest, so it runs anywhere. Prints JSON, every
-speed in samples/s (one sample = the source, condition and target videos of a pair) and, where it
-says so, as a ratio to a baseline measured in the same run:
+Makes its own builds: synthetic moving frames encoded by the clip stage's encoder
+(``paradrive.video.encode_video``, H.264 yuv420p, CRF 18) behind a real clips.json and a real
+manifest, so it runs anywhere. Prints JSON, per frame size, every speed in samples/s (one sample =
+the source, condition and target videos of a pair) and, where it says so, as a ratio to a
+baseline measured in the same run:
 
-* baseline: every frame of the three files of a pair decoded by bare PyAV to RGB arrays (nothing
-  else; the floor any loader pays), with one decoder thread (``thread_count=1``, what the adapter
-  uses in DataLoader workers) and with PyAV's own threading defaults;
+* baseline: every frame of the three files of a pair decoded by bare PyAV to ``rgb24`` arrays
+  (``frame.to_ndarray(format="rgb24")``, stacked; the floor any loader pays), with one decoder
+  thread (``thread_count=1``, what the adapter uses in DataLoader workers) and with PyAV's own
+  threading defaults;
 * per_worker: ``PairDataset[i]`` in one process (what each DataLoader worker does), uint8,
   float32 and bfloat16 output, one decoder thread, against the one-thread baseline (goals: uint8
   >= 0.9x, float32 >= 0.6x), in the steady state after a first, untimed sample (reported
@@ -20,20 +23,25 @@ says so, as a ratio to a baseline measured in the same run:
   samples/s and the frames the decoder produced per sample (seeking starts at the keyframe
   before the window, not at frame 0: a full decode is 3 x 121);
 * the share of a trainer step spent waiting for data, for an assumed step time
-  (``--step-seconds``; the adapter cannot measure the trainer), and the workers needed to keep up.
+  (``--step-seconds``; the adapter cannot measure the trainer), and the workers needed to keep up;
+* construction: the rows of a build (the bench's own, or ``--rows-from``) copied under new scene
+  ids up to ``--rows`` (72 pairs x 1,600 scenes), then ``PairIterableDataset`` built in a fresh
+  interpreter: seconds, peak resident memory, and the dataset pickled as a DataLoader hands it
+  to a spawned worker.
 
-Usage: python bench/bench_data.py [--pairs 4] [--frames 121] [--height 480] [--width 832]
+Usage: python bench/bench_data.py [--pairs 4] [--frames 121] [--sizes 192x320,480x832]
+       [--rows 115200] [--rows-from BUILD]
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
-import hashlib
 import json
 import math
 import os
 import platform
+import subprocess
 import sys
 import tempfile
 import time
@@ -44,8 +52,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from paradrive import geometry  # noqa: E402
+from paradrive.pairs import build_file  # noqa: E402
 from paradrive.pipeline import StageRegistry  # noqa: E402
-from paradrive.stages.manifest import build_manifest
+from paradrive.stages.manifest import build_manifest  # noqa: E402
+from paradrive.video import encode_video  # noqa: E402
 
 
 def synthetic_frames(seed: int, n: int, h: int, w: int):
@@ -60,24 +70,10 @@ def synthetic_frames(seed: int, n: int, h: int, w: int):
 
 
 def encode(path: Path, frames, fps: int = 10, gop: int | None = None) -> dict:
-    import av
-
+    """H.264 yuv420p at the clip stage's CRF through its own encoder (the demo profile's preset)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), "w") as out:
-        stream = None
-        for img in frames:
-            if stream is None:
-                stream = out.add_stream("libx264", rate=fps)
-                stream.height, stream.width = img.shape[:2]
-                stream.pix_fmt = "yuv420p"
-                stream.options = {"crf": "18", "preset": "veryfast",
-                                  **({"g": str(gop), "keyint_min": str(gop)} if gop else {})}
-            for p in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
-                out.mux(p)
-        for p in stream.encode():
-            out.mux(p)
-    data = path.read_bytes()
-    return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    info = encode_video(path, frames, fps, crf=18, preset="fast", gop=gop)
+    return {"bytes": info["bytes"], "sha256": info["sha256"]}
 
 
 def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) -> Path:
@@ -138,18 +134,19 @@ def baseline(build: Path, threads: int | None) -> dict:
     from paradrive.data import PairDataset
 
     ds = PairDataset(build)
-    rows = [ds.row(i) for i in range(len(ds))]
+    files = [[build_file(build, ds.row(i)[f"{role}_uri"], "bench", ds.index)
+              for role in ("source", "condition", "target")] for i in range(len(ds))]
 
     def run() -> None:
-        for row in rows:
-            for role in ("source", "condition", "target"):
-                with av.open(str(build / row[f"{role}_uri"])) as c:
+        for pair in files:
+            for path in pair:
+                with av.open(str(path)) as c:
                     stream = c.streams.video[0]
                     if threads is not None:
                         stream.codec_context.thread_count = threads
                     np.stack([f.to_ndarray(format="rgb24") for f in c.decode(stream)])
 
-    return timed(len(rows), run)
+    return timed(len(files), run)
 
 
 def loader(build: Path, workers: int, **options) -> dict:
@@ -204,51 +201,140 @@ def ratio(m: dict, base: dict) -> dict:
             "cpu_seconds_per_sample": round(m["cpu"], 3), "cpu_ratio_to_baseline": round(base["cpu"] / m["cpu"], 3)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--pairs", type=int, default=4)
-    ap.add_argument("--frames", type=int, default=121)
-    ap.add_argument("--height", type=int, default=480)
-    ap.add_argument("--width", type=int, default=832)
-    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds; the best of each case counts")
-    ap.add_argument("--workers", default="0,2")
-    ap.add_argument("--step-seconds", type=float, default=3.0,
-                    help="assumed trainer step time for one sample (a video diffusion model on "
-                         "one GPU at 121x480x832; the adapter cannot measure it)")
-    args = ap.parse_args()
-    import torch
+# --------------------------------------------------------------------------- construction at scale
 
-    torch.set_num_threads(1)
-    out: dict = {"pairs": args.pairs, "frames": args.frames,
-                 "size": [args.height, args.width], "cpus": os.cpu_count(), "rounds": args.rounds,
-                 "load_average_before": [round(v, 2) for v in os.getloadavg()],
-                 "machine": platform.machine(), "python": platform.python_version()}
+def replicate_build(small: Path, dest: Path, rows: int, shard_rows: int = 4096,
+                    row_group_rows: int = 64) -> Path:
+    """A build of ``rows`` pairs made of ``small``'s rows copied under new scene ids.
+
+    Copy k renames the scene in every pair id, scene id and media URI (so every copy's URIs are
+    its own: from the bench's 4-row build, 1.5 distinct URIs a row, three times a real build's
+    share; the media need not exist, construction never opens them) and keeps every other
+    column, the per-frame poses included. The index lists one scene per 72 rows, as a real
+    build's does; shards and row groups are sized as the manifest stage writes them by default.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    from paradrive.contracts.records import IndexRecord
+    from paradrive.pairs import SCHEMA, read_index, read_pairs
+
+    index = read_index(small)
+    base = read_pairs(small)
+    scene = base.column("scene_id")[0].as_py()
+    renamed = ("pair_id", "scene_id", "source_uri", "condition_uri", "target_uri")
+
+    def copy(k: int) -> pa.Table:
+        new = f"{scene}-{k:05d}"
+        cols = {name: (pc.replace_substring(base.column(name), scene, new) if name in renamed
+                       else base.column(name)) for name in base.column_names}
+        return pa.table(cols, schema=SCHEMA)
+
+    table = pa.concat_tables([copy(k) for k in range(math.ceil(rows / base.num_rows))]).slice(0, rows)
+    version = dest / "v-000001"
+    version.mkdir(parents=True)
+    shards = []
+    for i, start in enumerate(range(0, rows, shard_rows)):
+        shard, name = table.slice(start, shard_rows), f"pairs-{i:05d}.parquet"
+        pq.write_table(shard, version / name, compression="zstd", row_group_size=row_group_rows)
+        ids = shard.column("pair_id")
+        shards.append({"file": name, "rows": shard.num_rows, "bytes": (version / name).stat().st_size,
+                       "sha256": "0" * 64, "first_pair_id": ids[0].as_py(),
+                       "last_pair_id": ids[-1].as_py()})
+    doc = index.model_dump()
+    scenes = [{**doc["scenes"][0], "scene_id": f"{scene}-{k:05d}"} for k in range(math.ceil(rows / 72))]
+    doc.update(version="v-000001", shards=shards, scenes=scenes,
+               totals={**doc["totals"], "rows": rows, "shards": len(shards), "scenes": len(scenes),
+                       "shard_bytes": sum(s["bytes"] for s in shards)})
+    IndexRecord.model_validate(doc).save(dest / "index.json")
+    return dest
+
+
+_PEAK_MB = """
+def peak_mb():
+    # VmHWM: this interpreter's own peak (ru_maxrss keeps the parent's across exec)
+    with open("/proc/self/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmHWM")) / 1024
+"""
+
+_CONSTRUCT = _PEAK_MB + """
+import json, pickle, sys, time
+sys.path.insert(0, {root!r})
+import torch
+from paradrive.data import PairIterableDataset
+
+before = peak_mb()
+t0 = time.perf_counter()
+ds = PairIterableDataset({build!r}, num_frames=121, dtype="uint8")
+built = time.perf_counter() - t0
+t0 = time.perf_counter()
+blob = pickle.dumps(ds)
+pickled = time.perf_counter() - t0
+with open({blob!r}, "wb") as out:
+    out.write(blob)
+print(json.dumps({{"rows": len(ds.dataset), "construct_seconds": round(built, 2),
+                  "peak_rss_mb_before": round(before), "peak_rss_mb": round(peak_mb()),
+                  "pickled_mb": round(len(blob) / 2**20, 1), "pickle_seconds": round(pickled, 2)}}))
+"""
+
+_WORKER = _PEAK_MB + """
+import json, pickle, sys, time
+sys.path.insert(0, {root!r})
+import torch
+import paradrive.data
+
+before = peak_mb()
+with open({blob!r}, "rb") as blob:
+    data = blob.read()
+t0 = time.perf_counter()
+ds = pickle.loads(data)
+unpickled = time.perf_counter() - t0
+assert len(ds.dataset) > 0
+print(json.dumps({{"worker_unpickle_seconds": round(unpickled, 2), "worker_peak_rss_mb_before": round(before),
+                  "worker_peak_rss_mb": round(peak_mb())}}))
+"""
+
+
+def construction(build: Path) -> dict:
+    """``PairIterableDataset`` over ``build`` built in a fresh interpreter (seconds, its peak
+    resident memory before, with torch imported, and after), then pickled as a DataLoader hands
+    it to a spawned worker, and unpickled in another fresh interpreter: what a worker holds."""
+    root = str(Path(__file__).resolve().parents[1])
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        build = make_build(Path(tmp) / "default_gop", args.pairs, args.frames, args.height,
-                           args.width, gop=None)
-        short = make_build(Path(tmp) / "gop30", args.pairs, args.frames, args.height,
-                           args.width, gop=30)
-        out["setup_seconds"] = round(time.perf_counter() - t0, 1)
-        window = {"num_frames": 25, "frame_offset": args.frames - 25, "dtype": "uint8"}
-        cases = {
-            "baseline_one_thread": lambda: baseline(build, threads=1),
-            "baseline_pyav_default_threads": lambda: baseline(build, threads=None),
-            **{f"per_worker_{name}": functools.partial(in_process, build, dtype=name)
-               for name in ("uint8", "float32", "bfloat16")},
-            "per_worker_float32_fresh_buffers": lambda: in_process(build, dtype="float32",
-                                                                   reuse_buffers=False),
-            "uint8_decode_threads_0": lambda: in_process(build, dtype="uint8", decode_threads=0),
-            **{f"dataloader_{name}_workers_{k}": functools.partial(loader, build, k, dtype=name)
-               for name in ("uint8", "float32") for k in [int(x) for x in args.workers.split(",")]},
-            "window_x264_default_gop": lambda: in_process(build, **window),
-            "window_gop_30": lambda: in_process(short, **window),
-        }
-        m = best_of(args.rounds, cases)
-        out["load_average_after"] = [round(v, 2) for v in os.getloadavg()]
+        blob = str(Path(tmp) / "dataset.pickle")
+        out = {}
+        for code in (_CONSTRUCT, _WORKER):
+            done = subprocess.run([sys.executable, "-c", code.format(root=root, build=str(build), blob=blob)],
+                                  capture_output=True, text=True, check=True)
+            out.update(json.loads(done.stdout))
+    return out
+
+
+def size_cases(build: Path, short: Path, frames: int, workers: list[int]) -> dict:
+    """Every case measured at one frame size (see the module's docstring)."""
+    window = {"num_frames": 25, "frame_offset": frames - 25, "dtype": "uint8"}
+    return {
+        "baseline_one_thread": lambda: baseline(build, threads=1),
+        "baseline_pyav_default_threads": lambda: baseline(build, threads=None),
+        **{f"per_worker_{name}": functools.partial(in_process, build, dtype=name)
+           for name in ("uint8", "float32", "bfloat16")},
+        "per_worker_float32_fresh_buffers": lambda: in_process(build, dtype="float32",
+                                                               reuse_buffers=False),
+        "uint8_decode_threads_0": lambda: in_process(build, dtype="uint8", decode_threads=0),
+        **{f"dataloader_{name}_workers_{k}": functools.partial(loader, build, k, dtype=name)
+           for name in ("uint8", "float32") for k in workers},
+        "window_x264_default_gop": lambda: in_process(build, **window),
+        "window_gop_30": lambda: in_process(short, **window),
+    }
+
+
+def size_report(m: dict, frames: int, step: float) -> dict:
+    """One frame size's figures: samples/s, and ratios to the bare decode with the same threads."""
     base, base_threaded = m["baseline_one_thread"], m["baseline_pyav_default_threads"]
-    out["baseline"] = {name: {"samples_per_s": round(1 / b["wall"], 3), "cpu_seconds_per_sample": round(b["cpu"], 3)}
-                       for name, b in (("one_thread", base), ("pyav_default_threads", base_threaded))}
+    out: dict = {"baseline": {name: {"samples_per_s": round(1 / b["wall"], 3),
+                                     "cpu_seconds_per_sample": round(b["cpu"], 3)}
+                              for name, b in (("one_thread", base), ("pyav_default_threads", base_threaded))}}
     out["per_worker"] = {name: {**ratio(m[f"per_worker_{name}"], base),
                                 "first_sample_seconds": round(m[f"per_worker_{name}"]["first_sample"], 3)}
                          for name in ("uint8", "float32", "bfloat16", "float32_fresh_buffers")}
@@ -260,10 +346,9 @@ def main() -> None:
     out["window_25_frames_at_end"] = {
         name[len("window_"):]: {"samples_per_s": round(1 / m[name]["wall"], 3),
                                 "frames_decoded_per_sample": round(m[name]["result"], 1),
-                                "frames_in_the_three_files": 3 * args.frames}
+                                "frames_in_the_three_files": 3 * frames}
         for name in ("window_x264_default_gop", "window_gop_30")}
     t_sample = m["per_worker_uint8"]["wall"]
-    step = args.step_seconds
     best = min(v["wall"] for name, v in m.items() if name.startswith("dataloader_uint8"))
     out["trainer_step_estimate"] = {
         "assumed_step_seconds": step,
@@ -272,6 +357,48 @@ def main() -> None:
         "workers_to_hide_loading": math.ceil(t_sample / step),
         "stall_share_with_best_uint8_loader": round(max(0.0, best - step) / max(best, step), 3),
     }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--pairs", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=121)
+    ap.add_argument("--sizes", default="192x320,480x832",
+                    help="HxW frame sizes, comma-separated (the demo's clips, the paper's)")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds; the best of each case counts")
+    ap.add_argument("--workers", default="0,2")
+    ap.add_argument("--rows", type=int, default=115200,
+                    help="rows of the build whose construction is measured (72 pairs x 1,600 "
+                         "scenes; 0 = skip)")
+    ap.add_argument("--rows-from", type=Path, default=None,
+                    help="a build whose rows are copied for --rows (default: the bench's own)")
+    ap.add_argument("--step-seconds", type=float, default=3.0,
+                    help="assumed trainer step time for one sample (a video diffusion model on "
+                         "one GPU at 121x480x832; the adapter cannot measure it)")
+    args = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    out: dict = {"pairs": args.pairs, "frames": args.frames, "cpus": os.cpu_count(),
+                 "rounds": args.rounds, "torch_threads": 1,
+                 "load_average_before": [round(v, 2) for v in os.getloadavg()],
+                 "machine": platform.machine(), "python": platform.python_version(), "sizes": {}}
+    workers = [int(x) for x in args.workers.split(",")]
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.sizes.split(","):
+            h, w = (int(v) for v in size.split("x"))
+            t0 = time.perf_counter()
+            build = make_build(Path(tmp) / size / "default_gop", args.pairs, args.frames, h, w, gop=None)
+            short = make_build(Path(tmp) / size / "gop30", args.pairs, args.frames, h, w, gop=30)
+            setup = round(time.perf_counter() - t0, 1)
+            m = best_of(args.rounds, size_cases(build, short, args.frames, workers))
+            out["sizes"][size] = {"setup_seconds": setup, **size_report(m, args.frames, args.step_seconds)}
+        if args.rows:
+            small = args.rows_from or build
+            large = replicate_build(small, Path(tmp) / "large", args.rows)
+            out["construction"] = {"rows_copied_from": str(small), **construction(large)}
+        out["load_average_after"] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(out, indent=2))
 
 

@@ -15,7 +15,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, Text
 from rich.table import Table
 
 from paradrive import __version__
-from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, ConfigError, ParaDriveError
+from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, ConfigError, ParaDriveError, missing_extra
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S
 from paradrive.redact import remember
 from paradrive.storage import data_root
@@ -319,13 +319,15 @@ def stages_cmd(
                       title_justify="left")
         table.add_column("parameter")
         table.add_column("value")
+        table.add_column("allowed", overflow="fold")
         table.add_column("from")
         table.add_column("why / source", overflow="fold")
         for key, param in spec.params.items():
             origin = config.origins[name][key]
             value = config.params[name][key]
-            table.add_row(key, escape(repr(value)), origin if origin == "default" else f"[yellow]{escape(origin)}",
-                          escape(param.doc))
+            allowed = param.allowed() + (", or null" if param.default is None or param.nullable else "")
+            table.add_row(key, escape(repr(value)), escape(allowed),
+                          origin if origin == "default" else f"[yellow]{escape(origin)}", escape(param.doc))
         out.print(table)
     out.print(f"profiles: paper (defaults), {', '.join(registry.profiles())}", markup=False)
 
@@ -333,22 +335,24 @@ def stages_cmd(
 # Commands that live next to the code they drive. Each module exposes ``register(app)``.
 @app.command("export")
 def export_cmd(
-    fmt: str = typer.Argument(..., help="waymo, nuscenes or drivestudio"),
+    fmt: str = typer.Argument(..., help="waymo, nuscenes, drivestudio or video (the front camera as a plain MP4)"),
     out: Path = typer.Argument(..., help="Folder to write the log into."),
     scene: str = typer.Option("synthetic:demo?seed=7", "--scene", help="A synthetic scene URI."),
     profile: str = typer.Option(None, "--profile", "-p", help="Profile whose ingest.synthetic_* sizes and cameras apply."),
     set_: list[str] = typer.Option([], "--set", help="Override an ingest parameter: ingest.param=value (e.g. ingest.cameras=[front]). Repeatable."),
+    with_intrinsics: bool = typer.Option(True, "--with-intrinsics/--without-intrinsics", help="video: put the camera's intrinsics in the printed URI (without them SfM estimates them)."),
 ) -> None:
     """Write a synthetic scene as a real log (known answers) and print the URI that ingests it.
 
-    The log carries the cameras its ingest keeps with these parameters (ingest.cameras)."""
+    The log carries the cameras its ingest keeps with these parameters (ingest.cameras); a video
+    carries the front camera only."""
     from paradrive.errors import SceneError
     from paradrive.ingest.export import export_scene
     from paradrive.pipeline import StageRegistry, parse_overrides
 
     params = StageRegistry().resolve(profile, parse_overrides(set_)).typed("ingest")
     try:
-        print(export_scene(scene, fmt, out, params))
+        print(export_scene(scene, fmt, out, params, with_intrinsics=with_intrinsics))
     except (ValueError, SceneError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2)
@@ -389,6 +393,7 @@ COMMAND_MODULES = [
     ("paradrive.pipeline.status", "status"),
     ("paradrive.pipeline.budget", "plan"),
     ("paradrive.train.cli", "train"),
+    ("paradrive.wan.cli", "encode"),   # and convert
 ]
 
 
@@ -419,6 +424,12 @@ def main() -> None:
         app()
     except ConfigError as exc:
         console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        sys.exit(EXIT_USAGE)
+    except ModuleNotFoundError as exc:
+        missing = missing_extra(exc)
+        if missing is None:
+            raise
+        console.print(f"[bold red]error:[/] {escape(str(missing))}", soft_wrap=True)
         sys.exit(EXIT_USAGE)
 
 

@@ -20,10 +20,15 @@ One sample (docs/manifest.md, "The dataset adapter")::
 
 Frames are decoded with PyAV: the decoder seeks to the keyframe at or before the first frame
 asked for and decodes forward, stopping after the last one, so a short window or a stride never
-decodes a whole video it does not need. swscale converts each frame to planar RGB (and resizes it)
-and each plane goes straight into the channels-first output: copied for uint8, converted and
-normalised in place for a float type while the plane is still in cache (no interleaved array, no
-second pass over the sample).
+decodes a whole video it does not need. swscale converts each frame to planar RGB (and resizes it),
+through one conversion context per video and with the decoder's thread count, and each plane
+goes straight into the channels-first output: copied for uint8, converted and normalised in place
+for a float type while the plane is still in cache (no interleaved array, no second pass over the
+sample).
+
+Opening a build reads only the pair ids and URIs of its shards (the ids are kept as Arrow, the
+URIs checked once each); a row's other columns and its poses are read with its row group when a
+sample needs them, so a 115K-row build opens in about a second and costs a worker megabytes.
 """
 
 from __future__ import annotations
@@ -36,24 +41,46 @@ from typing import Any
 from collections.abc import Sequence
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
-from paradrive.io import sha256_file
-from paradrive.pairs import build_file, check_row_uris, read_index, read_shard, shard_paths
+from paradrive.io import PathEscapeError, check_relative, sha256_file
+from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, iter_shard, read_index,
+                             shard_paths)
 from paradrive.video import each_frame
+from paradrive.wan.latents import LatentReader
 
 __all__ = ["FramePool", "PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera", "to_unit_range"]
 
-# Columns kept in memory for every row; the per-frame poses are read one row group at a time.
+# Columns of a row; they and the per-frame poses are read one row group at a time, when a
+# sample needs them. Opening a build reads only the ids and URIs, to check them.
 _ROW_COLUMNS = ("pair_id", "dataset", "scene_id", "camera", "clip", "num_frames", "fps", "width",
           "height", "intrinsics", "offset_m", "condition_iteration", "source_iteration",
           "source_uri", "source_sha256", "condition_uri", "condition_sha256", "target_uri",
           "target_sha256")
 _POSE_COLUMNS = ("rel_pose", "target_c2w")
+_CHECKED_COLUMNS = ("pair_id", *URI_COLUMNS)
+
+
+def _check_uris(table: pa.Table, where: str) -> None:
+    """``check_row_uris`` over a shard's rows, each distinct URI checked once.
+
+    A video is named by many rows (a target serves every offset and checkpoint), so a 115K-row
+    build holds about half as many distinct URIs as rows. The rows are turned into Python
+    values only when a URI fails, to name the first row holding it, as checking every row does.
+    """
+    try:
+        for column in URI_COLUMNS:
+            for uri in table.column(column).unique().to_pylist():
+                if uri is not None:  # an inference row may have no target
+                    check_relative(uri, column)
+    except PathEscapeError:
+        check_row_uris(table.to_pydict(), where)
+        raise
 
 
 _FRAME_DTYPES = {"uint8": torch.uint8, "float32": torch.float32, "float16": torch.float16,
@@ -205,6 +232,10 @@ class PairDataset(Dataset):
         reuse_buffers: fill the frame buffers of a sample nothing holds any more instead of fresh
             memory (:class:`FramePool`, ``buffers``; up to six videos' buffers stay allocated
             between samples: 3.5 GB in float32 at 480 x 832). False allocates every sample anew.
+        latents: samples from the build's Wan2.1 latent cache (``paradrive encode``) instead of
+            videos: ``target_latents``, ``source_latents``, ``condition_latents`` (C, T', h, w) in
+            ``dtype``, ``camera``, ``rel_pose``, ``text_embedding`` (:class:`paradrive.wan.latents.LatentReader`);
+            the frame options do not apply (the cache fixed frames and size).
 
     ``frames_decoded`` counts the frames the decoder produced in this process (those before a
     window included), so a caller can see what seeking saved.
@@ -214,7 +245,8 @@ class PairDataset(Dataset):
                  frame_offset: int = 0, output_size: tuple[int, int] | None = None,
                  resize: str = "crop", pose_format: str | None = None, prompt: str = "",
                  verify_checksums: bool = False, decode_threads: int = 1,
-                 dtype: torch.dtype | str = torch.float32, reuse_buffers: bool = True):
+                 dtype: torch.dtype | str = torch.float32, reuse_buffers: bool = True,
+                 latents: bool = False):
         self.build = Path(build)
         self.index = read_index(self.build)
         if frame_stride < 1 or frame_offset < 0 or (num_frames is not None and num_frames < 1):
@@ -230,25 +262,41 @@ class PairDataset(Dataset):
         self.frames_decoded = 0
         self.buffers = FramePool() if reuse_buffers else FramePool(keep=0)
         self._shards = shard_paths(self.build, self.index)
-        tables = []
-        for path, entry in zip(self._shards, self.index.shards):
-            if not path.is_file():
-                raise ParaDriveError(f"{path} is listed in {self.build / 'index.json'} but missing;"
-                                     f" re-run the manifest stage or re-publish the build")
-            table = read_shard(path, _ROW_COLUMNS)
-            if table.num_rows != entry.rows:
-                raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
-                                     f"{entry.rows}; the build is inconsistent, re-run the "
-                                     f"manifest stage")
-            check_row_uris(table.select(["pair_id", "source_uri", "condition_uri",
-                                         "target_uri"]).to_pydict(), str(path))
-            tables.append(table)
-        self._rows = {name: [v for t in tables for v in t.column(name).to_pylist()] for name in _ROW_COLUMNS}
-        self._starts = np.cumsum([0] + [t.num_rows for t in tables])
+        # one Arrow string array a shard: pa.chunked_array would import pandas into every worker
+        self._pair_ids = [self._checked_pair_ids(path, entry.rows)
+                          for path, entry in zip(self._shards, self.index.shards)]
+        self._starts = np.cumsum([0] + [len(ids) for ids in self._pair_ids])
         self._pid: int | None = None
         self._files: dict[int, Any] = {}
         self._group_cache: dict[tuple[int, int], dict] = {}
         self._verified: set[str] = set()
+        # latents=True: samples from the build's latent cache (paradrive.wan.latents), no video
+        self.latents = LatentReader(self.build, self.index, self.pair_ids, self.dtype) if latents else None
+
+    def _checked_pair_ids(self, path: Path, rows: int) -> pa.Array:
+        """The pair ids of one shard, after its row count and URIs are checked.
+
+        Only ``pair_id`` and the URIs are read here, and only the ids are kept (one Arrow
+        string array): a row's other columns come with its row group when a sample is read
+        (:meth:`row`), so a 115K-row build costs its workers megabytes, not a Python object
+        per value.
+        """
+        if not path.is_file():
+            raise ParaDriveError(f"{path} is listed in {self.build / 'index.json'} but missing;"
+                                 f" re-run the manifest stage or re-publish the build")
+        batches = list(iter_shard(path, _CHECKED_COLUMNS, batch_rows=max(1, rows)))
+        schema = pa.schema([SCHEMA.field(name) for name in _CHECKED_COLUMNS])
+        table = pa.Table.from_batches(batches, schema=schema)
+        if table.num_rows != rows:
+            raise ParaDriveError(f"{path} has {table.num_rows} rows, index.json says "
+                                 f"{rows}; the build is inconsistent, re-run the "
+                                 f"manifest stage")
+        _check_uris(table, str(path))
+        return table.column("pair_id").combine_chunks()
+
+    def __getstate__(self) -> dict:
+        """What a DataLoader worker receives: open files and cached row groups stay behind."""
+        return {**self.__dict__, "_pid": None, "_files": {}, "_group_cache": {}}
 
     # ------------------------------------------------------------ rows
     def __len__(self) -> int:
@@ -256,17 +304,22 @@ class PairDataset(Dataset):
 
     @property
     def pair_ids(self) -> list[str]:
-        return list(self._rows["pair_id"])
+        """Every pair id in order (a new list per call: the dataset keeps them as Arrow)."""
+        return [pair_id for ids in self._pair_ids for pair_id in ids.to_pylist()]
 
     def row(self, i: int) -> dict:
         """The manifest row of pair i (light columns plus ``rel_pose`` and ``target_c2w`` (N, 4, 4))."""
         if not 0 <= i < len(self):
             raise IndexError(f"pair index {i} out of range for {len(self)} pairs")
-        row = {name: self._rows[name][i] for name in _ROW_COLUMNS}
-        row.update(self._poses(i))
+        cols, offset = self._row_group(i)
+        row = {name: cols[name][offset].as_py() for name in _ROW_COLUMNS}
+        for name in _POSE_COLUMNS:
+            values = cols[name][offset].values.flatten().to_numpy(zero_copy_only=False)
+            row[name] = values.reshape(-1, 4, 4)
         return row
 
-    def _poses(self, i: int) -> dict:
+    def _row_group(self, i: int) -> tuple[dict, int]:
+        """The columns of the row group holding pair i (a few kept per process) and i's place in it."""
         if self._pid != os.getpid():  # after a fork (DataLoader workers) reopen the files
             self._pid, self._files, self._group_cache = os.getpid(), {}, {}
         shard = int(np.searchsorted(self._starts, i, side="right") - 1)
@@ -282,16 +335,12 @@ class PairDataset(Dataset):
         key = (shard, group)
         cols = self._group_cache.get(key)
         if cols is None:
-            table = f.read_row_group(group, columns=list(_POSE_COLUMNS))
-            cols = {name: table.column(name) for name in _POSE_COLUMNS}
+            table = f.read_row_group(group, columns=[*_ROW_COLUMNS, *_POSE_COLUMNS])
+            cols = {name: table.column(name) for name in table.column_names}
             if len(self._group_cache) >= 4:
                 self._group_cache.pop(next(iter(self._group_cache)))
             self._group_cache[key] = cols
-        out = {}
-        for name in _POSE_COLUMNS:
-            values = cols[name][offset].values.flatten().to_numpy(zero_copy_only=False)
-            out[name] = values.reshape(-1, 4, 4)
-        return out
+        return cols, offset
 
     def frame_indices(self, clip_frames: int) -> list[int]:
         """Frames of the clip a sample uses (0-based within the clip)."""
@@ -339,6 +388,8 @@ class PairDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         row = self.row(int(i))
+        if self.latents is not None:
+            return self.latents.sample(int(i), row)
         frames = self.frame_indices(int(row["num_frames"]))
         geo = output_geometry(int(row["width"]), int(row["height"]), self.output_size, self.resize)
         # an inference row of a real log has no target: the novel view is unknown

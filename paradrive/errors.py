@@ -69,3 +69,19 @@ def os_error_fix(exc: BaseException, folder: object) -> str:
     if code in _NOT_WRITABLE:
         return f"; {folder} cannot be written: pass a --data this user can write, then re-run"
     return ""
+
+
+# The optional packages and the extra that brings each (pyproject.toml's optional dependencies).
+OPTIONAL_EXTRAS = {"diffusers": "wan", "transformers": "wan", "safetensors": "wan",
+                   "pycolmap": "video", "gsplat": "gpu", "rerun": "view"}
+
+
+def missing_extra(exc: ModuleNotFoundError) -> ConfigError | None:
+    """A one-line error naming the extra to install, for an optional package that is missing;
+    None for any other missing module (a broken installation, not a choice)."""
+    top = (exc.name or "").split(".")[0]
+    extra = OPTIONAL_EXTRAS.get(top)
+    if extra is None:
+        return None
+    return ConfigError(f"{top} is not installed: this needs the '{extra}' extra "
+                       f"(pip install 'paradrive[{extra}]', or scripts/setup.sh build,{extra})")

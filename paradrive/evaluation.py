@@ -45,16 +45,16 @@ from paradrive.errors import ConfigError, SceneError
 from paradrive.io import atomic_path, write_json
 from paradrive.contracts.layout import SceneLayout
 from paradrive.contracts.records import FitRecord, RendersRecord
-from paradrive.gs.init import Holdout
-from paradrive.gs.views import HeldoutViews, evenly_spaced, masked_psnr, render_stack, static_quality
 from paradrive.streams import OutputCamera, output_camera
 
-__all__ = ["evaluate_scene", "image_quality", "masked_psnr", "static_quality", "depth_abs_rel", "depth_signed_rel", "depth_errors",
+__all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "depth_signed_rel", "depth_errors",
            "plot_eval", "register"]
 
 EVAL_SCHEMA_VERSION = 1
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the gs modules (torch) are imported where eval runs, not by the CLI's start-up
     from paradrive.contracts.params import FitParams
+    from paradrive.gs.init import Holdout
+    from paradrive.gs.views import HeldoutViews
     from paradrive.stages.render import Params as RenderParams
 
 log_default = logging.getLogger("paradrive.eval")
@@ -136,6 +136,8 @@ def _plan_camera(scene, cam_name: str, render_params: RenderParams,
 
 def _render(model, c2w, frames, K, width: int, height: int, *, depth: bool, batch: int, device: str,
             sky=None, backend: str = "auto"):
+    from paradrive.gs.views import render_stack
+
     return render_stack(model, c2w, K, width, height, frames=frames, depth=depth,
                         batch_frames=batch, sky=sky, device=device, backend=backend)
 
@@ -172,6 +174,7 @@ class _EvalContext:
         from paradrive.gs.views import sky_dome_of
 
         self.scene, self.layout, self.street, self.moving = scene, layout, street, moving
+        self.to_truth = _truth_from_scene(scene, street)
         self.p, self.renders, self.fit, self.log = render_params, renders, fit, log
         self.sky = sky_dome_of(scene, fit.init if fit else None)
 
@@ -186,6 +189,7 @@ class _EvalContext:
         return load_model(self.layout, iteration, self.scene, self.fit)
 
     def camera(self, cam_name: str, max_frames: int | None) -> dict[str, Any]:
+        from paradrive.gs.views import evenly_spaced
         from paradrive.streams import crop_resize
 
         scene, sid, p = self.scene, self.scene.scene_id, self.p
@@ -203,7 +207,8 @@ class _EvalContext:
         final = self.model(p.source_checkpoint)
         instants = [scene.frames[f].index for f in frames]  # actors move: truth at those frames
         rgb, dep = self.render(final, recorded, frames, out, depth=True)
-        truth = self.street.render(recorded, out.K, out.width, out.height, frames=instants)
+        truth = self.street.render(self.to_truth @ recorded, out.K, out.width, out.height,
+                                   frames=instants)
         recorded_doc = {"iteration": p.source_checkpoint, **image_quality(rgb, target),
                         "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
                         **self.truth_quality(rgb, dep, truth, instants, recorded, out)}
@@ -213,6 +218,8 @@ class _EvalContext:
                 "shifted_by_abs_offset": _by_abs_offset(shifted_rows)}
 
     def truth_quality(self, rgb, dep, truth: dict, instants: list[int], c2w, out) -> dict:
+        from paradrive.gs.views import static_quality
+
         dynamic = views_mask(self.moving, instants, c2w, out.K, out.width, out.height)
         return {**static_quality(rgb, truth["rgb"], dynamic), **depth_errors(dep, truth["depth"])}
 
@@ -228,7 +235,8 @@ class _EvalContext:
         name = source_stream(d, self.p.transform)
         instants = [self.scene.frames[f].index for f in frames]
         rgb, dep = self.render(final, shifted, frames, out, depth=True)
-        truth = self.street.render(shifted, out.K, out.width, out.height, frames=instants)
+        truth = self.street.render(self.to_truth @ shifted, out.K, out.width, out.height,
+                                   frames=instants)
         q = image_quality(rgb, truth["rgb"])
         self.log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", self.scene.scene_id, cam_name,
                       name, q["psnr"], q["ssim"])
@@ -250,6 +258,8 @@ def _by_abs_offset(rows: list[dict]) -> dict[str, dict]:
 
 def _holdout_of(fit: FitRecord | None, fit_params: FitParams | None) -> Holdout:
     """What the fit held out: its fit.json's record, else the fit parameters eval runs with."""
+    from paradrive.gs.init import Holdout
+
     if fit is not None and fit.heldout is not None:
         return Holdout(every=fit.heldout.every, cameras=tuple(fit.heldout.cameras))
     return Holdout.of(fit_params) if fit_params is not None else Holdout()
@@ -304,6 +314,23 @@ def _check_checkpoints(layout: SceneLayout, fit: FitRecord | None, iterations: l
                                   if have else "run the fit stage with the same profile first"))
 
 
+def _truth_uri(scene) -> str | None:
+    """The synthetic street a scene shows: its own URI, or for a video exported from one
+    (``paradrive export video``) the ``truth=`` its URI names; None for a real log."""
+    if scene.dataset == "synthetic":
+        return scene.source
+    return scene.extra.get("video", {}).get("truth") if scene.dataset == "video" else None
+
+
+def _truth_from_scene(scene, street) -> np.ndarray:
+    """street-world-from-scene-world: the identity for a synthetic scene; for a video, whose world
+    is its own first ego pose found by SfM, the one that puts its first front camera on the
+    street's (no other alignment: scale, up and drift errors stay in the numbers)."""
+    if street is None or scene.dataset == "synthetic":
+        return np.eye(4)
+    return street.c2w("front")[0] @ np.linalg.inv(scene.c2w("front")[0])
+
+
 def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, cameras, max_frames,
                     out_dir, log, fit_params: FitParams | None = None) -> dict:
     from paradrive.inference import scene_ingest_params
@@ -317,7 +344,8 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
     layout = SceneLayout(scene_dir)
     scene = load_scene(scene_dir)
     sid = scene.scene_id
-    synthetic = scene.dataset == "synthetic"
+    truth_uri = _truth_uri(scene)
+    synthetic = truth_uri is not None
     fit = FitRecord.load(layout.fit_json, sid) if layout.fit_json.is_file() else None
     holdout = _holdout_of(fit, fit_params)
     if not synthetic and not holdout.active:
@@ -327,7 +355,7 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                          fix="fit with fit.holdout_every=N (every Nth frame) or "
                              "fit.holdout_cameras=[CAMERA], or evaluate a 'synthetic:' scene")
     ingested = scene_ingest_params(scene_dir, ingest_params)
-    street = street_from_uri(parse_uri(scene.source), params_of(ingested)) if synthetic else None
+    street = street_from_uri(parse_uri(truth_uri), params_of(ingested)) if truth_uri else None
     moving = moving_actors(scene, ingested)
     renders = RendersRecord.load(layout.renders_json, sid) if layout.renders_json.is_file() else None
     conds = render_params.condition_checkpoints
@@ -343,10 +371,13 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
     doc_cams = {cam_name: ctx.camera(cam_name, max_frames) for cam_name in cams}
     heldout = None
     if holdout.active:
+        from paradrive.gs.views import HeldoutViews
+
         _check_fit_held_out(scene, fit, holdout, layout.fit_json)
         views = HeldoutViews(scene, holdout, fit_params.cameras if fit_params else None,
                              fit_params.downscale if fit_params else 1.0, moving=moving,
-                             street=street, max_frames=max_frames)
+                             street=street if scene.dataset == "synthetic" else None,
+                             max_frames=max_frames)
         heldout = _heldout_doc(ctx, views, conds + [final])
 
     doc = {"schema_version": EVAL_SCHEMA_VERSION, "scene_id": sid, "source": scene.source,

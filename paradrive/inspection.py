@@ -11,21 +11,24 @@ from __future__ import annotations
 
 import json
 import os
-from collections import Counter, defaultdict
-from concurrent.futures import ThreadPoolExecutor
+from collections import Counter, defaultdict, deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, atomic_path, sha256_file
-from paradrive.pairs import build_file, read_index, read_pairs, shard_paths
+from paradrive.pairs import build_file, iter_shard, read_index, read_pairs, shard_paths
 from paradrive.streams import format_offset
 from paradrive.trajectories import rig_picture, trajectories_picture
 
-__all__ = ["summarize", "verify_build", "contact_sheet", "trajectories_picture", "rig_picture", "register"]
+__all__ = ["summarize", "verify_build", "default_jobs", "contact_sheet", "trajectories_picture", "rig_picture", "register"]
 
 ROLES = ("source", "condition", "target")
+T = TypeVar("T")
 _SUMMARY_COLUMNS = ["pair_id", "dataset", "scene_id", "camera", "clip", "offset_m",
                     "condition_iteration", "source_iteration", "condition_psnr",
                     "condition_ssim", "fit_train_psnr", "fit_train_ssim"]
@@ -115,41 +118,99 @@ def _check_file(path: Path, size: int | None, sha: str | None, what: str) -> str
     return None
 
 
-def verify_build(build_dir: str | Path, threads: int | None = None) -> dict:
+def default_jobs() -> int:
+    """Files hashed at once by ``verify_build``: hashing and reading release the GIL, so threads
+    scale with the cores until the disk is the limit."""
+    return min(8, os.cpu_count() or 2)
+
+
+def verify_build(build_dir: str | Path, jobs: int | None = None) -> dict:
     """Re-hash every shard (against index.json) and every referenced video (against the rows).
 
     Returns {"ok", "checked_files", "problems": ["missing: <path> …" | "corrupt: <path> …" |
     "unsafe: <row> …"]}. A URI that leads out of the build is a problem and is never read.
+
+    It streams: rows are read a batch at a time and at most a few files per job are in flight,
+    so memory stays flat however many pairs the build has. ``jobs`` files are hashed at once
+    (default :func:`default_jobs`); problems come in row order whatever ``jobs`` is.
     """
     build_dir = Path(build_dir)
     index = read_index(build_dir)
-    jobs = [(path, s.bytes, s.sha256, "shard")
-            for path, s in zip(shard_paths(build_dir, index), index.shards)]
-    problems = [p for p in (_check_file(*j) for j in jobs) if p]
-    if not problems:
-        try:
-            cols = read_pairs(build_dir, ["pair_id"] + [f"{r}_{k}" for r in ROLES
-                                                        for k in ("uri", "sha256", "bytes")]).to_pydict()
-        except ParaDriveError as exc:  # a shard whose checksum matches yet does not parse
-            problems.append(str(exc))
+    jobs = jobs or default_jobs()
+    shards = [(path, s.bytes, s.sha256, "shard")
+              for path, s in zip(shard_paths(build_dir, index), index.shards)]
+    problems = [p for p in _ordered(_check, shards, jobs) if p]
     if problems:  # rows cannot be trusted when a shard is bad
-        return {"ok": False, "checked_files": len(jobs), "problems": problems}
-    files: dict[str, tuple] = {}
-    for role in ROLES:
-        for pair_id, uri, sha, size in zip(cols["pair_id"], cols[f"{role}_uri"],
-                                           cols[f"{role}_sha256"], cols[f"{role}_bytes"]):
-            if uri is None:  # an inference row of a real log: no true view
-                continue
-            files.setdefault(uri, (size, sha, f"{role} video", f"row {pair_id} column {role}_uri"))
-    media = []
-    for uri, (size, sha, what, where) in sorted(files.items(), key=lambda kv: str(kv[0])):
+        return {"ok": False, "checked_files": len(shards), "problems": problems}
+    media = _MediaChecks(build_dir, index)
+    try:
+        problems += [p for p in _ordered(_check, media.items(shards), jobs) if p]
+    except ParaDriveError as exc:  # a shard whose checksum matches yet does not parse
+        problems.append(str(exc))
+    from paradrive.wan.latents import verify_latents  # torch: only when verifying
+
+    latents = verify_latents(build_dir)   # the Wan2.1 latent cache, when the build has one
+    problems += latents["problems"]
+    return {"ok": not problems, "checked_files": len(shards) + media.files + latents["checked_files"],
+            "problems": problems}
+
+
+_ROW_COLUMNS = ["pair_id", "scene_id"] + [f"{r}_{k}" for r in ROLES for k in ("uri", "sha256", "bytes")]
+
+
+class _MediaChecks:
+    """The videos the rows reference, each once, as checks in row order: (path, size, sha256,
+    what) for a file, or the text of an 'unsafe' problem. Rows sort by pair_id, which starts
+    with the scene id, and a video serves only rows of its own scene, so a video is known
+    already only within the current scene: the set of those seen holds one scene's videos."""
+
+    def __init__(self, build_dir: Path, index):
+        self.build_dir, self.index = build_dir, index
+        self.files = 0
+
+    def items(self, shards: list[tuple]) -> Iterator[tuple | str]:
+        scene, seen = None, set[str]()
+        for path, *_ in shards:
+            for batch in iter_shard(path, _ROW_COLUMNS):
+                cols = batch.to_pydict()
+                for i, pair_id in enumerate(cols["pair_id"]):
+                    if cols["scene_id"][i] != scene:
+                        scene, seen = cols["scene_id"][i], set()
+                    for role in ROLES:
+                        uri = cols[f"{role}_uri"][i]
+                        if uri is None or uri in seen:  # an inference row of a real log: no true view
+                            continue
+                        seen.add(uri)
+                        yield self._item(uri, cols[f"{role}_bytes"][i], cols[f"{role}_sha256"][i],
+                                         f"{role} video", f"row {pair_id} column {role}_uri")
+
+    def _item(self, uri: str, size: int | None, sha: str | None, what: str, where: str) -> tuple | str:
         try:
-            media.append((build_file(build_dir, uri, f"{build_dir}: {where}", index), size, sha, what))
+            path = build_file(self.build_dir, uri, f"{self.build_dir}: {where}", self.index)
         except PathEscapeError as exc:
-            problems.append(f"unsafe: {exc}")
-    with ThreadPoolExecutor(max_workers=threads or min(8, os.cpu_count() or 2)) as pool:
-        problems += [p for p in pool.map(lambda j: _check_file(*j), media) if p]
-    return {"ok": not problems, "checked_files": len(jobs) + len(media), "problems": problems}
+            return f"unsafe: {exc}"
+        self.files += 1
+        return (path, size, sha, what)
+
+
+def _check(item: tuple | str) -> str | None:
+    return item if isinstance(item, str) else _check_file(*item)
+
+
+def _ordered(fn: Callable[[Any], T], items: Iterable[Any], jobs: int) -> Iterator[T]:
+    """``fn`` over ``items`` on ``jobs`` threads, results in the items' order, with at most
+    ``4 * jobs`` items taken ahead (``Executor.map`` would take them all first)."""
+    if jobs <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        pending: deque[Future[T]] = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= 4 * jobs:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 # --------------------------------------------------------------------------- pictures
@@ -308,11 +369,11 @@ def _print_tables(summary: dict, console) -> None:
                       + escape(f"{s['scene_id']} (split {s['split']}: {s['line']})"))
 
 
-def _verify(build: Path, err) -> dict:
+def _verify(build: Path, err, jobs: int | None = None) -> dict:
     """Verify ``build``, printing each problem and the verdict on ``err``."""
     from rich.markup import escape
 
-    result = verify_build(build)
+    result = verify_build(build, jobs)
     for p in result["problems"]:
         err.print(f"[red]{escape(p)}[/]", soft_wrap=True)
     if result["ok"]:
@@ -334,6 +395,7 @@ def register(app) -> None:
         sheet: Path | None = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and next to it <name>_trajectories.png, the camera paths from above, and <name>_rig.png, the rig and its shifted cameras in 3D)."),
         pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),
         data: Path | None = typer.Option(None, "--data", help="Data folder to find the scene's LiDAR in (default: the scene folders index.json records)."),
+        jobs: int | None = typer.Option(None, "--jobs", min=1, help="With --verify: files hashed at once (default: the CPUs, at most 8)."),
     ) -> None:
         """Counts, quality, checksum verification and pictures of a published build."""
         from rich.console import Console
@@ -341,7 +403,7 @@ def register(app) -> None:
 
         out, err = Console(), Console(stderr=True)
         try:
-            result = _verify(build, err) if verify else None
+            result = _verify(build, err, jobs) if verify else None
             code = 0 if result is None or result["ok"] else 1
             try:
                 summary = summarize(build)
@@ -367,7 +429,10 @@ def register(app) -> None:
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
         else:
+            from paradrive.wan.latents import latents_summary  # torch: not at every command's start
+
             _print_tables(summary, out)
+            out.print(latents_summary(build), markup=False)
             for key in ("sheet", "trajectories", "rig"):
                 if key in summary:
                     out.print(f"wrote {summary[key]}", markup=False)

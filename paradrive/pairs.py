@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import pyarrow as pa
@@ -103,6 +103,18 @@ def version_dir(build_dir: str | Path, index: IndexRecord) -> Path:
         raise PathEscapeError(str(exc)) from exc
 
 
+_SCENE_IDS: list[tuple[IndexRecord, frozenset[str]]] = []
+
+
+def _scene_ids(index: IndexRecord) -> frozenset[str]:
+    """The scene ids ``index`` lists, gathered once per index: every media file of a symlink
+    build is checked against them, and gathering them per file made verifying a build quadratic
+    in its scenes."""
+    if not _SCENE_IDS or _SCENE_IDS[0][0] is not index:
+        _SCENE_IDS[:] = [(index, frozenset(s.scene_id for s in index.scenes))]
+    return _SCENE_IDS[0][1]
+
+
 def _linked_clip(index: IndexRecord, uri: str) -> Path | None:
     """Where a ``symlink`` build's media link for ``uri`` must lead: the clip file of one of the
     build's own scenes, inside the data folder it was published from; None for anything else."""
@@ -111,7 +123,7 @@ def _linked_clip(index: IndexRecord, uri: str) -> Path | None:
     if index.media.mode != "symlink" or not root or len(parts) < 3 or parts[0] != MEDIA_DIR:
         return None
     scene_id, file = parts[1], "/".join(parts[2:])
-    if scene_id not in {s.scene_id for s in index.scenes} or not CLIP_FILE.fullmatch(file):
+    if scene_id not in _scene_ids(index) or not CLIP_FILE.fullmatch(file):
         return None
     return Path(root) / SCENES_DIR / scene_id / file
 
@@ -171,14 +183,31 @@ def shard_paths(build_dir: str | Path, index: IndexRecord | None = None) -> list
 
 
 def read_shard(path: Path, columns: Iterable[str] | None = None) -> pa.Table:
-    """One shard; a truncated or damaged file is a one-line error naming it."""
+    """One shard; a truncated or damaged file is a one-line error naming it. Read through
+    ``ParquetFile``: ``pq.read_table`` goes through ``pyarrow.dataset``, which imports pandas
+    (about a second, and tens of MB, in every process that opens a build)."""
     try:
-        return pq.read_table(path, columns=list(columns) if columns else None)
+        with pq.ParquetFile(path) as shard:
+            return shard.read(columns=list(columns) if columns else None)
     except (pa.ArrowException, OSError) as exc:
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise ParaDriveError(f"corrupt: {path} cannot be read as Parquet ({first}); re-run the "
-                             f"build without --stages (the same paradrive build command) to "
-                             f"publish it again") from exc
+        raise _corrupt_shard(path, exc) from exc
+
+
+def iter_shard(path: Path, columns: Iterable[str], batch_rows: int = 4096) -> Iterator[pa.RecordBatch]:
+    """A shard's rows ``batch_rows`` at a time, so a reader of every row of a build holds one
+    batch, not the build; errors as :func:`read_shard`'s."""
+    try:
+        with pq.ParquetFile(path) as shard:
+            yield from shard.iter_batches(batch_size=batch_rows, columns=list(columns))
+    except (pa.ArrowException, OSError) as exc:
+        raise _corrupt_shard(path, exc) from exc
+
+
+def _corrupt_shard(path: Path, exc: BaseException) -> ParaDriveError:
+    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return ParaDriveError(f"corrupt: {path} cannot be read as Parquet ({first}); re-run the "
+                          f"build without --stages (the same paradrive build command) to "
+                          f"publish it again")
 
 
 def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> pa.Table:

@@ -9,7 +9,7 @@ from urllib.parse import parse_qsl
 
 from paradrive.errors import ConfigError
 
-KINDS = ("synthetic", "waymo", "nuscenes", "drivestudio")
+KINDS = ("synthetic", "waymo", "nuscenes", "drivestudio", "video")
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,8 @@ def safe_name(text: str) -> str:
 
 
 def scene_id_for(uri: SceneURI) -> str:
-    """The scene id: ``synthetic-demo-s7``, ``waymo-<segment>``, ``nuscenes-scene-0061``, ``drivestudio-023``."""
+    """The scene id: ``synthetic-demo-s7``, ``waymo-<segment>``, ``nuscenes-scene-0061``,
+    ``drivestudio-023``, ``video-<file stem>``."""
     if uri.kind == "synthetic":
         seed = uri.query.get("seed", "7")
         extra = "".join(f"-{k}{v}" for k, v in sorted(uri.query.items()) if k != "seed")
@@ -73,6 +74,8 @@ def scene_id_for(uri: SceneURI) -> str:
         stem = re.sub(r"^segment-", "", stem)
         stem = re.sub(r"_with_camera_labels$", "", stem)
         return safe_name(f"waymo-{stem}")
+    if uri.kind == "video":  # drive.mp4 -> video-drive; a folder of frames by its name
+        return safe_name(f"video-{uri.scene or Path(uri.path).stem}")
     if uri.kind == "nuscenes":
         return safe_name(f"nuscenes-{uri.scene or Path(uri.path).name}")
     return safe_name(f"{uri.kind}-{uri.scene or Path(uri.path).name}")

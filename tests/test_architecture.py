@@ -16,7 +16,7 @@ from paradrive.contracts.base import StageParams
 from paradrive.pipeline.specs import StageRegistry
 
 PACKAGE = Path(__file__).resolve().parents[1] / "paradrive"
-STAGE_ORDER = ("ingest", "fit", "render", "clip", "manifest")
+STAGE_ORDER = ("ingest", "fit", "render", "clip", "manifest", "encode")
 
 # Lowest first. A new module is added to the layer it belongs to; an unlisted one fails the test.
 LAYERS: dict[str, tuple[str, ...]] = {
@@ -31,8 +31,9 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.gs._fit_loss", "paradrive.gs.strategy", "paradrive.gs.ply",
         "paradrive.synthetic.raycast",
         "paradrive.ingest.protowire", "paradrive.ingest.tfrecord", "paradrive.ingest.undistort",
-        "paradrive.ingest.waymo_proto",
+        "paradrive.ingest.waymo_proto", "paradrive.ingest.sfm",
         "paradrive.train.autoencoder", "paradrive.train.flow", "paradrive.train.model",
+        "paradrive.wan", "paradrive.wan.vae", "paradrive.wan.text", "paradrive.wan.recam",
     ),
     # the shared vocabulary: where files live, the records, what a stage gets and takes, and the
     # stage definitions read from stages/*.yaml (pipeline/specs.py: the runner's side of them)
@@ -49,7 +50,8 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.synthetic", "paradrive.synthetic.street", "paradrive.synthetic.traffic",
         "paradrive.ingest", "paradrive.ingest.common", "paradrive.ingest.nuscenes_tables",
         "paradrive.ingest.synthetic", "paradrive.ingest.waymo", "paradrive.ingest.nuscenes",
-        "paradrive.ingest.drivestudio", "paradrive.ingest.export",
+        "paradrive.ingest.drivestudio", "paradrive.ingest.export", "paradrive.ingest.video",
+        "paradrive.wan.latents", "paradrive.wan.encode",
     ),
     # the stage modules, and the true novel views the manifest stage renders for an inference set
     "stages": ("paradrive.stages", *(f"paradrive.stages.{s}" for s in STAGE_ORDER), "paradrive.inference"),
@@ -63,6 +65,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "cli": (
         "paradrive.cli", "paradrive.evaluation", "paradrive.inspection", "paradrive.view",
         "paradrive.train", "paradrive.train.cli", "paradrive.train.trainer",
+        "paradrive.wan.cli", "paradrive.wan.train", "paradrive.wan.convert",
     ),
 }
 
@@ -180,3 +183,16 @@ def test_each_stage_params_match_its_yaml_exactly(stage):
     # no default restated in code: every value comes from the YAML
     assert all(f.is_required() for f in module.Params.model_fields.values())
     module.Params.of(stage, spec.defaults())   # the YAML's values type-check
+
+
+def test_the_command_line_starts_without_torch():
+    """Every command registers at start-up; one that imported torch there (1.2 s idle, seconds on
+    a loaded machine) would make ``paradrive status`` and ``inspect`` pay it. The modules that
+    need torch are imported when their command runs."""
+    import subprocess
+    import sys
+
+    code = ("import sys, paradrive.cli; heavy = sorted(m for m in ('torch', 'diffusers', 'pycolmap', "
+            "'open3d', 'pyvista') if m in sys.modules); print(','.join(heavy))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == ""

@@ -157,3 +157,44 @@ def test_null_is_refused_unless_the_parameter_takes_it():
 def test_the_profiles_and_defaults_pass_their_own_rules():
     for profile in [None, *StageRegistry().profiles()]:
         StageRegistry().resolve(profile).check()
+
+
+def test_paradrive_stages_shows_what_each_parameter_may_be(monkeypatch):
+    """The table a user reads before a --set names the same rules the validation enforces."""
+    from typer.testing import CliRunner
+
+    from paradrive import cli
+
+    monkeypatch.setattr(cli.out, "width", 250)  # one table row a line, whatever the terminal
+    result = CliRunner().invoke(cli.app, ["stages", "manifest"])
+    assert result.exit_code == 0, result.output
+    spec = StageRegistry().specs["manifest"]
+    rows = {line.split("│")[1].strip(): line for line in result.output.splitlines() if line.count("│") > 4}
+    assert "allowed" in result.output
+    assert spec.params["compression"].allowed() in rows["compression"]
+    assert "at least 1, or null" in rows["shard_bytes"]
+
+
+def _train_settings(tree, where=""):
+    from paradrive.pipeline.specs import Param
+
+    for key, node in tree.items():
+        if isinstance(node, Param):
+            yield f"{where}{key}", node
+        else:
+            yield from _train_settings(node, f"{where}{key}.")
+
+
+def test_every_training_setting_declares_what_it_may_be_and_is_held_to_it():
+    from paradrive.train.trainer import CONFIG_DIR, _load, load_config
+
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        params, _ = _load(path)
+        undeclared = [key for key, p in _train_settings(params)
+                      if (isinstance(p.default, (int, float)) and not isinstance(p.default, bool)
+                          and p.min is None and p.max is None and p.above is None and p.below is None)
+                      or (isinstance(p.default, str) and p.choices is None and p.pattern is None
+                          and key != "train.stage1_trainable")]   # 'all' or a list of module names
+        assert undeclared == [], path.name
+    with pytest.raises(ConfigError, match=r"train.lr = -1.0 is out of range \(allowed: more than 0\)"):
+        load_config("smoke", {"train": {"lr": -1}})

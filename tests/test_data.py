@@ -415,3 +415,95 @@ def test_smoke_build_feeds_the_adapter_and_verifies(smoke_build):
     result = invoke(build, "--verify", "--json")
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["verify"]["ok"]
+
+
+# --------------------------------------------------------------------------- many rows
+
+def copy_rows(build, dest, copies: int, shard_rows: int, row_group_rows: int = 64, edit=None):
+    """``build``'s rows copied ``copies`` times under new scene ids (in pair ids, scene ids and
+    URIs), published at ``dest`` in shards of ``shard_rows``; ``edit(table)`` may change the rows
+    first. The copies' videos do not exist: only opening the build is under test."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    from paradrive.contracts.records import IndexRecord
+    from paradrive.pairs import SCHEMA
+
+    base = read_pairs(build)
+    renamed = ("pair_id", "scene_id", "source_uri", "condition_uri", "target_uri")
+    table = pa.concat_tables([
+        pa.table({name: pc.replace_substring(base.column(name), "synthetic-", f"copy{k:04d}-")
+                  if name in renamed else base.column(name) for name in base.column_names}, schema=SCHEMA)
+        for k in range(copies)])
+    table = edit(table) if edit else table
+    (dest / "v-000001").mkdir(parents=True)
+    shards = []
+    for i, start in enumerate(range(0, table.num_rows, shard_rows)):
+        shard, name = table.slice(start, shard_rows), f"pairs-{i:05d}.parquet"
+        pq.write_table(shard, dest / "v-000001" / name, row_group_size=row_group_rows)
+        shards.append({"file": name, "rows": shard.num_rows, "bytes": 1, "sha256": "0" * 64,
+                       "first_pair_id": shard["pair_id"][0].as_py(), "last_pair_id": shard["pair_id"][-1].as_py()})
+    doc = read_index(build).model_dump()
+    doc.update(version="v-000001", shards=shards, totals={**doc["totals"], "rows": table.num_rows,
+                                                          "shards": len(shards)})
+    IndexRecord.model_validate(doc).save(dest / "index.json")
+    return dest, table
+
+
+def test_rows_read_with_their_row_group_are_the_manifest_rows_across_shards(build, tmp_path):
+    from paradrive.data import _ROW_COLUMNS
+
+    copies = -(-400 // len(PairDataset(build)))
+    large, table = copy_rows(build, tmp_path / "b", copies=copies, shard_rows=100, row_group_rows=7)
+    ds = PairDataset(large)
+    assert len(ds) == table.num_rows > 300 and ds.pair_ids == table["pair_id"].to_pylist()
+    for i in (0, 6, 7, 99, 100, 101, 300, table.num_rows - 1):
+        row, want = ds.row(i), table.slice(i, 1).to_pylist()[0]
+        assert {name: row[name] for name in _ROW_COLUMNS} == {name: want[name] for name in _ROW_COLUMNS}
+        for name in ("rel_pose", "target_c2w"):
+            np.testing.assert_array_equal(row[name], np.asarray(want[name]).reshape(-1, 4, 4))
+
+
+def test_opening_20k_rows_keeps_no_python_object_per_row(build, tmp_path):
+    """The adapter keeps pair ids as Arrow and reads a row's columns with its row group: opening
+    a build (and the dataset a DataLoader pickles for each worker) costs far less than the
+    ~1 KB a row that Python lists of every column took."""
+    import pickle
+    import tracemalloc
+
+    large, table = copy_rows(build, tmp_path / "b", copies=-(-20_000 // len(PairDataset(build))),
+                             shard_rows=4096)
+    rows = table.num_rows
+    tracemalloc.start()
+    try:
+        ds = PairDataset(large)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert len(ds) == rows >= 20_000
+    assert peak < 100 * rows, f"{peak} bytes of Python objects for {rows} rows"
+    ds.row(rows - 1)   # opens a shard and caches a row group: neither goes to a worker
+    worker = pickle.loads(pickle.dumps(ds))
+    assert len(pickle.dumps(ds)) < 100 * rows
+    assert worker.row(rows - 1)["pair_id"] == table["pair_id"][-1].as_py()
+
+
+def test_a_bad_uri_names_the_first_row_that_holds_it(build, tmp_path):
+    import pyarrow as pa
+
+    from paradrive.io import PathEscapeError
+
+    def escape(table):
+        uris = table["condition_uri"].to_pylist()
+        uris[150] = uris[210] = "../../outside.mp4"
+        return table.set_column(table.schema.get_field_index("condition_uri"), "condition_uri",
+                                pa.array(uris, pa.string()))
+
+    copies = -(-250 // len(PairDataset(build)))
+    large, table = copy_rows(build, tmp_path / "b", copies=copies, shard_rows=100, edit=escape)
+    shard = version_dir(large, read_index(large)) / "pairs-00001.parquet"
+    pair_id = table["pair_id"][150].as_py()
+    with pytest.raises(PathEscapeError, match=rf"{re.escape(str(shard))}: row {re.escape(pair_id)} "
+                                              rf"column condition_uri: path '\.\./\.\./outside\.mp4'"):
+        PairDataset(large)

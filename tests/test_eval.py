@@ -175,7 +175,7 @@ def test_every_stream_reports_the_signed_depth_error(evaluated):
 
 
 def test_static_psnr_leaves_out_the_pixels_of_moving_actors(evaluated):
-    from paradrive.evaluation import static_quality
+    from paradrive.gs.views import static_quality
 
     # the smoke street's moving traffic shows in every eval row, scored apart
     cam = evaluated["doc"]["cameras"]["front"]

@@ -55,7 +55,7 @@ def moving_pixels_psnr(scene_dir, fit, camera: str = "front") -> tuple[float, fl
     actors, against the images: inside the ingest's dynamic masks, and outside them."""
     import numpy as np
 
-    from paradrive.evaluation import masked_psnr
+    from paradrive.gs.views import masked_psnr
     from paradrive.gs.graph import load_model
     from paradrive.gs.views import render_views
     from paradrive.scene import load_scene, read_image

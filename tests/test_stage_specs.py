@@ -23,7 +23,11 @@ def test_paper_defaults_live_in_the_stage_files():
 
 def test_stages_resolve_in_dependency_order():
     registry = StageRegistry()
-    assert registry.order() == ["ingest", "fit", "render", "clip", "manifest"]
+    assert registry.order() == ["ingest", "fit", "render", "clip", "manifest", "encode"]
+    # encode runs only when asked for (enabled_by: vae): a default build stops at the manifest
+    config = registry.resolve(None, {})
+    assert config.selected() == ["ingest", "fit", "render", "clip", "manifest"]
+    assert config.selected(["manifest", "encode"]) == ["manifest", "encode"]
     assert registry.order(["clip", "ingest"]) == ["ingest", "clip"]
 
 

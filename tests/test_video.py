@@ -87,3 +87,63 @@ def test_gop_sets_the_keyframe_interval(tmp_path):
             sorted((p for p in container.demux(video=0) if p.size), key=lambda p: p.pts))
             if packet.is_keyframe]
     assert keys == [0, 10, 20, 30]
+
+
+def _textured(n: int, h: int, w: int) -> list[np.ndarray]:
+    """Noise on a gradient: sharp edges in every colour, where conversions and filters differ."""
+    rng = np.random.default_rng(3)
+    return [np.clip(f.astype(np.int16) + rng.integers(-60, 60, f.shape), 0, 255).astype(np.uint8)
+            for f in _frames(n, h, w)]
+
+
+def _direct_pyav(path, **reformat) -> np.ndarray:
+    """Every frame converted by PyAV itself, each ``VideoFrame`` with its own conversion (R, G, B
+    last; planar formats as PyAV orders them)."""
+    import av
+
+    with av.open(str(path)) as container:
+        return np.stack([f.reformat(**reformat).to_ndarray() for f in container.decode(video=0)])
+
+
+@pytest.mark.parametrize("threads", [1, 0])
+def test_frames_are_bit_identical_to_a_direct_pyav_decode(tmp_path, threads):
+    path = tmp_path / "t.mp4"
+    encode_video(path, _textured(6, 48, 64), 10.0, preset="ultrafast")
+    area = {"width": 40, "height": 30, "interpolation": "AREA"}
+    for size, reformat in ((None, {}), ((30, 40), area)):
+        rgb = _direct_pyav(path, format="rgb24", **reformat)
+        np.testing.assert_array_equal(decode_frames(path, size=size, threads=threads), rgb)
+        planar: dict[int, np.ndarray] = {}
+        each_frame(path, None, lambda i, planes: planar.setdefault(i, np.stack(planes)), size=size,
+                   threads=threads, planar=True)
+        gbrp = _direct_pyav(path, format="gbrp", **reformat)   # to_ndarray gives it as (H, W, RGB)
+        np.testing.assert_array_equal(np.stack([planar[i] for i in range(6)]), gbrp.transpose(0, 3, 1, 2))
+
+
+def test_a_pass_converts_every_frame_through_one_swscale_context(tmp_path):
+    """Setting up a conversion costs as much as converting a small frame: a pass over a video
+    must not give each frame its own (``VideoFrame.reformat`` / ``to_ndarray(format=...)`` do)."""
+    import sys
+    from collections import Counter
+
+    path = tmp_path / "t.mp4"
+    encode_video(path, _textured(7, 48, 64), 10.0, preset="ultrafast")
+    calls: Counter = Counter()
+    contexts: set[int] = set()
+
+    def profile(frame, event, arg) -> None:
+        if event == "c_call":
+            calls[getattr(arg, "__qualname__", "")] += 1
+            if getattr(arg, "__qualname__", "") == "VideoReformatter.reformat":
+                contexts.add(id(arg.__self__))
+
+    for planar, size in ((True, None), (False, (24, 32))):
+        calls.clear()
+        contexts.clear()
+        sys.setprofile(profile)
+        try:
+            each_frame(path, [1, 2, 3, 5], lambda i, pixels: None, planar=planar, size=size)
+        finally:
+            sys.setprofile(None)
+        assert calls["VideoReformatter.reformat"] == 4 and len(contexts) == 1
+        assert calls["VideoFrame.reformat"] == 0

@@ -7,7 +7,8 @@ back). Writers:
   optional lens distortion and a TOP LiDAR range image (zlib MatrixFloat + per-pixel poses);
 - ``export_nuscenes``: nuScenes v1.0 tables (scene, sample, sample_data, ego_pose,
   calibrated_sensor, sensor, log, ...) with keyframes and sweeps, images, LIDAR_TOP .pcd.bin;
-- ``export_drivestudio``: a DriveStudio processed scene folder, Waymo or nuScenes flavour.
+- ``export_drivestudio``: a DriveStudio processed scene folder, Waymo or nuScenes flavour;
+- ``export_video``: one camera as a plain MP4, nothing but pixels (a dashcam).
 
 The source's actors go along: Waymo ``laser_labels``, nuScenes ``sample_annotation`` (keyframes
 only, grouped by ``instance``), DriveStudio ``instances/``.
@@ -567,6 +568,36 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
 # --------------------------------------------------------------------------- command line
 
 # what each format's log is ingested as (DriveStudio folders are written in the Waymo flavour),
+# --------------------------------------------------------------------------- a plain video
+
+def export_video(street_or_scene, path: str | Path, *, camera: str = "front",
+                 frames: int | None = None, crf: int = 18) -> dict:
+    """Write one camera of the source as a plain H.264 MP4 (``path``): no poses, calibration or
+    LiDAR, as a dashcam records. Returns the camera's intrinsics and mount height (m above the
+    ego origin, on the road) that the ``video:`` URI may state, and the encoder's summary."""
+    from paradrive.video import encode_video
+
+    src = as_source(street_or_scene, [camera], frames)
+    c = src.cameras[camera]
+    summary = encode_video(path, (src.image(i, camera) for i in range(src.frames)), src.fps,
+                           crf=crf)
+    return {**summary, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+            "height_m": float(c.cam2ego[2, 3]), "fps": src.fps}
+
+
+def video_uri(path: Path, info: dict, truth: str, *, with_intrinsics: bool) -> str:
+    """The ``video:`` URI that ingests a file of :func:`export_video`: its frame rate, the mount
+    height, the synthetic URI it shows (``truth``, for ``paradrive eval``) and, when asked, the
+    intrinsics (otherwise SfM estimates them)."""
+    from urllib.parse import quote
+
+    query = {"fps": f"{info['fps']:g}", "height_m": f"{info['height_m']:g}"}
+    if with_intrinsics:
+        query.update({k: f"{info[k]:.6f}" for k in ("fx", "fy", "cx", "cy")})
+    query["truth"] = truth
+    return f"video:{path}?" + "&".join(f"{k}={quote(v, safe=':/')}" for k, v in query.items())
+
+
 # and the cameras the format can hold
 EXPORT_DATASETS = {"waymo": "waymo", "nuscenes": "nuscenes", "drivestudio": "waymo"}
 EXPORT_CAMERAS = {"waymo": tuple(n.lower() for n in wp.CAMERA_IDS if n != "UNKNOWN"),
@@ -584,10 +615,12 @@ def export_cameras(fmt: str, ingest_params: IngestParams, scene_id: str) -> list
     return wanted if wanted is not None else [c for c in CAMERA_NAMES if c in EXPORT_CAMERAS[fmt]]
 
 
-def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: IngestParams) -> str:
+def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: IngestParams, *,
+                 with_intrinsics: bool = True) -> str:
     """Write the synthetic scene ``scene_uri`` in format ``fmt`` under ``out``; returns its URI.
 
-    The log carries the cameras that ingesting it with ``ingest_params`` keeps (``export_cameras``).
+    The log carries the cameras that ingesting it with ``ingest_params`` keeps (``export_cameras``);
+    a ``video`` is the front camera alone, its URI with the intrinsics when ``with_intrinsics``.
     """
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.uri import parse_uri
@@ -595,8 +628,15 @@ def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: Inges
     uri = parse_uri(scene_uri)
     if uri.kind != "synthetic":
         raise ValueError(f"export writes synthetic scenes only, got {scene_uri!r}")
+    if fmt == "video":
+        street = street_from_uri(uri, ingest_params.model_copy(update={"cameras": ["front"]}))
+        path = Path(out).resolve() / f"{uri.scene_id}.mp4"
+        info = export_video(street, path)
+        truth = (f"synthetic:{street.name}?seed={street.seed}&frames={street.frames}"
+                 f"&width={street.width}&height={street.height}&curvature={street.curvature:g}")
+        return video_uri(path, info, truth, with_intrinsics=with_intrinsics)
     if fmt not in EXPORT_DATASETS:
-        raise ValueError(f"unknown format {fmt!r}; use waymo, nuscenes or drivestudio")
+        raise ValueError(f"unknown format {fmt!r}; use waymo, nuscenes, drivestudio or video")
     cameras = export_cameras(fmt, ingest_params, uri.scene_id)
     street = street_from_uri(uri, ingest_params.model_copy(update={"cameras": cameras}))
     out = Path(out).resolve()

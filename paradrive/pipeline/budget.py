@@ -17,7 +17,9 @@ not yet ingested is read from its URI (synthetic) or takes the dataset's typical
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,10 +31,11 @@ from rich.markup import escape
 from rich.table import Table
 
 from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.io import is_temporary
 from paradrive.pipeline.runner import read_marker
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
-from paradrive.storage import DataRoot, file_stats
+from paradrive.storage import DataRoot
 from paradrive.streams import clip_shortfall, clip_windows, frames_needed, plan_streams
 from paradrive.uri import parse_uri
 
@@ -52,8 +55,30 @@ def scene_footprint(root: DataRoot | str | Path, scene_id: str) -> dict[str, int
     if mirror is not None:
         sizes = {rel: int(info.get("size") or 0) for rel, info in mirror.refresh().items()}
     else:
-        sizes = {rel: stat[0] for rel, stat in file_stats(SceneLayout.of(root.local, scene_id).root).items()}
+        sizes = folder_sizes(SceneLayout.of(root.local, scene_id).root)
     return by_folder(sizes)
+
+
+def folder_sizes(folder: Path) -> dict[str, int]:
+    """Files under ``folder`` (temporaries left out): relative path -> bytes. ``os.scandir``
+    rather than a walk building a Path per file: a build prints every scene's footprint, and
+    that walk was a third of a no-op re-run."""
+    out: dict[str, int] = {}
+    todo = [("", os.fspath(folder))] if folder.is_dir() else []
+    while todo:
+        prefix, path = todo.pop()
+        with os.scandir(path) as entries:
+            for entry in entries:
+                if is_temporary(entry.name):
+                    continue
+                rel = prefix + entry.name
+                if entry.is_dir():  # a link to a folder is not walked (as os.walk)
+                    if not entry.is_symlink():
+                        todo.append((rel + "/", entry.path))
+                else:
+                    with contextlib.suppress(FileNotFoundError):  # removed while listing
+                        out[rel] = entry.stat().st_size
+    return out
 
 
 def by_folder(sizes: dict[str, int]) -> dict[str, int]:
@@ -92,6 +117,7 @@ class Shape:
     cameras: dict[str, tuple[int, int]]
     known: str        # "ingested", "uri" or "typical <dataset> log"
     gaussians: float | None = None   # of every checkpoint, when a fit with these parameters ran
+    sfm_frames: int = 0   # frames whose poses structure from motion finds (a video's)
 
 
 @dataclass
@@ -119,9 +145,11 @@ class Plan:
 
     def as_json(self) -> dict[str, Any]:
         media = self.bytes.get("clips", 0.0)
+        outputs = media + self.bytes.get("latents", 0.0)   # the build's: the clips and the latent cache
         return {"scenes": self.scenes, "pairs": self.pairs, "media_bytes": round(media),
-                "intermediate_bytes": round(sum(self.bytes.values()) - media),
-                "intermediate_bytes_kept": round(sum(self.kept.values()) - media),
+                "latent_bytes": round(self.bytes.get("latents", 0.0)),
+                "intermediate_bytes": round(sum(self.bytes.values()) - outputs),
+                "intermediate_bytes_kept": round(sum(self.kept.values()) - outputs),
                 "bytes": {k: round(v) for k, v in self.bytes.items()},
                 "bytes_kept": {k: round(v) for k, v in self.kept.items()},
                 "seconds": {k: round(v, 1) for k, v in self.seconds.items()},
@@ -154,6 +182,7 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
     return {
         "compute:ingest": stored_mp, "compute:fit": float(checkpoints[-1]),
         "compute:render": rendered_mp, "compute:clip": encoded_mp,
+        "compute:sfm": float(shape.sfm_frames),
         "bytes:images": stored_mp, "bytes:masks": stored_mp,
         "bytes:lidar": float(shape.frames) if ingest["lidar"] else 0.0,
         # before a fit, an upper bound: under-fitted checkpoints near the initial points, the last at the cap
@@ -162,7 +191,21 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
         "bytes:renders": rendered_mp, "bytes:clips": encoded_mp,
         "pairs": float(len(cams) * len(windows) * len(offsets)
                        * len(render["condition_checkpoints"])),
+        **encode_units(params.get("encode"), render, len(cams) * len(windows) * streams),
     }
+
+
+def encode_units(encode: dict | None, render: dict, videos: int) -> dict[str, float]:
+    """The encode stage's work (megapixel-frames through the VAE) and latent bytes (exact: 16 x T'
+    x H/8 x W/8 values in encode.dtype) for ``videos`` clip videos, each encoded once (a latent
+    shard stores a distinct video once); nothing while the stage is off (encode.vae null)."""
+    if not encode or encode.get("vae") is None:
+        return {"compute:encode": 0.0, "bytes:latents": 0.0}
+    frames = encode["num_frames"] or 1 + (render["clip_frames"] - 1) // 4 * 4
+    height, width = encode["size"] or (render["height"], render["width"])
+    values = 16 * (1 + (frames - 1) // 4) * (height // 8) * (width // 8)
+    item = {"bfloat16": 2, "float16": 2, "float32": 4}[encode["dtype"]]
+    return {"compute:encode": videos * frames * height * width / MB, "bytes:latents": float(videos * values * item)}
 
 
 def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict) -> Shape:
@@ -184,7 +227,7 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
         else params.cameras or typical["cameras"]
     frames = min(typical["frames"], params.max_frames or typical["frames"])
     return Shape(frames, {c: (typical["width"], typical["height"]) for c in names},
-                 f"typical {parsed.kind} log")
+                 f"typical {parsed.kind} log", sfm_frames=frames if parsed.kind == "video" else 0)
 
 
 def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
@@ -194,7 +237,8 @@ def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
 
     doc = json.loads(layout.scene_json.read_text())
     cams = {name: (int(c["width"]), int(c["height"])) for name, c in doc["cameras"].items()}
-    shape = Shape(len(doc["frames"]), cams, "ingested")
+    shape = Shape(len(doc["frames"]), cams, "ingested",
+                  sfm_frames=len(doc["frames"]) if doc.get("dataset") == "video" else 0)
     marker = read_marker(layout.root, "fit")
     if marker and layout.fit_json.is_file() and fit_params in (None, marker.get("params")):
         shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
@@ -306,6 +350,8 @@ def print_plan(plan: Plan, config: ResolvedConfig, data_dir: Path, console: Cons
                   markup=False)
     console.print(f"pairs         {plan.pairs:,}")
     console.print(f"media         {_size(summary['media_bytes'])} (the clips)")
+    if summary["latent_bytes"]:
+        console.print(f"latents       {_size(summary['latent_bytes'])} (encode: Wan2.1 VAE latents)")
     console.print(f"intermediate  {_size(summary['intermediate_bytes'])} at most, "
                   f"{_size(summary['intermediate_bytes_kept'])} kept after retention")
     console.print(f"compute       {summary['cpu_hours']:.2f} CPU-hours, "

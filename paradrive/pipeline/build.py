@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import resource
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -25,11 +26,12 @@ from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions, scene_
 from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
-    load_entry, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint, summary_of,
+    load_entry, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint,
+    summary_of,
     typed_params, written_outputs,
 )
 from paradrive.pipeline.ledger import LEDGER_FILE
-from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.pipeline.specs import ResolvedConfig, StageSpec
 from paradrive.splits import Selection
 from paradrive.contracts.base import BuildContext
 from paradrive.contracts.layout import BuildLayout
@@ -85,7 +87,7 @@ def default_selection(config: ResolvedConfig, uris: list[str],
 
 def split_stages(config: ResolvedConfig, stages: list[str] | None) -> tuple[list[str], list[str]]:
     registry = config.registry()
-    ordered = registry.order(stages)
+    ordered = config.selected(stages)
     scene_stages = [s for s in ordered if registry.specs[s].scope == "scene"]
     build_stages = [s for s in ordered if registry.specs[s].scope == "build"]
     return scene_stages, build_stages
@@ -107,6 +109,9 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     """
     root = DataRoot.of(data_dir)
     spec = config.registry().specs[stage]
+    if _on_build(config, spec):
+        return _run_on_build(config, stage, spec, root, BuildLayout.of(manifests_dir, build).root,
+                             build, force)
     label = f"build:{build}"
     scenes, inputs, runs, mirrors, unfinished, stale = [], {}, {}, [], {}, {}
     for uri in scene_uris:
@@ -139,6 +144,72 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
     if not scenes and stale:
         result.error = f"build {build}: nothing to publish: {'; '.join(stale.values())}"
     return result
+
+
+def _on_build(config: ResolvedConfig, spec: StageSpec) -> bool:
+    """A build stage that works on what another build stage published (encode after manifest),
+    not on the scenes: all its needs are build stages."""
+    specs = config.registry().specs
+    return bool(spec.needs) and all(specs[need].scope == "build" for need in spec.needs)
+
+
+def _run_on_build(config: ResolvedConfig, stage: str, spec: StageSpec, root: DataRoot,
+                  build_dir: Path, build: str, force: bool) -> StageResult:
+    """Run a build stage whose needs are build stages, on the build folder alone.
+
+    Its inputs are the needed stages' markers in the build folder and the published index (the
+    sha256 of its shards), so a republished build with other rows runs it again. It is up to
+    date when its own marker carries this fingerprint and every file it wrote is there."""
+    label, t0 = f"build:{build}", time.time()
+    markers = {need: read_marker(build_dir, need) for need in spec.needs}
+    missing = [need for need, marker in markers.items() if marker is None]
+    if missing:
+        return StageResult(label, stage, "failed", error=(
+            f"build {build}: {stage} needs {', '.join(missing)}, which has not published "
+            f"{build_dir}; run the build with {', '.join(missing)} first"))
+    try:
+        index = json.loads(BuildLayout(build_dir).index_json.read_text())
+    except (FileNotFoundError, json.JSONDecodeError) as exc:
+        return StageResult(label, stage, "failed", error=f"build {build}: {stage} needs a published "
+                                                         f"build, {build_dir}/index.json: {exc}")
+    runs = {need: marker["fingerprint"] for need, marker in markers.items() if marker}
+    shards = ",".join(str(s.get("sha256")) for s in index.get("shards", []))
+    params = dict(config.params[stage])
+    fp = fingerprint(stage, spec.fingerprinted(params), {**runs, "pairs": shards})
+    marker = read_marker(build_dir, stage)
+    if not force and marker is not None and marker.get("fingerprint") == fp \
+            and _intact(marker, runs, build_dir):
+        return StageResult(label, stage, "skipped", fingerprint=fp)
+    log = logging.getLogger(f"paradrive.build.{build}")
+    try:
+        func = load_entry(spec)
+        marker_path(build_dir, stage).unlink(missing_ok=True)
+        before = file_stats(build_dir)
+        ctx = BuildContext(stage=stage, build=build, layout=BuildLayout(build_dir), data_dir=root.local,
+                           scenes=[], params=typed_params(spec, params), log=log, fingerprint=fp)
+        summary = summary_of(func(ctx))
+        declared = expand_outputs(spec.outputs, params)
+        outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
+                   if matches(rel, declared)}
+        write_json(marker_path(build_dir, stage), {"stage": stage, "build": build, "fingerprint": fp,
+                                                   "scene_runs": runs, "outputs": outputs})
+        return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp, summary=summary)
+    except Exception as exc:  # the stage's failure is its result; the run is still closed
+        return _failed(exc, label, stage, build, time.time() - t0, log)
+
+
+def _failed(exc: Exception, label: str, stage: str, build: str, seconds: float,
+            log: logging.Logger) -> StageResult:
+    """The result of a build stage that raised: the message of an expected failure (a
+    ParaDriveError, a file system or value error), else a crash with its traceback in the log."""
+    if isinstance(exc, (ParaDriveError, OSError, ValueError)):
+        error = (str(exc) if isinstance(exc, ParaDriveError)
+                 else f"build {build}: {stage} failed: {type(exc).__name__}: {exc}")
+        log.error("%s: failed: %s", stage, error)
+    else:  # a bug or an unexpected library error
+        log.error("%s: crashed:\n%s", stage, traceback.format_exc())
+        error = f"build {build}: {stage} crashed: {type(exc).__name__}: {exc}"
+    return StageResult(label, stage, "failed", seconds=seconds, error=error)
 
 
 def _made_otherwise(config: ResolvedConfig, needs: list[str], uri: str, sdir: Path) -> str | None:
@@ -196,15 +267,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
                     "outputs": outputs})
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
-    except (ParaDriveError, OSError, ValueError) as exc:
-        error = (str(exc) if isinstance(exc, ParaDriveError)
-                 else f"build {build}: {stage} failed: {type(exc).__name__}: {exc}")
-        log.error("%s: failed: %s", stage, error)
-        return StageResult(label, stage, "failed", seconds=time.time() - t0, error=error)
-    except Exception as exc:  # a bug or an unexpected library error: the run is still closed
-        log.error("%s: crashed:\n%s", stage, traceback.format_exc())
-        return StageResult(label, stage, "failed", seconds=time.time() - t0,
-                           error=f"build {build}: {stage} crashed: {type(exc).__name__}: {exc}")
+    except Exception as exc:  # the stage's failure is its result; the run is still closed
+        return _failed(exc, label, stage, build, time.time() - t0, log)
     finally:
         if root.drop_cache:
             for mirror in mirrors:
@@ -216,6 +280,7 @@ def _scene_locks(root: DataRoot, scenes: list[dict], build: str, log: logging.Lo
                  inputs: dict[str, str], needs: list[str]) -> Iterator[None]:
     """Every scene's lock while a build stage reads its outputs, so no other build rewrites
     them meanwhile; the needed markers must still be the ones the stage was planned on."""
+    _allow_open_files(len(scenes))
     with contextlib.ExitStack() as stack:
         for entry in sorted(scenes, key=lambda e: e["scene_id"]):  # one order: no deadlock
             sid = entry["scene_id"]
@@ -225,6 +290,17 @@ def _scene_locks(root: DataRoot, scenes: list[dict], build: str, log: logging.Lo
                 raise ParaDriveError(f"scene {sid}: another build changed its {', '.join(needs)} "
                                      f"outputs while this build waited for them; re-run")
         yield
+
+
+def _allow_open_files(locks: int) -> None:
+    """A scene lock on a folder root is an open file (``flock``), and a build stage holds every
+    scene's at once: raise this process's soft limit on open files towards its hard limit when
+    it is below them (1,024 by default on many systems, a paper-size build has 1,600 scenes)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = locks + 256  # and the files the stage itself opens
+    if soft != resource.RLIM_INFINITY and soft < want:
+        resource.setrlimit(resource.RLIMIT_NOFILE,
+                           (want if hard == resource.RLIM_INFINITY else min(want, hard), hard))
 
 
 def _published(index: Path, fp: str) -> bool:

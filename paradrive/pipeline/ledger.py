@@ -340,8 +340,10 @@ class Ledger:
                       "value = excluded.value", (location,))
 
     def takeovers(self) -> list[dict]:
-        """Every scene lock this build took over from a dead or expired holder."""
-        return [e for e in self.events() if e["state"] == "takeover"]
+        """Every scene lock this build took over from a dead or expired holder (one query: the
+        events of every run are many more)."""
+        rows = self._connection().execute("SELECT * FROM events WHERE state = 'takeover' ORDER BY id")
+        return [dict(r) for r in rows]
 
     def end_run(self, exit_code: int) -> None:
         """Close the run's row; best effort (a run that failed on its ledger has said why)."""
@@ -406,7 +408,7 @@ class Ledger:
     def record(self, result) -> None:
         """A :class:`~paradrive.pipeline.runner.StageResult` came back."""
         sid, stage, state, now = result.scene_id, result.stage, result.status, time.time()
-        error = redact(result.error or "")
+        error = redact(result.error) if result.error else ""  # the scan of the environment: per error only
         if state not in STATES:
             raise ValueError(f"ledger: unknown state {state!r} for {sid}/{stage}")
         with self._write() as c:
@@ -476,10 +478,22 @@ class Ledger:
         sql = "SELECT scene_uri FROM scenes" + (" WHERE active = 1" if active_only else "")
         return [r[0] for r in self._connection().execute(sql + " ORDER BY position, scene_id")]
 
-    def scene_states(self) -> dict[str, str]:
-        """scene_id -> done | failed | running | pending, over the active scenes."""
+    def last_run(self) -> dict | None:
+        row = self._connection().execute("SELECT * FROM runs ORDER BY run_id DESC LIMIT 1").fetchone()
+        return dict(row) if row else None
+
+    def scene_ids(self) -> set[str]:
+        """The active scenes that have stage rows."""
+        rows = self._connection().execute(
+            "SELECT DISTINCT t.scene_id FROM tasks t JOIN scenes s ON s.scene_id = t.scene_id "
+            "WHERE s.active = 1")
+        return {r[0] for r in rows}
+
+    def scene_states(self, rows: list[dict] | None = None) -> dict[str, str]:
+        """scene_id -> done | failed | running | pending, over the active scenes (``rows``: the
+        :meth:`tasks` already read)."""
         states: dict[str, list[str]] = {}
-        for row in self.tasks():
+        for row in self.tasks() if rows is None else rows:
             if not row["scene_id"].startswith("build:"):
                 states.setdefault(row["scene_id"], []).append(row["state"])
         return {sid: scene_state(s) for sid, s in states.items()}
@@ -495,10 +509,11 @@ class Ledger:
         return uris
 
     def summary(self) -> dict:
-        """What ``paradrive status`` shows, as plain data (also its ``--json``)."""
+        """What ``paradrive status`` shows, as plain data (also its ``--json``). Two queries
+        whatever the build's size: the task rows (read once) and the last run."""
         rows = self.tasks()
         scene_rows = [r for r in rows if not r["scene_id"].startswith("build:")]
-        states = self.scene_states()
+        states = self.scene_states(rows)
         counts = {s: 0 for s in ("done", "failed", "running", "pending")}
         for s in states.values():
             counts[s] += 1
@@ -530,14 +545,13 @@ class Ledger:
                     for r in rows if r["state"] == "failed"]
         build_rows = [{"stage": r["stage"], "state": r["state"], "seconds": r["seconds"],
                        "error": r["error"]} for r in rows if r["scene_id"].startswith("build:")]
-        runs = self.runs()
         return {"build": self.build, "ledger": str(self.path), "scenes": len(states),
                 "counts": counts, "stages": sorted(stages.values(), key=lambda s: s["position"]),
                 "slowest": [{"scene_id": s["scene_id"], "seconds": round(s["seconds"], 3),
                              "state": s["state"]} for s in slowest],
                 "failures": failures, "build_stages": build_rows,
                 "scene_table": list(per_scene.values()),
-                "last_run": runs[-1] if runs else None}
+                "last_run": self.last_run()}
 
 
 def _nearly_full(folder: Path) -> bool:

@@ -3,8 +3,8 @@
 A stage knows only its work (``run_stage(ctx)``); where it runs is an executor's business. A
 completed stage leaves a marker ``<scene_dir>/.paradrive/<stage>.json`` holding the fingerprint
 of its parameters, its inputs' fingerprints and the package version, a run id, the run ids of
-the markers it needed, and the files it wrote with their sizes (``outputs``; sha256 where the
-stage computed one). A stage is up to date when its fingerprint matches, the stages it needs
+the markers it needed, and the files it wrote with their sizes, sha256, modification times and
+inodes (``outputs``). A stage is up to date when its fingerprint matches, the stages it needs
 were not redone since, and every recorded output is there with its size; otherwise it runs
 again, and so does every stage after it. (A marker from before ``outputs`` were recorded counts
 as up to date while its declared outputs exist.) The whole decision and run happen under the
@@ -39,11 +39,11 @@ from typing import Any
 from collections.abc import Callable, Iterator
 
 import paradrive
-from paradrive.errors import ConfigError, ParaDriveError, SceneError, StageNotImplemented, os_error_fix
+from paradrive.errors import (ConfigError, ParaDriveError, SceneError, StageNotImplemented, missing_extra,
+                              os_error_fix)
 from paradrive.io import remove_stale_temporaries, sha256_file, write_json
 from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
-from paradrive.metrics import peak_rss_mb
 from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.layout import MARKER_DIR, DataLayout, SceneLayout
@@ -114,21 +114,32 @@ def outputs_present(scene_dir: Path, spec: StageSpec, params: dict,
 def written_outputs(folder: Path, before: dict[str, tuple[int, int]], declared: list[str],
                     hashes: dict[str, str] | None = None) -> dict[str, dict]:
     """What a stage wrote under ``folder``: files new or changed since ``before`` and files its
-    declared outputs name, as relative path -> {"bytes", "sha256"} (markers left out). The
+    declared outputs name, as relative path -> :func:`output_entry` (markers left out). The
     sha256 the stage computed while writing (``hashes``) is kept; the others are read here."""
     out: dict[str, dict] = {}
     for rel, stat in sorted(file_stats(folder).items()):
         if rel.startswith(MARKER_DIR + "/") or (before.get(rel) == stat and not matches(rel, declared)):
             continue
-        digest = (hashes or {}).get(rel) or sha256_file(Path(folder) / rel)
-        out[rel] = {"bytes": stat[0], "sha256": digest}
+        out[rel] = output_entry(Path(folder) / rel, (hashes or {}).get(rel))
     return out
 
 
+def output_entry(path: Path, sha256: str | None = None) -> dict:
+    """How a marker records one output: its size and sha256, and the modification time (ns) and
+    inode the file had when it was hashed. An up-to-date check trusts the sha256 while those
+    three are unchanged (:func:`local_sha256`), so a no-op re-run reads no file; any write moves
+    the modification time, and a file put in its place has another inode. The stat is taken
+    before the hash: a write during hashing shows as a changed time, never as a trusted hash."""
+    stat = path.stat()
+    return {"bytes": stat.st_size, "sha256": sha256 or sha256_file(path),
+            "mtime_ns": stat.st_mtime_ns, "inode": stat.st_ino}
+
+
 def damaged_outputs(marker: dict, size_of: Callable[[str], int | None],
-                    sha_of: Callable[[str], str | None] | None = None) -> dict[str, str]:
+                    sha_of: Callable[[str, dict], str | None] | None = None) -> dict[str, str]:
     """The recorded outputs of ``marker`` that are missing or changed: rel -> what is wrong.
-    Sizes always; with ``sha_of``, the content of each file whose size still matches."""
+    Sizes always; with ``sha_of(rel, recorded)``, the content of each file whose size still
+    matches."""
     problems = {}
     for rel, info in marker.get("outputs", {}).items():
         size = size_of(rel)
@@ -136,40 +147,59 @@ def damaged_outputs(marker: dict, size_of: Callable[[str], int | None],
             problems[rel] = f"{rel} is missing"
         elif size != info["bytes"]:
             problems[rel] = f"{rel} is {size} bytes, {info['bytes']} when written"
-        elif sha_of is not None and info.get("sha256") and sha_of(rel) != info["sha256"]:
+        elif sha_of is not None and info.get("sha256") and sha_of(rel, info) != info["sha256"]:
             problems[rel] = f"{rel} has changed since it was written (sha256 differs, same size)"
     return problems
 
 
 def local_size(folder: Path) -> Callable[[str], int | None]:
+    """``size_of(rel)`` under ``folder`` (None: not there). Paths are joined as strings: an
+    up-to-date check stats every output of every scene, and building a Path per file cost more
+    than the stat itself."""
+    base = os.fspath(folder)
+
     def size_of(rel: str) -> int | None:
         try:
-            return (Path(folder) / rel).stat().st_size
+            return os.stat(os.path.join(base, rel)).st_size
         except (FileNotFoundError, NotADirectoryError):
             return None
     return size_of
 
 
-def local_sha256(folder: Path) -> Callable[[str], str | None]:
-    def sha_of(rel: str) -> str | None:
+def local_sha256(folder: Path, *, trust_stat: bool = True) -> Callable[[str, dict], str | None]:
+    """``sha_of(rel, recorded)``: the sha256 of an output as it is now (None: not a file).
+
+    With ``trust_stat`` a file whose size, modification time and inode are those ``recorded``
+    (:func:`output_entry`) keeps its recorded sha256 without being read: a no-op check of a
+    paper-size scene's clips then costs a stat per file instead of reading ~0.3 GB. Without it
+    (``--verify-outputs``) every file is read. A marker written before the stat was recorded
+    has its files read."""
+    def sha_of(rel: str, recorded: dict) -> str | None:
+        path = Path(folder) / rel
         try:
-            return sha256_file(Path(folder) / rel)
+            stat = path.stat()
+            if trust_stat and (stat.st_size, stat.st_mtime_ns, stat.st_ino) == (
+                    recorded.get("bytes"), recorded.get("mtime_ns"), recorded.get("inode")):
+                return recorded.get("sha256")
+            return sha256_file(path)
         except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
             return None
     return sha_of
 
 
 def hashes_checked(config: ResolvedConfig, stage: str, verify_outputs: bool = False) -> bool:
-    """Whether deciding that ``stage`` is up to date re-reads its outputs' sha256, not only
+    """Whether deciding that ``stage`` is up to date checks its outputs' sha256, not only
     their sizes: always for the stages a build stage publishes from (the clips, so that a
-    same-size damage never reaches a manifest), for every stage with ``verify_outputs``."""
+    same-size damage never reaches a manifest), for every stage with ``verify_outputs``. The
+    check reads a file only when its stat differs from the marker's (:func:`local_sha256`);
+    ``verify_outputs`` reads every one."""
     specs = config.registry().specs
     return verify_outputs or any(stage in s.needs for s in specs.values() if s.scope == "build")
 
 
 def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
                  size_of: Callable[[str], int | None], missing_declared: Callable[[], list[str]],
-                 sha_of: Callable[[str], str | None] | None = None) -> str:
+                 sha_of: Callable[[str, dict], str | None] | None = None) -> str:
     """Why a stage is not up to date ('' when it is): see the module doc."""
     if marker is None:
         return "not run yet"
@@ -202,7 +232,7 @@ def why_stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Pat
 def _stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path, marker: dict | None,
            fp: str, upstream: dict[str, dict], size_of: Callable[[str], int | None],
            exists: Callable[[str], bool] | None,
-           sha_of: Callable[[str], str | None] | None = None) -> str:
+           sha_of: Callable[[str, dict], str | None] | None = None) -> str:
     specs = config.registry().specs
     reason = stale_reason(marker, fp, upstream, size_of,
                           lambda: outputs_present(scene_dir, specs[stage], config.params[stage], exists),
@@ -238,7 +268,9 @@ def release_outputs(config: ResolvedConfig, stage: str, scene_dir: Path,
         if any((m or {}).get("upstream_runs", {}).get(need) != marker.get("run")
                for m in users.values()):
             continue  # a stage needing them has not used this run's outputs yet
-        files = {rel: info for rel, info in marker["outputs"].items() if matches(rel, patterns)}
+        # what the files held; their stat goes with them (a file made again has another)
+        files = {rel: {k: info[k] for k in ("bytes", "sha256") if k in info}
+                 for rel, info in marker["outputs"].items() if matches(rel, patterns)}
         if not files:
             continue
         before = dict(marker.get("dropped", {}).get("files", {}))
@@ -269,6 +301,14 @@ def remove_files(folder: Path, rels: list[str]) -> None:
         if parent != folder and folder in parent.parents:
             with contextlib.suppress(OSError):  # not empty: other files still live there
                 parent.rmdir()
+
+
+def peak_rss_mb() -> float:
+    """:func:`paradrive.metrics.peak_rss_mb`, imported when a stage ends: that module brings torch,
+    which ``paradrive status`` and ``plan``, importing the runner, would otherwise wait seconds for."""
+    from paradrive.metrics import peak_rss_mb as peak
+
+    return peak()
 
 
 def _remove_if_empty(scene_dir: Path, made: bool) -> None:
@@ -441,7 +481,8 @@ def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: st
     mirror = root.mirror(scene_id)
     if mirror is None:
         return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, on_progress,
-                                hashes_checked(config, stage, verify_outputs))
+                                hashes_checked(config, stage, verify_outputs),
+                                trust_stat=not verify_outputs)
     try:
         mirror.pull_log()
         mirror.sync([f"{MARKER_DIR}/*.json"])  # the remote markers are the truth
@@ -461,7 +502,8 @@ def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: st
 
 def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str,
                      root: DataRoot, mirror: SceneMirror | None, force: bool,
-                     on_progress: ProgressSink | None, check_hashes: bool) -> StageResult:
+                     on_progress: ProgressSink | None, check_hashes: bool, *,
+                     trust_stat: bool = True) -> StageResult:
     data_dir = root.local
     spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
@@ -474,9 +516,10 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             marker = read_marker(scene_dir, stage)
             size_of = (lambda rel: mirror.listing.get(rel, {}).get("size")) if mirror \
                 else local_size(scene_dir)
+            sha_of = local_sha256(scene_dir, trust_stat=trust_stat) if check_hashes else None
             reason = "--force" if force else _stale(
                 config, stage, scene_uri, scene_dir, marker, fp, upstream, size_of,
-                mirror.exists if mirror else None, local_sha256(scene_dir) if check_hashes else None)
+                mirror.exists if mirror else None, sha_of)
             if not reason:
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
                 release_outputs(config, stage, scene_dir, mirror, log)
@@ -539,6 +582,13 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
                                peak_rss_mb=peak_rss_mb())
         except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
+            extra = missing_extra(exc) if isinstance(exc, ModuleNotFoundError) else None
+            if extra is not None:  # an optional package this scene needs (pycolmap for video:)
+                message = f"scene {scene_id}: {stage}: {extra}"
+                log.error("%s: failed: %s", stage, message)
+                _remove_if_empty(scene_dir, made)
+                return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
+                                   peak_rss_mb=peak_rss_mb())
             log.error("%s: crashed:\n%s", stage, traceback.format_exc())
             _remove_if_empty(scene_dir, made)
             return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,

@@ -141,6 +141,9 @@ class StageSpec(BaseModel):
     # retention: a boolean parameter -> the outputs (globs) it keeps; when false they are deleted
     # once every stage that needs this one has used them (paradrive.pipeline.runner)
     retention: dict[str, list[str]] = {}
+    # a parameter (default null) that switches the stage on: a build naming no --stages runs it
+    # only when the parameter is set, and a build naming it needs the parameter set
+    enabled_by: str | None = None
     file: str = ""
 
     @field_validator("entry")
@@ -156,7 +159,16 @@ class StageSpec(BaseModel):
             if not isinstance(self.params.get(key, Param(doc="-")).default, bool):
                 raise ValueError(f"retention names '{key}', which must be a parameter with a "
                                  f"boolean default (true keeps the files)")
+        if self.enabled_by is not None and (self.enabled_by not in self.params
+                                            or self.params[self.enabled_by].default is not None):
+            raise ValueError(f"enabled_by names '{self.enabled_by}', which must be a parameter "
+                             f"with a null default (setting it switches the stage on)")
         return self
+
+    def enabled(self, params: dict[str, Any]) -> bool:
+        """Whether a build that names no stages runs this one (always, unless ``enabled_by``
+        names a parameter that is still null)."""
+        return self.enabled_by is None or params.get(self.enabled_by) is not None
 
     def defaults(self) -> dict[str, Any]:
         return {k: p.default for k, p in self.params.items()}
@@ -405,6 +417,10 @@ class StageRegistry:
                               stages_dir=str(self.dir))
 
 
+_REGISTRIES: dict[tuple, StageRegistry] = {}
+_LAST_REGISTRY: list[tuple[ResolvedConfig, StageRegistry]] = []
+
+
 class ResolvedConfig(BaseModel):
     """The parameters every stage runs with; picklable, so executors can ship it to workers."""
 
@@ -414,15 +430,44 @@ class ResolvedConfig(BaseModel):
     stages_dir: str
 
     def registry(self) -> StageRegistry:
-        return StageRegistry(self.stages_dir)
+        """The stage definitions of ``stages_dir``, read once. Reading and validating the stage
+        files takes tens of ms and deciding one (scene, stage) needs them several times: at 1,600
+        scenes that alone made a no-op re-run take many minutes. The config last asked about is
+        answered at once; another (a Ray worker's copy of it) by the folder and each stage file's
+        size and modification time, so an edited stage file is read again."""
+        if _LAST_REGISTRY and _LAST_REGISTRY[0][0] is self:
+            return _LAST_REGISTRY[0][1]
+        folder = Path(self.stages_dir)
+        key = (str(folder), tuple((p.name, st.st_size, st.st_mtime_ns)
+                                  for p in sorted(folder.glob("*.yaml")) for st in [p.stat()]))
+        if key not in _REGISTRIES:
+            if len(_REGISTRIES) >= 8:  # tests resolve many stage folders in one process
+                _REGISTRIES.clear()
+            _REGISTRIES[key] = StageRegistry(folder)
+        _LAST_REGISTRY[:] = [(self, _REGISTRIES[key])]
+        return _REGISTRIES[key]
+
+    def selected(self, stages: list[str] | None = None) -> list[str]:
+        """The stages a build runs, in order: ``stages``, or every stage switched on
+        (:meth:`StageSpec.enabled`) when none are named."""
+        registry = self.registry()
+        names = registry.order(stages)
+        return names if stages is not None else [s for s in names if registry.specs[s].enabled(self.params[s])]
 
     def check(self, stages: list[str] | None = None) -> None:
         """Every parameter of ``stages`` (default: all) through its stage's typed ``Params``, so
         a value the declared rules let through but the stage cannot take fails before any stage
-        runs, naming where the value came from."""
+        runs, naming where the value came from. A stage named in ``stages`` whose ``enabled_by``
+        parameter is null is refused."""
         registry = self.registry()
         selected = registry.order(stages)
         for stage in selected:
+            spec = registry.specs[stage]
+            if stages is not None and not spec.enabled(self.params[stage]):
+                param = spec.params[spec.enabled_by or ""]
+                raise ConfigError(f"stage {stage} needs {stage}.{spec.enabled_by} ({param.doc}); "
+                                  f"pass --set {stage}.{spec.enabled_by}=... or leave {stage} out "
+                                  f"of --stages")
             self._check_among(registry.specs[stage], selected)
             try:
                 typed_params(registry.specs[stage], self.params[stage])

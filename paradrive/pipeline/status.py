@@ -44,7 +44,7 @@ def scene_locks(ledger: Ledger, data: str | None = None, storage_options: Sequen
     location = data or ledger.meta().get("data_root")
     if not location:
         return []
-    ids = {r["scene_id"] for r in ledger.tasks() if not r["scene_id"].startswith("build:")}
+    ids = ledger.scene_ids()
     held = held_locks(data_root(location, list(storage_options), None, False))
     return [{"scene_id": sid, "build": h.build, "host": h.host, "pid": h.pid,
              "since": h.started_at, "holder": h.describe()}

@@ -35,6 +35,7 @@ READERS = {
     "waymo": "paradrive.ingest.waymo",
     "nuscenes": "paradrive.ingest.nuscenes",
     "drivestudio": "paradrive.ingest.drivestudio",
+    "video": "paradrive.ingest.video",
 }
 # What ingest owns inside a scene folder; later stages' outputs are left alone.
 INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
@@ -94,8 +95,11 @@ def ingest(scene_uri: str, layout: SceneLayout | Path, params: Params) -> Ingest
             _replace(tmp / name, scene_dir / name)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return IngestSummary(frames=len(scene.frames), cameras=sorted(scene.cameras),
-                         dataset=scene.dataset)
+    summary = IngestSummary(frames=len(scene.frames), cameras=sorted(scene.cameras),
+                            dataset=scene.dataset)
+    if "video" in scene.extra:  # what SfM found: intrinsics (estimated or given), scale, frames
+        summary["video"] = scene.extra["video"]
+    return summary
 
 
 def _replace(src: Path, target: Path) -> None:

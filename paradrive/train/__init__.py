@@ -9,13 +9,24 @@ Credit: the two-stage model and its schedule follow ReCamDriving (Li et al.); th
 of ``pose_format="recammaster"`` follows ReCamMaster (Bai et al.); the latent shapes follow Wan2.1.
 """
 
-from paradrive.train.autoencoder import PatchAutoencoder, VideoEncoder, make_autoencoder
-from paradrive.train.flow import euler_sample, flow_matching_loss, interpolate, sample_times
-from paradrive.train.model import CameraEncoder, ModelConfig, VideoDiT, is_stage2_parameter
-from paradrive.train.trainer import Trainer, load_config, load_for_sampling, sample_video, write_video
+from __future__ import annotations
 
-__all__ = [
-    "CameraEncoder", "ModelConfig", "PatchAutoencoder", "Trainer", "VideoDiT", "VideoEncoder",
-    "euler_sample", "flow_matching_loss", "interpolate", "is_stage2_parameter", "load_config",
-    "load_for_sampling", "make_autoencoder", "sample_times", "sample_video", "write_video",
-]
+import importlib
+from typing import Any
+
+# Imported on first use: ``paradrive train`` registers its command from ``paradrive.train.cli``,
+# and every other command would otherwise pay for importing torch at start-up.
+_EXPORTS = {
+    "paradrive.train.autoencoder": ("PatchAutoencoder", "VideoEncoder", "make_autoencoder"),
+    "paradrive.train.flow": ("euler_sample", "flow_matching_loss", "interpolate", "sample_times"),
+    "paradrive.train.model": ("CameraEncoder", "ModelConfig", "VideoDiT", "is_stage2_parameter"),
+    "paradrive.train.trainer": ("Trainer", "load_config", "load_for_sampling", "sample_video", "write_video"),
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(_WHERE[name]), name)

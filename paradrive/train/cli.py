@@ -32,15 +32,20 @@ def train(
     sample: Path | None = typer.Option(None, "--sample", help="After training, generate the target video of one pair and write it here (mp4)."),
     pair: str = typer.Option("0", "--pair", help="Pair to sample: its index in the build or its pair_id."),
     sample_steps: int | None = typer.Option(None, "--sample-steps", min=1, help="Euler steps of the sampler (default: sample.steps)."),
+    model: str = typer.Option("reference", "--model", help="reference (default): the small stand-in model; wan: ReCamDriving on Wan2.1 (configs wan-<name> in stages/train/)."),
+    transformer: Path | None = typer.Option(None, "--transformer", help="--model wan: the Wan2.1-T2V-1.3B diffusers folder (or its transformer/); sets model.transformer."),
+    vae: Path | None = typer.Option(None, "--vae", help="--model wan: the Wan2.1 VAE folder (or the whole diffusers folder), to encode a pixel build and decode samples; sets model.vae."),
+    text_encoder: Path | None = typer.Option(None, "--text-encoder", help="--model wan: the umT5 folder (or the whole diffusers folder) for the empty prompt's embedding; sets model.text_encoder."),
     sample_set: Path | None = typer.Option(None, "--sample-set", help="With --sample FOLDER: generate every row of this inference set (paradrive build --kind inference) into FOLDER/<pair_id>.mp4, as 'paradrive eval --build' scores them."),
 ) -> None:
     """Train the ReCamDriving-style model on a build's pairs (resumes a run left in --out)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from paradrive.train.trainer import Trainer, load_config, open_dataset, parse_set
+    from paradrive.train.trainer import parse_set
 
     try:
-        cfg = load_config(config, parse_set(set_))
+        folders = {"transformer": transformer, "vae": vae, "text_encoder": text_encoder}
+        cfg = _load_config(model, config, parse_set(set_), folders)
         if not build.is_dir():
             raise FileNotFoundError(f"--build {build}: no such build folder (run 'paradrive build' first)")
         run_dir = out_dir if out_dir is not None else Path("runs") / build.resolve().name
@@ -50,8 +55,8 @@ def train(
             if not init.exists():
                 raise FileNotFoundError(f"stage 2 needs stage-1 weights: none at {init}; run "
                                         f"'paradrive train --stage 1' with the same --out, or pass --init")
-        dataset = open_dataset(build, cfg)
-        trainer = Trainer(cfg, stage, stage_dir, dataset, init=init)
+        dataset = _open_dataset(model, build, cfg)
+        trainer = _trainer_class(model)(cfg, stage, stage_dir, dataset, init=init)
     except (ValueError, FileNotFoundError, TypeError, ConfigError) as exc:
         _fail(str(exc))
 
@@ -72,10 +77,11 @@ def train(
 
     if sample is not None:
         from paradrive.train.trainer import sample_video, torch_threads, write_video
+        from paradrive.wan.train import WanTrainer
 
         try:
             if sample_set is not None:
-                items = open_dataset(sample_set, cfg)
+                items = _open_dataset(model, sample_set, cfg)
                 # a pair id names the file; one from a shared build must stay inside the folder
                 picks = [(functools.partial(items.__getitem__, i),
                           path_inside(sample, f"{pid}.mp4", f"{sample_set}: pair {pid}"))
@@ -90,13 +96,55 @@ def train(
         for load, path in picks:
             item = load()
             with torch_threads(cfg["threads"]):
-                video = sample_video(trainer.model, trainer.encoder, item,
-                                     sample_steps or int(s["steps"]), seed=int(s["seed"]),
-                                     shift=float(cfg["flow"]["shift"]))
+                if isinstance(trainer, WanTrainer):   # decodes through the VAE
+                    video = trainer.sample(item, sample_steps or int(s["steps"]), seed=int(s["seed"]))
+                else:
+                    video = sample_video(trainer.model, trainer.encoder, item,
+                                         sample_steps or int(s["steps"]), seed=int(s["seed"]),
+                                         shift=float(cfg["flow"]["shift"]))
             path.parent.mkdir(parents=True, exist_ok=True)
             write_video(path, video, float(s["fps"]))
             typer.echo(f"sample of {item['pair_id']} ({video.shape[0]} frames, offset "
                        f"{item['offset_m']} m) -> {path}")
+
+
+def _load_config(model: str, config: str | None, overrides: dict, folders: dict[str, Path | None]) -> dict:
+    """The training config of ``--model``: ``wan`` reads ``stages/train/wan-<name>.yaml`` and takes
+    the weights folders given on the command line; ``reference`` refuses a wan config."""
+    from paradrive.train.trainer import load_config
+
+    if model == "wan":
+        from paradrive.wan.train import load_wan_config
+
+        overrides.setdefault("model", {}).update({k: str(v) for k, v in folders.items() if v is not None})
+        return load_wan_config(config, overrides)
+    if model != "reference":
+        raise ValueError(f"--model {model}: use reference or wan")
+    cfg = load_config(config, overrides)
+    if "autoencoder" not in cfg:   # a wan-* config names Wan's folders, not a patch codec
+        raise ValueError(f"--config {config} is a config of --model wan; add --model wan")
+    return cfg
+
+
+def _open_dataset(model: str, build: Path, cfg: dict):
+    """The build's pairs as ``--model``'s trainer reads them."""
+    if model == "wan":
+        from paradrive.wan.train import open_wan_dataset
+
+        return open_wan_dataset(build, cfg)
+    from paradrive.train.trainer import open_dataset
+
+    return open_dataset(build, cfg)
+
+
+def _trainer_class(model: str) -> type:
+    from paradrive.train.trainer import Trainer
+
+    if model == "wan":
+        from paradrive.wan.train import WanTrainer
+
+        return WanTrainer
+    return Trainer
 
 
 def _find_pair(dataset, pair: str) -> dict:

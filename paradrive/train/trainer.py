@@ -208,8 +208,13 @@ class Trainer:
     the run resumes from it.
     """
 
-    def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
-                 init: str | Path | None = None):
+    # what a checkpoint says it is, and the settings a resumed run must share with it
+    checkpoint_format = CHECKPOINT_FORMAT
+    resume_keys: tuple[str, ...] = ("model", "autoencoder", "seed")
+
+    def _start(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset) -> int:
+        """What every trainer holds before its model: the config, stage, run folder, data and
+        device; torch's generator seeded. Returns the seed."""
         if stage not in (1, 2):
             raise ValueError(f"stage must be 1 or 2, got {stage}")
         self.config = copy.deepcopy(dict(config))
@@ -219,6 +224,11 @@ class Trainer:
         self.device = resolve_device(self.config["device"])
         seed = int(self.config["seed"])
         torch.manual_seed(seed)
+        return seed
+
+    def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
+                 init: str | Path | None = None):
+        seed = self._start(config, stage, out_dir, dataset)
         self.encoder = make_autoencoder(self.config["autoencoder"])
         if isinstance(self.encoder, torch.nn.Module):
             self.encoder.to(self.device).eval()
@@ -269,10 +279,11 @@ class Trainer:
 
     def _load(self, path: Path) -> None:
         ckpt = load_tensors(path, map_location=self.device)
-        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT or ckpt.get("stage") != self.stage:
+        if not isinstance(ckpt, dict) or ckpt.get("format") != self.checkpoint_format \
+                or ckpt.get("stage") != self.stage:
             raise ValueError(f"{path}: not a stage-{self.stage} trainer checkpoint; use another --out "
                              f"or delete it to start over")
-        for key in ("model", "autoencoder", "seed"):
+        for key in self.resume_keys:
             if ckpt["config"][key] != self.config[key]:
                 raise ValueError(f"{path}: was trained with {key}={ckpt['config'][key]}, this run has "
                                  f"{self.config[key]}; resume with the same config or use another --out")
@@ -284,7 +295,7 @@ class Trainer:
         log.info("resumed %s at step %d", path, self.step)
 
     def state_dict(self) -> dict:
-        return {"format": CHECKPOINT_FORMAT, "stage": self.stage, "step": self.step, "epoch": self.epoch,
+        return {"format": self.checkpoint_format, "stage": self.stage, "step": self.step, "epoch": self.epoch,
                 "batch_in_epoch": self.batch_in_epoch, "config": self.config,
                 "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state()}

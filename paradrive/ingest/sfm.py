@@ -1,0 +1,430 @@
+"""Camera poses of a monocular image sequence by structure from motion (pycolmap), and their
+metric scale and up axis from the road plane.
+
+A video has no calibration and no LiDAR, so its poses come from the images alone:
+
+1. :func:`reconstruct`: SIFT features, *sequential* matching (a drive is a sequence, so each
+   frame is matched with its neighbours only, which is both faster and freer of repeated-texture
+   false matches than exhaustive matching) and incremental mapping, single-threaded with fixed
+   seeds so that one video always gives the same poses. Known intrinsics are held fixed: with
+   focal refinement on, forward motion leaves the focal length poorly constrained and bundle
+   adjustment drifts it far from the truth. Unknown ones are estimated as one shared
+   SIMPLE_RADIAL camera.
+2. :func:`fit_road_plane`: a RANSAC plane through the points seen below and ahead of the camera,
+   among roughly level planes. Its normal is the up axis, and the camera's height above the
+   lowest dense layer of points in the ego lane (in reconstruction units) against the known mount
+   height gives the metric scale. A similarity fit of camera centres cannot give either on a
+   straight road: the centres are collinear, which leaves the roll about the road and the up
+   axis free.
+3. :func:`metric_rig`: the poses in the builder's conventions (docs/conventions.md): metres, a
+   world whose origin is the first ego pose with z up, and an ego frame level with the road
+   (x forward, y left, z up) under the camera, so a lateral shift moves along the road surface.
+
+Nothing here knows a scene folder; errors are :class:`SfmError` and the reader names the scene.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from paradrive import geometry
+
+__all__ = ["SfmError", "Intrinsics", "Reconstruction", "RoadPlane", "MetricRig", "reconstruct",
+           "registered_runs", "fit_road_plane", "metric_rig", "path_length", "format_runs"]
+
+
+class SfmError(ValueError):
+    """The images do not give a reconstruction; ``registered`` holds the frames that did register."""
+
+    def __init__(self, message: str, registered: list[int] | None = None):
+        super().__init__(message)
+        self.registered = list(registered or [])
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """A pinhole camera in pixels (pixel centres at +0.5, as COLMAP and the builder use)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class Reconstruction:
+    """One SfM model of a sequence of ``n`` images, in the reconstruction's own frame and units.
+
+    c2w: (n, 4, 4) OpenCV camera-to-world, NaN for frames that did not register.
+    points / colors: (M, 3) float64 triangulated points and their uint8 colours; ``point_frame``:
+    the first frame that observes each point, ``point_views`` how many frames observe it.
+    intrinsics / distortion: the camera the model used (distortion as OpenCV's (k1, k2, p1, p2,
+    k3); zero where intrinsics were given). ``estimated``: whether the intrinsics were estimated.
+    """
+
+    c2w: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    point_frame: np.ndarray
+    point_views: np.ndarray
+    intrinsics: Intrinsics
+    distortion: tuple[float, float, float, float, float]
+    estimated: bool
+    seconds: float
+    models: int = 1
+
+    @property
+    def registered(self) -> np.ndarray:
+        return np.isfinite(self.c2w[:, 0, 0])
+
+
+def _options(known: bool, seed: int):
+    """pycolmap's options for a deterministic, single-threaded run of the whole pipeline."""
+    import pycolmap
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = 1
+    extraction.use_gpu = False
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1
+    matching.use_gpu = False
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.num_threads = 1
+    pairing.overlap = 10
+    pairing.quadratic_overlap = True
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = 1
+    # bundle adjustment goes multi-threaded above this many residuals, whatever num_threads says
+    mapping.ba_min_num_residuals_for_cpu_multi_threading = 2**31 - 1
+    mapping.random_seed = seed
+    mapping.mapper.num_threads = 1
+    mapping.mapper.random_seed = seed
+    mapping.triangulation.random_seed = seed
+    mapping.extract_colors = True
+    # a forward-moving camera: allow a smaller initial triangulation angle than COLMAP's 16 deg
+    mapping.mapper.init_min_tri_angle = 4.0
+    mapping.mapper.init_max_forward_motion = 0.999
+    if known:
+        mapping.ba_refine_focal_length = False
+        mapping.ba_refine_principal_point = False
+        mapping.ba_refine_extra_params = False
+        mapping.mapper.abs_pose_refine_focal_length = False
+        mapping.mapper.abs_pose_refine_extra_params = False
+    return extraction, matching, pairing, mapping
+
+
+def reconstruct(image_dir: Path, names: list[str], work_dir: Path, *,
+                intrinsics: Intrinsics | None = None, seed: int = 0) -> Reconstruction:
+    """Poses of the images ``names`` (in time order) under ``image_dir``; scratch files in
+    ``work_dir``. The largest model wins where the mapper splits the sequence into several.
+
+    Raises SfmError when no model forms (a static camera, too few or featureless frames).
+    """
+    import pycolmap
+
+    start = time.perf_counter()
+    pycolmap.logging.minloglevel = 2  # errors only: COLMAP logs every image at INFO
+    pycolmap.set_random_seed(seed)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    if intrinsics is not None:
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = ",".join(
+            repr(float(v)) for v in (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
+    else:
+        reader.camera_model = "SIMPLE_RADIAL"
+    extraction, matching, pairing, mapping = _options(intrinsics is not None, seed)
+    pycolmap.extract_features(database, image_dir, image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                              device=pycolmap.Device.cpu)
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", mapping)
+    if not models:
+        raise SfmError("structure from motion found no initial pair of frames with enough "
+                       "parallax: the camera does not move, or the frames have too few features")
+    model = max(models.values(), key=lambda m: (m.num_reg_images(), -min(m.images)))
+    rec = _read_model(model, names, intrinsics)
+    rec.seconds = time.perf_counter() - start
+    rec.models = len(models)
+    return rec
+
+
+def _read_model(model, names: list[str], given: Intrinsics | None) -> Reconstruction:
+    """A pycolmap model as arrays indexed by frame (the position of an image's name in ``names``)."""
+    frame_of = {name: i for i, name in enumerate(names)}
+    c2w = np.full((len(names), 4, 4), np.nan)
+    image_frame = {}
+    for image_id, image in model.images.items():
+        if not image.has_pose:
+            continue
+        i = frame_of[image.name]
+        image_frame[image_id] = i
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        c2w[i] = geometry.invert(w2c)
+    ids = sorted(model.points3D)
+    points = np.array([model.points3D[p].xyz for p in ids], dtype=np.float64).reshape(-1, 3)
+    colors = np.array([model.points3D[p].color for p in ids], dtype=np.uint8).reshape(-1, 3)
+    first = np.array([min(image_frame[e.image_id] for e in model.points3D[p].track.elements)
+                      for p in ids], dtype=np.int64)
+    views = np.array([model.points3D[p].track.length() for p in ids], dtype=np.int64)
+    camera = next(iter(model.cameras.values()))
+    intrinsics, distortion = _camera(camera)
+    return Reconstruction(c2w=c2w, points=points, colors=colors, point_frame=first, point_views=views,
+                          intrinsics=given or intrinsics, distortion=distortion,
+                          estimated=given is None, seconds=0.0)
+
+
+def _camera(camera) -> tuple[Intrinsics, tuple[float, float, float, float, float]]:
+    """Pinhole intrinsics and OpenCV distortion of a PINHOLE, SIMPLE_PINHOLE or SIMPLE_RADIAL camera
+    (COLMAP's radial term k multiplies r^2 of normalised coordinates, as OpenCV's k1 does)."""
+    p = [float(v) for v in camera.params]
+    name = camera.model_name
+    if name == "PINHOLE":
+        return Intrinsics(p[0], p[1], p[2], p[3]), (0.0, 0.0, 0.0, 0.0, 0.0)
+    if name == "SIMPLE_PINHOLE":
+        return Intrinsics(p[0], p[0], p[1], p[2]), (0.0, 0.0, 0.0, 0.0, 0.0)
+    if name == "SIMPLE_RADIAL":
+        return Intrinsics(p[0], p[0], p[1], p[2]), (p[3], 0.0, 0.0, 0.0, 0.0)
+    raise SfmError(f"camera model {name} is not one the video reader asks for")
+
+
+def registered_runs(registered: np.ndarray) -> list[tuple[int, int]]:
+    """Contiguous runs of True as inclusive (first, last) frame ranges, in order."""
+    runs: list[tuple[int, int]] = []
+    for i, ok in enumerate(np.asarray(registered, dtype=bool)):
+        if ok and runs and runs[-1][1] == i - 1:
+            runs[-1] = (runs[-1][0], i)
+        elif ok:
+            runs.append((i, i))
+    return runs
+
+
+def format_runs(runs: list[tuple[int, int]]) -> str:
+    """``0-41, 45-90`` (or ``none``) for messages."""
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs) or "none"
+
+
+def path_length(c2w: np.ndarray) -> float:
+    """Length of the polyline through the camera centres (units of the poses)."""
+    centres = np.asarray(c2w)[:, :3, 3]
+    return float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
+
+
+# --------------------------------------------------------------------------- the road plane
+
+@dataclass(frozen=True)
+class RoadPlane:
+    """The plane ``normal . x + offset = 0`` (unit normal towards the cameras), the camera's
+    height above it (model units), and the points that decided the height out of the candidates
+    below the cameras."""
+
+    normal: np.ndarray
+    offset: float
+    height: float
+    inliers: int
+    candidates: int
+
+
+def _camera_local(rec: Reconstruction) -> np.ndarray:
+    """Each point in the OpenCV frame of the first camera that sees it (M, 3)."""
+    pose = rec.c2w[rec.point_frame]
+    return np.einsum("nji,nj->ni", pose[:, :3, :3], rec.points - pose[:, :3, 3])
+
+
+def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000,
+                   tolerance: float = 0.05, max_tilt_deg: float = 20.0, lane: float = 1.4,
+                   min_views: int = 3, scatter: float = 0.08, min_share: float = 0.2,
+                   min_points: int = 12) -> RoadPlane:
+    """The road under the cameras: its normal, and the camera's height above it.
+
+    The normal: RANSAC over the points below and ahead of their camera, among planes within
+    ``max_tilt_deg`` of the cameras' mean up axis (a dashcam is mounted roughly level, and this
+    keeps facades out), inliers within ``tolerance`` of the points' median depth below the camera,
+    refined by least squares.
+
+    The height, from the points of the ego lane only (seen in ``min_views`` frames or more, as
+    short tracks triangulate poorly):
+
+    - Each point's depth is taken below the camera that later passes over it, not the one that
+      first saw it some ten heights back: a 0.5 degree pitch error of the normal then moves the
+      depth by ``lateral * tan(0.5 deg)``, about 1 %, instead of ``10 * tan(0.5 deg)``, about 9 %.
+      Points beyond either end of the path have no camera over them and are left out.
+    - Kerbs, sidewalks and parked cars stand beside the lane, and on a street with plain asphalt
+      they outnumber the road's own features (lane markings) and sit 0.1-0.2 m above it; keeping
+      points within ``lane`` heights of the camera sideways (about +-2.2 m for a car) keeps them
+      out while keeping the lane's own markings.
+    - What is left in the lane above the road (a vehicle ahead) is a separate, higher layer: the
+      depths' kernel density splits into layers at its minima, and the road is the lowest layer
+      (largest depth) that holds ``min_share`` of the points. The kernel is ``scatter`` heights
+      wide because a forward-moving camera triangulates ground points with several per cent of
+      scatter along their viewing rays, which would otherwise split the road into spurious
+      layers above and below it. The height is the mean depth of that layer's points.
+
+    Raises SfmError when fewer than ``min_points`` points are left at any step: a camera that
+    sees no road.
+    """
+    local = _camera_local(rec)
+    below = (local[:, 2] > 0) & (local[:, 1] > 0)
+    if below.sum() < min_points:
+        raise SfmError(f"only {int(below.sum())} reconstructed points lie below and ahead of the "
+                       f"camera, {min_points} are needed to find the road")
+    pts = rec.points[below]
+    cams = rec.c2w[rec.point_frame[below]][:, :3, 3]
+    down = rec.c2w[rec.registered][:, :3, 1].mean(axis=0)
+    down /= np.linalg.norm(down)
+    normal, offset = _level_plane(pts, float(np.median((pts - cams) @ down)) * tolerance, down,
+                                  np.cos(np.deg2rad(max_tilt_deg)), seed, iterations, min_points)
+    if normal @ down > 0:  # point it up, towards the cameras
+        normal, offset = -normal, -offset
+    centres = rec.c2w[rec.registered][:, :3, 3]
+    rough = float(np.median(centres @ normal + offset))
+    depth, sideways = _depth_below_overhead_camera(pts, centres, normal)
+    near = ((sideways < lane * rough) & (rec.point_views[below] >= min_views)
+            & (depth > 0.5 * rough))
+    if near.sum() < min_points:
+        raise SfmError(f"only {int(near.sum())} well-seen points lie on the road near the camera, "
+                       f"{min_points} are needed to measure its height")
+    layer = _lowest_layer(depth[near], scatter * rough, min_share)
+    if layer.sum() < min_points:
+        raise SfmError(f"only {int(layer.sum())} points lie on the lowest surface under the "
+                       f"camera, {min_points} are needed to measure its height")
+    return RoadPlane(normal=normal, offset=float(offset), height=float(depth[near][layer].mean()),
+                     inliers=int(layer.sum()), candidates=int(below.sum()))
+
+
+def _depth_below_overhead_camera(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
+                                 chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: its depth along ``up`` below the camera centre nearest to it across ``up`` (the
+    camera over it), and that horizontal distance; infinite distance for points whose nearest
+    camera is the first or the last (they lie beyond the path's ends). Chunked: (points x
+    cameras) distances of a long video would not fit in memory at once."""
+    depth = np.empty(len(points))
+    sideways = np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        d = centres[None] - points[start:start + chunk, None]
+        along = d @ up
+        across = np.linalg.norm(d - along[..., None] * up, axis=2)
+        j = across.argmin(axis=1)
+        rows = np.arange(len(j))
+        depth[start:start + chunk] = along[rows, j]
+        ends = (j == 0) | (j == len(centres) - 1)
+        sideways[start:start + chunk] = np.where(ends, np.inf, across[rows, j])
+    return depth, sideways
+
+
+def _lowest_layer(depth: np.ndarray, bandwidth: float, min_share: float) -> np.ndarray:
+    """Mask of the points in the lowest layer (largest depth) of ``depth``'s Gaussian kernel
+    density that holds ``min_share`` of them (the most populous where none does: scattered
+    points with no dominant surface still give the likeliest one); layers are split at the
+    density's local minima."""
+    grid = np.linspace(depth.min() - bandwidth, depth.max() + bandwidth, 512)
+    density = np.zeros(len(grid))
+    for start in range(0, len(depth), 4096):
+        density += np.exp(-0.5 * ((grid[:, None] - depth[None, start:start + 4096])
+                                  / bandwidth) ** 2).sum(axis=1)
+    inner = np.flatnonzero((density[1:-1] < density[:-2]) & (density[1:-1] <= density[2:])) + 1
+    edges = np.r_[-np.inf, grid[inner], np.inf]
+    layers = [(depth > lo) & (depth <= hi) for hi, lo in zip(edges[::-1][:-1], edges[::-1][1:])]
+    dense = [layer for layer in layers if layer.mean() >= min_share]
+    return dense[0] if dense else max(layers, key=lambda layer: int(layer.sum()))
+
+
+def _level_plane(pts: np.ndarray, threshold: float, down: np.ndarray, min_cos: float, seed: int,
+                 iterations: int, min_points: int) -> tuple[np.ndarray, float]:
+    """RANSAC plane with the most inliers among those whose normal is within acos(min_cos) of
+    ``down``, refined by least squares on its inliers."""
+    rng = np.random.default_rng(seed)
+    best = np.zeros(len(pts), dtype=bool)
+    for _ in range(iterations):
+        a, b, c = pts[rng.choice(len(pts), 3, replace=False)]
+        normal = np.cross(b - a, c - a)
+        norm = np.linalg.norm(normal)
+        if norm < 1e-12 or abs(normal @ down) < min_cos * norm:
+            continue
+        inliers = np.abs((pts - a) @ (normal / norm)) < abs(threshold)
+        if inliers.sum() > best.sum():
+            best = inliers
+    if best.sum() < min_points:
+        raise SfmError(f"no road plane: at most {int(best.sum())} of {len(pts)} points below the "
+                       f"camera lie on one level plane, {min_points} are needed")
+    return _plane_through(pts[best])
+
+
+def _plane_through(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane (unit normal, offset) through ``points``."""
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre)
+    normal = vt[-1] / np.linalg.norm(vt[-1])
+    return normal, float(-normal @ centre)
+
+
+# --------------------------------------------------------------------------- metric poses
+
+@dataclass
+class MetricRig:
+    """Poses in the builder's conventions: ``c2w`` and ``ego2world`` (F, 4, 4) in metres, the
+    world at the first ego pose with z up; ``cam2ego`` the camera's fixed mount; ``scale``
+    metres per reconstruction unit; ``world_from_model`` the similarity that maps reconstruction
+    points into the world (points = (R s x + t))."""
+
+    c2w: np.ndarray
+    ego2world: np.ndarray
+    cam2ego: np.ndarray
+    scale: float
+    world_from_model: np.ndarray = field(repr=False)
+
+    def points(self, model_points: np.ndarray) -> np.ndarray:
+        return model_points @ self.world_from_model[:3, :3].T + self.world_from_model[:3, 3]
+
+
+def _level_frame(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Rotation whose columns are x forward (``forward`` made level), y left, z ``up``."""
+    x = forward - (forward @ up) * up
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(up, x), up], axis=1)
+
+
+def _mean_rotation(rotations: np.ndarray) -> np.ndarray:
+    """The rotation nearest the element-wise mean of ``rotations`` (chordal L2 mean)."""
+    u, _, vt = np.linalg.svd(rotations.mean(axis=0))
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return r
+
+
+def metric_rig(c2w_model: np.ndarray, plane: RoadPlane, scale: float) -> MetricRig:
+    """Metric poses of registered cameras ``c2w_model`` (F, 4, 4) over ``plane``.
+
+    The camera's mount on the vehicle is fixed: ``cam2ego`` is the mean over frames of the
+    camera's attitude relative to a level frame whose x is its forward direction along the road,
+    placed on the road under the camera. Each frame's ego pose is then its camera pose times the
+    inverse mount, so ``c2w = ego2world . cam2ego`` holds exactly and the ego's y axis (the
+    lateral shift) is level with the road wherever the camera's attitude on the vehicle is.
+    """
+    up = plane.normal
+    level = np.stack([_level_frame(up, c[:3, 2]) for c in c2w_model])
+    mount = _mean_rotation(np.einsum("fji,fjk->fik", level, c2w_model[:, :3, :3]))
+    cam2ego = geometry.make_pose(mount, [0.0, 0.0, plane.height * scale])
+    # model frame -> metric frame at the first ego pose: rotate, scale, re-anchor
+    ego0 = c2w_model[0] @ geometry.invert(geometry.make_pose(mount, [0.0, 0.0, plane.height]))
+    rot0 = ego0[:3, :3].T
+    world_from_model = np.eye(4)
+    world_from_model[:3, :3] = scale * rot0
+    world_from_model[:3, 3] = -scale * rot0 @ ego0[:3, 3]
+    c2w = np.repeat(np.eye(4)[None], len(c2w_model), axis=0)
+    c2w[:, :3, :3] = np.einsum("ij,fjk->fik", rot0, c2w_model[:, :3, :3])
+    c2w[:, :3, 3] = (c2w_model[:, :3, 3] - ego0[:3, 3]) @ (scale * rot0).T
+    ego2world = c2w @ geometry.invert(cam2ego)
+    return MetricRig(c2w=c2w, ego2world=ego2world, cam2ego=cam2ego, scale=float(scale),
+                     world_from_model=world_from_model)

@@ -1,0 +1,300 @@
+"""``paradrive train --model wan``: ReCamDriving's two stages on Wan2.1 (:mod:`paradrive.wan.recam`).
+
+:class:`WanTrainer` is the reference trainer (:class:`paradrive.train.trainer.Trainer`) with the
+Wan model in place of the compact DiT: the loop, the data order, the learning rate, the
+checkpoints (tensors and plain values only, loaded without pickle) and the exact resume are the
+reference's own; what differs is how a batch becomes the model's inputs and how the model is built.
+
+A batch comes in one of two forms, told apart by its keys:
+
+* latents (a build with cached latents, ``paradrive encode``): ``target_latents``,
+  ``source_latents``, ``condition_latents`` (B, 16, T', h, w), ``camera`` (B, T', 12) and
+  ``text_embedding`` (B, L, D), read as they are;
+* pixels (any build): ``target`` / ``source`` / ``condition`` frames, encoded here by the VAE
+  (frozen, no gradients), the camera taken from ``rel_pose`` at frames 0, 4, 8, ... (one per
+  latent frame) and the empty prompt's embedding computed once.
+
+The camera input (``model.camera``) is ``relative`` by default: ΔT, the target's pose relative to
+the source at the same frame, as the paper conditions on; ``recammaster`` is the target relative
+to the source's first frame, which carries the ego's own motion too (see
+docs/train-recamdriving.md).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, cast
+
+import torch
+
+from paradrive.data import PairDataset
+from paradrive.errors import ConfigError
+from paradrive.io import load_tensors
+from paradrive.train.flow import euler_sample, flow_matching_loss
+from paradrive.train.trainer import Trainer, collate, frames_on, load_config
+from paradrive.wan.latents import has_latents
+from paradrive.wan.recam import (ReCamDrivingWan, load_recammaster, load_stage1_weights, load_transformer,
+                                 make_tiny_transformer, trainable_parameters)
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "paradrive-train-wan/1"
+TINY = "tiny"
+TINY_TEXT_TOKENS = 8
+
+
+def load_wan_config(source: str | Path | None, overrides: Mapping[str, Any] | None = None) -> dict:
+    """A ``--model wan`` training config: a config name ``NAME`` means ``stages/train/wan-NAME.yaml``
+    (``smoke`` -> ``wan-smoke``, none -> ``wan-default``); a YAML path is read as it is."""
+    name = "default" if source is None else str(source)
+    if not Path(name).suffix and not Path(name).exists() and not name.startswith("wan-"):
+        name = f"wan-{name}"
+    return load_config(name, overrides)
+
+
+def latent_frame_indices(frames: int) -> list[int]:
+    """The video frame standing for each latent frame of a ``frames``-frame clip: 0, 4, 8, ...
+    (Wan's VAE keeps the first frame alone, then one latent frame per 4)."""
+    return list(range(0, frames, 4))[: 1 + (frames - 1) // 4]
+
+
+def relative_camera(rel_pose: torch.Tensor) -> torch.Tensor:
+    """ΔT per latent frame as the camera encoder reads it: rel_pose (B, F, 4, 4) -> (B, T', 12),
+    the top 3x4 rows of frames 0, 4, 8, ... flattened row-major, float32."""
+    index = torch.tensor(latent_frame_indices(rel_pose.shape[1]), dtype=torch.long, device=rel_pose.device)
+    return rel_pose[:, index, :3, :4].reshape(rel_pose.shape[0], -1, 12).float()
+
+
+def to_channels_first(frames: torch.Tensor) -> torch.Tensor:
+    """The adapter's (B, F, 3, H, W) frames -> the (B, 3, F, H, W) layout diffusers' video models
+    (and the Wan VAE) take."""
+    return frames.permute(0, 2, 1, 3, 4)
+
+
+def open_wan_dataset(build_dir: str | Path, config: Mapping[str, Any]) -> PairDataset:
+    """The build's pairs as the trainer reads them: cached latents (``latents=True``) when
+    ``data.input`` asks for them or is ``auto`` and the build has them, else uint8 frames."""
+    d = config["data"]
+    pose_format = "recammaster" if config["model"]["camera"] == "recammaster" else None
+    kwargs: dict[str, Any] = {"num_frames": d["num_frames"], "frame_stride": d["frame_stride"],
+                              "output_size": (d["height"], d["width"]), "pose_format": pose_format}
+    if d["input"] != "pixels" and has_latents(build_dir):
+        return PairDataset(build_dir, latents=True, dtype="float32")
+    if d["input"] == "latents":
+        raise ConfigError(f"--build {build_dir}: data.input=latents but the build has no cached latents; "
+                          f"run 'paradrive encode {build_dir} --vae DIR' first, or use data.input=pixels")
+    return PairDataset(build_dir, dtype="uint8", **kwargs)
+
+
+class WanTrainer(Trainer):
+    """Trains one stage of :class:`ReCamDrivingWan` on a map-style dataset of pair dicts (pixel or
+    latent samples). ``init``: for stage 2, the stage-1 checkpoint (default: none, an error);
+    for stage 1, a checkpoint of this trainer to start from. A ``last.pt`` in ``out_dir`` wins."""
+
+    checkpoint_format = CHECKPOINT_FORMAT
+    resume_keys = ("model", "seed")
+
+    def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
+                 init: str | Path | None = None):
+        # the reference's __init__ builds its own model: only its first steps are shared
+        seed = self._start(config, stage, out_dir, dataset)
+        m = self.config["model"]
+        self.model = build_wan_model(self.config, stage).to(self.device)  # type: ignore[assignment]
+        self.wan.enable_gradient_checkpointing(bool(m["gradient_checkpointing"]))
+        self.autocast = _autocast_dtype(self.config["precision"], self.device)
+        self._vae: Any = None
+        self._text: torch.Tensor | None = None
+        t = self.config["train"]
+        self.batch_size = int(t["batch_size"])
+        if len(dataset) < self.batch_size:
+            raise ValueError(f"the dataset has {len(dataset)} pairs, fewer than train.batch_size={self.batch_size}")
+        self.generator = torch.Generator().manual_seed(seed + 1000 * stage)
+        self.step = self.epoch = self.batch_in_epoch = 0
+        self._pending_optimizer: dict | None = None
+        resume = self.out_dir / "last.pt"
+        if resume.exists():
+            self._load(resume)
+        elif init is not None:
+            self._init_from(Path(init))
+        elif stage == 2:
+            raise ValueError("stage 2 starts from stage-1 weights: pass --init <stage-1 checkpoint> "
+                             "(e.g. <out>/stage1/last.pt)")
+        elif m["recammaster"] is not None:
+            self._init_from_recammaster(Path(m["recammaster"]))
+        params = trainable_parameters(self.wan, stage)
+        self.optimizer = torch.optim.AdamW(params, lr=float(t["lr"]), betas=tuple(t["betas"]),
+                                           weight_decay=float(t["weight_decay"]), eps=float(t["eps"]))
+        if self._pending_optimizer is not None:
+            self.optimizer.load_state_dict(self._pending_optimizer)
+        self._pending_optimizer = None
+
+    @property
+    def wan(self) -> ReCamDrivingWan:
+        """The model, typed as what it is (the reference trainer's attribute names a VideoDiT)."""
+        return cast(ReCamDrivingWan, self.model)
+
+    # -- weights -----------------------------------------------------------------------------
+    def _init_from(self, path: Path) -> None:
+        if not path.is_file():
+            raise FileNotFoundError(f"--init {path}: no such checkpoint")
+        ckpt = load_tensors(path, map_location=self.device)
+        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"--init {path}: not a 'paradrive train --model wan' checkpoint")
+        if ckpt["config"]["model"] != self.config["model"]:
+            raise ValueError(f"--init {path}: its model settings {ckpt['config']['model']} differ from this "
+                             f"run's {self.config['model']}; use the same config, --transformer and --vae")
+        load_stage1_weights(self.wan, ckpt["model"])
+        log.info("initialised from %s", path)
+
+    def _init_from_recammaster(self, path: Path) -> None:
+        if not path.is_file():
+            raise FileNotFoundError(f"model.recammaster {path}: no such checkpoint")
+        state: Any
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path), device="cpu")
+        else:
+            state = load_tensors(path)
+            state = state.get("state_dict", state) if isinstance(state, dict) else state
+        count = load_recammaster(self.wan, state, str(path))
+        log.info("loaded %d ReCamMaster tensors from %s", count, path)
+
+    # -- inputs --------------------------------------------------------------------------------
+    def vae(self) -> Any:
+        """The frozen VAE (``model.vae``), loaded on first use: a latent build never needs it."""
+        if self._vae is None:
+            self._vae = load_wan_vae(self.config, self.device)
+        return self._vae
+
+    def text_embedding(self, batch_size: int) -> torch.Tensor:
+        """The empty prompt's embedding (``model.text_encoder``) for a pixel batch: (B, L, D)."""
+        if self._text is None:
+            self._text = empty_text_embedding(self.config, int(self.wan.transformer.config.text_dim))
+        return self._text.to(self.device).expand(batch_size, -1, -1)
+
+    def latents(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        """A batch as the model's inputs: target / source (/ condition) latents (B, C, T', h, w),
+        ``camera`` (B, T', 12) float32 and ``text`` (B, L, D)."""
+        # an inference row has no target: sampling needs only the source (and condition)
+        roles = [r for r in ("target", "source", "condition")
+                 if (r != "condition" or self.stage == 2) and (r != "target" or "target" in batch
+                                                                or "target_latents" in batch)]
+        if "source_latents" in batch:
+            out = {role: batch[f"{role}_latents"].to(self.device).float() for role in roles}
+            out["camera"] = self._camera(batch, cached=True)
+            out["text"] = batch["text_embedding"].to(self.device).float()
+            return out
+        from paradrive.wan.vae import encode_video
+
+        vae = self.vae()
+        out = {role: encode_video(vae, to_channels_first(frames_on(batch[role], self.device))) for role in roles}
+        out["camera"] = self._camera(batch, cached=False)
+        out["text"] = self.text_embedding(out["source"].shape[0])
+        return out
+
+    def _camera(self, batch: Mapping[str, Any], cached: bool) -> torch.Tensor:
+        """(B, T', 12) float32 per latent frame: ΔT (``relative``; a latent sample's ``rel_pose``
+        is already one per latent frame, a pixel sample's one per video frame), or ReCamMaster's
+        form (``recammaster``: the ``camera`` of a latent sample or of ``pose_format="recammaster"``)."""
+        if self.config["model"]["camera"] == "recammaster":
+            if "camera" not in batch:
+                raise ValueError("model.camera=recammaster: the samples carry no 'camera'; read the build "
+                                 "with pose_format='recammaster'")
+            return batch["camera"].to(self.device).float()
+        rel = batch["rel_pose"].to(self.device)
+        if cached:
+            return rel[:, :, :3, :4].reshape(rel.shape[0], rel.shape[1], 12).float()
+        return relative_camera(rel)
+
+    def _autocast(self) -> contextlib.AbstractContextManager:
+        if self.autocast is None:
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=self.autocast)
+
+    def loss(self, z: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """Flow-matching loss on the target latents (noise and times from ``generator``, default
+        the run's own); the source (and condition) latents stay clean."""
+        f = self.config["flow"]
+
+        def velocity(x_t, t):
+            return self.model(x_t, t, z["source"], z["camera"], z["text"], z.get("condition")).float()
+
+        with self._autocast():
+            return flow_matching_loss(velocity, z["target"], generator or self.generator, f["schedule"],
+                                      float(f["shift"]))
+
+    @torch.no_grad()
+    def sample(self, item: Mapping[str, Any], steps: int, seed: int = 0) -> torch.Tensor:
+        """Generate the target video of one pair dict (as the adapter gives it) from its source,
+        camera and (stage 2) condition; decoded by the VAE: (F, 3, H, W) in [-1, 1]."""
+        from paradrive.wan.vae import decode_latents
+
+        was_training = self.model.training
+        self.model.eval()
+        z = self.latents(collate([dict(item)]))
+        noise = torch.randn(z["source"].shape, generator=torch.Generator().manual_seed(seed)).to(self.device)
+        with self._autocast():
+            latents = euler_sample(
+                lambda x, t: self.model(x, t, z["source"], z["camera"], z["text"], z.get("condition")).float(),
+                noise, steps, float(self.config["flow"]["shift"]))
+        video = decode_latents(self.vae(), latents)[0].permute(1, 0, 2, 3)
+        self.model.train(was_training)
+        return video.clamp(-1, 1).cpu()
+
+
+def build_wan_model(config: Mapping[str, Any], stage: int) -> ReCamDrivingWan:
+    """The stage's model: the transformer (``model.transformer``: a folder, or ``tiny``) with the
+    ReCamDriving modules, the new ones drawn from the config's seed."""
+    m = config["model"]
+    source = m["transformer"]
+    if source is None:
+        raise ConfigError("model.transformer is not set: pass --transformer DIR (the Wan2.1-T2V-1.3B "
+                          "diffusers folder), or --set model.transformer=tiny for a tiny random model")
+    transformer = make_tiny_transformer(int(config["seed"])) if source == TINY else load_transformer(source)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(config["seed"]))
+        return ReCamDrivingWan(transformer, rendering=stage == 2, max_frames=int(m["max_frames"]))
+
+
+def load_wan_vae(config: Mapping[str, Any], device: torch.device) -> Any:
+    """The VAE ``model.vae`` names (a folder, or ``tiny``), frozen, on ``device``."""
+    from paradrive.wan.vae import load_vae, make_tiny_vae
+
+    source = config["model"]["vae"]
+    if source is None:
+        raise ConfigError("model.vae is not set: pass --vae DIR (the Wan2.1 VAE or the whole diffusers "
+                          "folder) to encode a pixel build or decode samples, or encode the build with "
+                          "'paradrive encode' first")
+    vae = make_tiny_vae(int(config["seed"])).to(device) if source == TINY else load_vae(source, device)
+    return vae.requires_grad_(False).eval()
+
+
+def empty_text_embedding(config: Mapping[str, Any], text_dim: int) -> torch.Tensor:
+    """The empty prompt's embedding (L, D) float32 on the CPU: umT5's from ``model.text_encoder``,
+    or, for ``tiny``, a fixed random one drawn from the seed (what a tiny transformer reads)."""
+    source = config["model"]["text_encoder"]
+    if source is None:
+        raise ConfigError("model.text_encoder is not set: pass --text-encoder DIR (umT5 of the Wan2.1 "
+                          "diffusers folder) for a pixel build, or encode the build with 'paradrive encode'")
+    if source == TINY:
+        g = torch.Generator().manual_seed(int(config["seed"]) + 7)
+        return torch.randn(TINY_TEXT_TOKENS, text_dim, generator=g)
+    from paradrive.wan.text import empty_prompt_embedding
+
+    embedding = empty_prompt_embedding(source, "cpu")
+    if embedding.shape[-1] != text_dim:
+        raise ConfigError(f"model.text_encoder {source}: its embedding has {embedding.shape[-1]} channels, "
+                          f"the transformer reads {text_dim}; use the text encoder of the same Wan folder")
+    return embedding
+
+
+def _autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """bf16 autocast on CUDA (``auto`` or ``bf16``), none (fp32) otherwise."""
+    if precision == "bf16" or (precision == "auto" and device.type == "cuda"):
+        return torch.bfloat16
+    return None
+

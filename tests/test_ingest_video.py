@@ -1,0 +1,185 @@
+"""The ``video:`` input: a plain MP4 of the synthetic street's front camera becomes a scene whose
+SfM poses, in metres, match the street's true ones; bad videos fail naming scene, file and fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from paradrive import geometry
+from paradrive.errors import SceneError
+from paradrive.ingest.export import export_scene
+from paradrive.ingest.sfm import path_length
+from paradrive.scene import load_scene, write_image
+from paradrive.stages.ingest import ingest, params_of
+from paradrive.synthetic import SyntheticStreet
+from paradrive.uri import parse_uri
+from paradrive.video import decode_frames, encode_video
+
+STREET = "synthetic:demo?seed=7&frames=24&width=320&height=192"
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> tuple[str, Path]:
+    """The exported video's URI, and its folder."""
+    out = tmp_path_factory.mktemp("video")
+    return export_scene(STREET, "video", out, params_of()), out
+
+
+@pytest.fixture(scope="module")
+def video_scene(tmp_path_factory, exported):
+    uri, _ = exported
+    root = tmp_path_factory.mktemp("scenes") / parse_uri(uri).scene_id
+    summary = ingest(uri, root, params_of())
+    return load_scene(root), summary
+
+
+def truth_c2w() -> np.ndarray:
+    return SyntheticStreet(name="demo", seed=7, frames=24, width=320, height=192).c2w("front")
+
+
+def test_export_prints_a_uri_with_intrinsics_height_and_truth(exported):
+    uri, out = exported
+    parsed = parse_uri(uri)
+    street_id = parse_uri(STREET).scene_id
+    assert parsed.kind == "video" and parsed.scene_id == f"video-{street_id}"
+    assert Path(parsed.path) == out.resolve() / f"{street_id}.mp4"
+    assert {"fx", "fy", "cx", "cy", "height_m", "fps", "truth"} <= set(parsed.query)
+    assert parse_uri(parsed.query["truth"]).kind == "synthetic"
+    bare = export_scene(STREET, "video", out / "bare", params_of(), with_intrinsics=False)
+    assert "fx" not in parse_uri(bare).query
+
+
+def test_every_frame_registers_in_metres_against_the_truth(video_scene):
+    scene, summary = video_scene
+    truth = truth_c2w()
+    assert scene.dataset == "video" and len(scene.frames) == 24 and list(scene.cameras) == ["front"]
+    assert summary["video"]["registered"] == "0-23"
+    assert summary["video"]["intrinsics"]["estimated"] is False
+    c2w = scene.c2w("front")
+    assert abs(path_length(c2w) / path_length(truth) - 1) < 0.06
+    # only the first frame aligned: every position within 6 % of the path
+    align = truth[0] @ geometry.invert(c2w[0])
+    err = np.linalg.norm((align @ c2w)[:, :3, 3] - truth[:, :3, 3], axis=1)
+    assert err.max() < 0.06 * path_length(truth)
+
+
+def test_the_ego_frame_is_level_with_the_road(video_scene):
+    scene, _ = video_scene
+    ego = scene.ego2world()
+    np.testing.assert_allclose(ego[0], np.eye(4), atol=1e-9)
+    cam = scene.cameras["front"]
+    np.testing.assert_allclose(ego @ cam.cam2ego, scene.c2w("front"), atol=1e-9)
+    assert cam.cam2ego[2, 3] == pytest.approx(1.6)  # on the road, under the camera
+    # forward along the drive, z up: the truth's 3 deg pitch and no roll come back within 1 deg
+    assert np.degrees(np.arcsin(-cam.cam2ego[2, 2])) == pytest.approx(3.0, abs=1.0)
+    assert abs(cam.cam2ego[2, 0]) < np.sin(np.radians(1.0))
+    assert ego[-1, 0, 3] > 15 and abs(ego[-1, 1, 3]) < 0.5 and abs(ego[-1, 2, 3]) < 0.3
+
+
+def test_sfm_points_are_the_fit_s_initial_points(video_scene):
+    scene, summary = video_scene
+    points = scene.lidar_points()
+    assert points is not None and len(points) == summary["video"]["points"] > 100
+    # most lie within the street's 60 m ahead, above the road by at most a few facades
+    ahead = points[:, 0]
+    assert np.median(ahead) > 0 and np.percentile(points[:, 2], 5) > -1.0
+
+
+def test_a_folder_of_frames_with_a_speed_track_beside_it(tmp_path, exported):
+    """Frames as files, and ``<folder>.csv`` with the speed: the track sets the scale."""
+    uri, _ = exported
+    parsed = parse_uri(uri)
+    folder = tmp_path / "drive"
+    for i, pixels in enumerate(decode_frames(parsed.path)):
+        write_image(folder / f"{i:04d}.png", pixels)
+    (tmp_path / "drive.csv").write_text("t,speed_mps\n0,8.0\n10,8.0\n")
+    query = "&".join(f"{k}={parsed.query[k]}" for k in ("fx", "fy", "cx", "cy"))
+    summary = ingest(f"video:{folder}?{query}", tmp_path / "scene", params_of())
+    scale = summary["video"]["scale"]
+    assert scale["source"] == "speed" and "height_vs_track" in scale
+    scene = load_scene(tmp_path / "scene")
+    assert len(scene.frames) == 24 and scene.timestamps_us()[1] == 100_000
+    assert path_length(scene.c2w("front")) == pytest.approx(path_length(truth_c2w()), rel=0.01)
+
+
+def scene_error(uri: str, root: Path) -> SceneError:
+    with pytest.raises(SceneError) as info:
+        ingest(uri, root / parse_uri(uri).scene_id, params_of())
+    return info.value
+
+
+def test_bad_videos_fail_naming_scene_file_and_fix(tmp_path, exported):
+    uri, _ = exported
+    video = Path(parse_uri(uri).path)
+    missing = scene_error(f"video:{tmp_path}/nowhere.mp4", tmp_path)
+    assert missing.scene_id == "video-nowhere" and "missing" in str(missing)
+    assert missing.path == f"{tmp_path}/nowhere.mp4"
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"not a video at all" * 100)
+    assert "cannot be opened" in str(scene_error(f"video:{junk}", tmp_path))
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(video.read_bytes()[: video.stat().st_size // 2])
+    err = scene_error(f"video:{cut}", tmp_path)
+    assert err.path == str(cut) and err.fix
+    short = scene_error(uri.replace("?", "?end=0.5&", 1), tmp_path)
+    assert "at least" in str(short) and "longer video" in short.fix
+    assert "unknown video option" in str(scene_error(f"video:{video}?speed=3", tmp_path))
+
+
+def test_a_parked_camera_fails_as_static(tmp_path):
+    street = SyntheticStreet(name="demo", seed=7, frames=1, width=160, height=96)
+    spec = street.cameras["front"]
+    frame = street.render(street.c2w("front"), spec.K(), spec.width, spec.height)["rgb"][0]
+    path = tmp_path / "parked.mp4"
+    encode_video(path, [frame] * 12, 10.0)
+    err = scene_error(f"video:{path}?fov_deg=70", tmp_path)
+    assert err.scene_id == "video-parked" and err.path == str(path)
+    assert "static" in str(err) or "parallax" in str(err) or "no contiguous run" in str(err)
+
+
+def test_plan_counts_sfm_time_per_frame():
+    from paradrive.pipeline import StageRegistry
+    from paradrive.pipeline.budget import plan_build
+
+    config = StageRegistry().resolve(None)
+    plan = plan_build(config, ["video:/clips/drive.mp4"], None)
+    assert plan.shapes == {"typical video log": 1}
+    assert plan.seconds["sfm"] == pytest.approx(200 * plan.rates["compute:sfm"].value)
+    assert plan_build(config, ["synthetic:demo?seed=7"], None).seconds["sfm"] == 0
+
+
+def test_scene_ids_and_query_checks():
+    from paradrive.ingest.video import options_of
+
+    assert parse_uri("video:/clips/drive.mp4?fps=5&height_m=1.3").scene_id == "video-drive"
+    assert parse_uri("video:/clips/run_01/").scene_id == "video-run_01"
+    opts = options_of(parse_uri("video:/clips/drive.mp4?fov_deg=90&start=2&end=4"))
+    assert (opts.fps, opts.height_m, opts.start, opts.end) == (10.0, 1.5, 2.0, 4.0)
+    with pytest.raises(SceneError, match="not all of fx, fy, cx, cy"):
+        options_of(parse_uri("video:/clips/drive.mp4?fx=500"))
+    with pytest.raises(SceneError, match="empty or negative"):
+        options_of(parse_uri("video:/clips/drive.mp4?start=4&end=2"))
+
+
+def test_a_video_scene_without_pycolmap_fails_naming_the_extra_to_install(exported, tmp_path):
+    """An installation without the video extra: the scene fails with the install command, the
+    build exits 1 (no scene landed) instead of crashing with an import traceback."""
+    import os
+    import subprocess
+    import sys
+
+    uri, _ = exported
+    code = ("import sys; sys.modules['pycolmap'] = None\n"   # import pycolmap -> ModuleNotFoundError
+            "from paradrive.cli import main\n"
+            f"sys.argv = ['paradrive', 'build', '--scene', {uri!r}, '--stages', 'ingest', "
+            f"'--data', {str(tmp_path / 'data')!r}, '--manifests', {str(tmp_path / 'm')!r}]\n"
+            "main()")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "300"})
+    assert done.returncode == 1, done.stdout + done.stderr
+    out = " ".join((done.stdout + done.stderr).split())
+    assert "pycolmap is not installed" in out and "pip install 'paradrive[video]'" in out
+    assert "Traceback" not in out

@@ -1,0 +1,127 @@
+"""The SfM library: pycolmap on a real image sequence (deterministic, intrinsics held), the road
+plane and the metric rig against known geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from paradrive import geometry
+from paradrive.ingest import sfm
+from paradrive.scene import write_image
+from paradrive.synthetic import SyntheticStreet
+
+
+def test_registered_runs_and_their_text():
+    reg = np.array([1, 1, 0, 1, 1, 1, 0, 0, 1], dtype=bool)
+    assert sfm.registered_runs(reg) == [(0, 1), (3, 5), (8, 8)]
+    assert sfm.format_runs(sfm.registered_runs(reg)) == "0-1, 3-5, 8"
+    assert sfm.format_runs([]) == "none"
+
+
+def similarity(seed: int) -> tuple[np.ndarray, float]:
+    """A random rotation and translation, and a scale: a reconstruction's arbitrary frame."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=4)
+    return geometry.make_pose(geometry.quaternion_to_rotation(q / np.linalg.norm(q)),
+                              rng.normal(size=3) * 5), 0.137
+
+
+def model_of(c2w_world: np.ndarray, points_world: np.ndarray, seed: int = 0) -> sfm.Reconstruction:
+    """The world trajectory and points as a reconstruction would hold them (scaled, moved)."""
+    move, s = similarity(seed)
+    c2w = c2w_world.copy()
+    c2w[:, :3, 3] *= s
+    c2w = np.einsum("ij,fjk->fik", move, c2w)
+    pts = (points_world * s) @ move[:3, :3].T + move[:3, 3]
+    # each point's first frame: the last camera behind it (it is seen ahead)
+    first = np.searchsorted(c2w_world[:, 0, 3], points_world[:, 0] - 4.0).clip(0, len(c2w) - 1)
+    return sfm.Reconstruction(c2w=c2w, points=pts, colors=np.zeros_like(pts, dtype=np.uint8),
+                              point_frame=first, point_views=np.full(len(pts), 5),
+                              intrinsics=sfm.Intrinsics(100, 100, 80, 48),
+                              distortion=(0.0,) * 5, estimated=False, seconds=0.0)
+
+
+def street_points(rng: np.random.Generator) -> np.ndarray:
+    """Road markings (z = 0, noisy), a raised sidewalk and facades, along 40 m."""
+    road = np.c_[rng.uniform(0, 40, 400), rng.uniform(-5, 5, 400), rng.normal(0, 0.03, 400)]
+    walk = np.c_[rng.uniform(0, 40, 150), rng.choice([-7.0, 7.0], 150), np.full(150, 0.15)]
+    facade = np.c_[rng.uniform(0, 40, 400), rng.choice([-9.0, 9.0], 400), rng.uniform(0, 8, 400)]
+    return np.concatenate([road, walk, facade])
+
+
+def test_road_plane_gives_up_and_metric_scale():
+    street = SyntheticStreet(name="demo", seed=7, frames=30, width=160, height=96)
+    truth = street.c2w("front")
+    rec = model_of(truth, street_points(np.random.default_rng(1)))
+    plane = sfm.fit_road_plane(rec)
+    move, s = similarity(0)
+    np.testing.assert_allclose(plane.normal, move[:3, 2], atol=0.02)
+    assert plane.height / s == pytest.approx(1.6, rel=0.03)
+    rig = sfm.metric_rig(rec.c2w, plane, 1.6 / plane.height)
+    np.testing.assert_allclose(rig.ego2world[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(rig.ego2world @ rig.cam2ego, rig.c2w, atol=1e-9)
+    # the truth's world is its first ego pose too, 1.5 m behind the camera: only that differs,
+    # besides the height's noise (a few tenths of a per cent of scale over the 23 m path)
+    back = geometry.translation(1.5, 0, 0)
+    np.testing.assert_allclose((back @ rig.c2w)[:, :3, 3], truth[:, :3, 3], atol=0.15)
+    np.testing.assert_allclose(rig.points(rec.points[:3]), street_points(np.random.default_rng(1))[:3]
+                               - [1.5, 0, 0], atol=0.15)
+
+
+def layered_street(rng: np.random.Generator) -> np.ndarray:
+    """Sparse road markings (z = 0) under three times as many points 0.12 m up beside the lane
+    (kerbs, sidewalk, parked car bodies), a denser vehicle 0.6 m up ahead in the lane, and
+    mismatched points scattered below the road, each with 3 cm of triangulation noise."""
+    road = np.c_[rng.uniform(0, 40, 150), rng.choice([-1.75, 1.75], 150), np.zeros(150)]
+    beside = np.c_[rng.uniform(0, 40, 450), rng.choice([-1, 1], 450) * rng.uniform(2.6, 6, 450),
+                   np.full(450, 0.12)]
+    vehicle = np.c_[rng.uniform(10, 14, 200), rng.uniform(-0.9, 0.9, 200), np.full(200, 0.6)]
+    below = np.c_[rng.uniform(0, 40, 30), rng.uniform(-2, 2, 30), rng.uniform(-0.8, -0.2, 30)]
+    points = np.concatenate([road, beside, vehicle, below])
+    return points + rng.normal(0, 0.03, points.shape)
+
+
+def test_the_road_is_the_lowest_dense_layer_in_the_ego_lane():
+    street = SyntheticStreet(name="demo", seed=7, frames=30, width=160, height=96)
+    rec = model_of(street.c2w("front"), layered_street(np.random.default_rng(3)))
+    plane = sfm.fit_road_plane(rec)
+    _, s = similarity(0)
+    assert plane.height / s == pytest.approx(1.6, rel=0.01)
+    assert plane.inliers < 150  # the road markings only, none of the layers above or below
+
+
+def test_a_camera_that_sees_no_road_has_no_plane():
+    street = SyntheticStreet(name="demo", seed=7, frames=10, width=160, height=96)
+    rng = np.random.default_rng(2)
+    sky_only = np.c_[rng.uniform(0, 40, 100), rng.uniform(-5, 5, 100), rng.uniform(3, 9, 100)]
+    with pytest.raises(sfm.SfmError, match="road"):
+        sfm.fit_road_plane(model_of(street.c2w("front"), sky_only))
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    street = SyntheticStreet(name="demo", seed=7, frames=16, width=320, height=192)
+    spec = street.cameras["front"]
+    rgb = street.render(street.c2w("front"), spec.K(), spec.width, spec.height)["rgb"]
+    folder = tmp_path_factory.mktemp("frames")
+    names = [f"{i:06d}.png" for i in range(len(rgb))]
+    for name, pixels in zip(names, rgb):
+        write_image(folder / name, pixels)
+    return folder, names, street, spec
+
+
+def test_reconstruct_registers_every_frame_the_same_way_twice(tmp_path, frames):
+    folder, names, street, spec = frames
+    K = sfm.Intrinsics(spec.fx, spec.fy, spec.cx, spec.cy)
+    a = sfm.reconstruct(folder, names, tmp_path / "a", intrinsics=K)
+    b = sfm.reconstruct(folder, names, tmp_path / "b", intrinsics=K)
+    assert a.registered.all() and a.models == 1 and not a.estimated
+    assert a.intrinsics == K  # held fixed
+    np.testing.assert_array_equal(a.c2w, b.c2w)
+    np.testing.assert_array_equal(a.points, b.points)
+    truth = street.c2w("front")
+    s = sfm.path_length(truth) / sfm.path_length(a.c2w)
+    rel = np.einsum("fij,fjk->fik", np.linalg.inv(a.c2w[:1]), a.c2w)[:, :3, 3] * s
+    true_rel = np.einsum("fij,fjk->fik", np.linalg.inv(truth[:1]), truth)[:, :3, 3]
+    np.testing.assert_allclose(rel, true_rel, atol=0.02 * sfm.path_length(truth))

@@ -1,0 +1,147 @@
+"""``paradrive convert``: a smoke build handed to ReCamMaster's trainer, to DiffSynth-Studio's and
+to diffusers' pixel layout, each read back the way its reader reads it."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from paradrive.data import PairDataset
+from paradrive.wan.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
+
+
+@pytest.fixture(scope="module")
+def wan_folder(tmp_path_factory) -> Path:
+    """A Wan2.1 diffusers folder with a tiny random VAE, umT5 and tokenizer."""
+    from paradrive.wan.text import make_tiny_text_encoder
+    from paradrive.wan.vae import make_tiny_vae
+
+    folder = tmp_path_factory.mktemp("wan")
+    make_tiny_vae(seed=0).save_pretrained(folder / "vae")
+    make_tiny_text_encoder(folder)
+    return folder
+
+
+def convert(*args: str) -> str:
+    import typer
+    from typer.testing import CliRunner
+
+    from paradrive.wan.cli import register
+
+    app = typer.Typer()   # the commands as paradrive.cli registers them, without the others
+    register(app)
+    result = CliRunner().invoke(app, ["convert", *args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def parse_recammaster(text: str) -> np.ndarray:
+    """What ReCamMaster's loader does with one stored matrix: parse the bracketed rows, transpose,
+    reorder the columns, negate the y column, centimetres to metres."""
+    rows = [[float(v) for v in row.replace("[", "").replace("]", "").split()]
+            for row in text.strip().split("] [")]
+    p = np.array(rows).T
+    c2w = p[:, [1, 2, 0, 3]]
+    c2w[:3, 1] *= -1.0
+    c2w[:3, 3] /= 100.0
+    return c2w
+
+
+def test_a_matrix_survives_recammasters_parse():
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = q, [12.5, -3.25, 101.125]
+    text = recammaster_text(recammaster_matrix(c2w))
+    assert text.count("[") == 4 and text.endswith("] ")
+    np.testing.assert_allclose(parse_recammaster(text), c2w, atol=1e-12)
+
+
+def test_recammaster_layout_holds_videos_cameras_and_cached_tensors(smoke_build, wan_folder, tmp_path):
+    from paradrive.wan.text import empty_prompt_embedding
+    from paradrive.wan.vae import encode_video, load_vae
+
+    build, out = smoke_build["build_dir"], tmp_path / "recam"
+    assert "2 pairs" in convert("recammaster", str(build), str(out), "--vae", str(wan_folder),
+                                "--text-encoder", str(wan_folder), "--limit", "2")
+    ds = PairDataset(build, dtype="uint8", pose_format="recammaster")
+    with open(out / "metadata.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["file_name"] for r in rows] == [f"{p}/videos/cam02.mp4" for p in ds.pair_ids[:2]]
+    assert {r["text"] for r in rows} == {""}
+
+    i = 1
+    pair = out / "train" / ds.pair_ids[i]
+    sample, row = ds[i], ds.row(i)
+    assert (pair / "videos" / "cam01.mp4").read_bytes() == _media(ds, row, "source").read_bytes()
+    assert (pair / "videos" / "cam02.mp4").read_bytes() == _media(ds, row, "target").read_bytes()
+
+    # ReCamMaster's loader: the target at frames 0, 4, ... relative to the condition (cam01) at frame 0
+    cams = json.loads((pair / "cameras" / "camera_extrinsics.json").read_text())
+    frames = int(row["num_frames"])
+    assert sorted(cams, key=lambda k: int(k[5:])) == [f"frame{k}" for k in range(frames)]
+    cond0 = parse_recammaster(cams["frame0"]["cam01"])
+    target = np.stack([parse_recammaster(cams[f"frame{k}"]["cam02"]) for k in range(0, frames, 4)])
+    camera = (np.linalg.inv(cond0) @ target)[:, :3, :].reshape(-1, 12)
+    np.testing.assert_allclose(camera, sample["camera"].numpy(), atol=1e-5)
+    np.testing.assert_allclose(target, row["target_c2w"][::4], atol=1e-9)
+
+    cached = torch.load(pair / "videos" / "cam02.mp4.tensors.pth", weights_only=True)
+    assert set(cached) == {"latents", "prompt_emb", "image_emb"} and cached["image_emb"] == {}
+    video = (sample["target"].float() / 127.5 - 1).permute(1, 0, 2, 3)[None]
+    direct = encode_video(load_vae(wan_folder), video)[0]
+    assert cached["latents"].dtype == torch.bfloat16 and cached["latents"].shape == direct.shape
+    torch.testing.assert_close(cached["latents"].float(), direct, rtol=1e-2, atol=1e-2)
+    context = cached["prompt_emb"]["context"]
+    assert context.shape[0] == 1
+    torch.testing.assert_close(context[0].float(), empty_prompt_embedding(wan_folder).to(torch.bfloat16).float())
+
+
+def _media(ds: PairDataset, row: dict, role: str) -> Path:
+    from paradrive.pairs import build_file
+
+    return build_file(ds.build, row[f"{role}_uri"], role, ds.index)
+
+
+def test_diffsynth_metadata_names_the_videos_an_empty_prompt_and_the_camera(smoke_build, tmp_path):
+    build, out = smoke_build["build_dir"], tmp_path / "ds"
+    convert("diffsynth", str(build), str(out))
+    ds = PairDataset(build, dtype="uint8")
+    with open(out / "metadata.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    listed = json.loads((out / "metadata.json").read_text())
+    assert len(rows) == len(listed) == len(ds)
+    assert list(rows[0]) == ["video", "prompt", "source_video", "condition_video", "offset_m", "camera"]
+    for i, (r, j) in enumerate(zip(rows, listed)):
+        row = ds.row(i)
+        assert r["prompt"] == "" and j["prompt"] == ""
+        for column, role in (("video", "target"), ("source_video", "source"), ("condition_video", "condition")):
+            assert r[column] == j[column]
+            assert (out / r[column]).read_bytes() == _media(ds, row, role).read_bytes()
+        camera = np.array(json.loads(r["camera"]))
+        assert camera.shape == (1 + (int(row["num_frames"]) - 1) // 4, 12)
+        np.testing.assert_allclose(camera, row["rel_pose"][::4][: len(camera), :3, :].reshape(-1, 12), atol=1e-6)
+        assert json.loads(r["camera"]) == j["camera"] and float(r["offset_m"]) == j["offset_m"]
+
+
+def test_pixel_files_give_diffusers_video_batches(smoke_build, tmp_path):
+    build, out = smoke_build["build_dir"], tmp_path / "px"
+    convert("pixels", str(build), str(out), "--num-frames", "5", "--limit", "3")
+    ds = PairDataset(build, dtype="uint8", num_frames=5)
+    index = json.loads((out / "index.json").read_text())
+    assert [p["pair_id"] for p in index["pairs"]] == ds.pair_ids[:3]
+    samples = [read_pixel_pair(out / p["file"]) for p in index["pairs"][:2]]
+    assert samples[0]["pair_id"] == ds.pair_ids[0] and samples[0]["offset_m"] == ds[0]["offset_m"]
+    batch = collate_pixels(samples)
+    frames, h, w = 5, *ds[0]["target"].shape[-2:]
+    assert batch["target"].shape == (2, 3, frames, h, w) and batch["target"].dtype == torch.float32
+    assert float(batch["target"].min()) >= -1 and float(batch["target"].max()) <= 1
+    assert batch["camera"].shape == (2, 2, 12)
+    # the same frames as the adapter's samples, collated the same way
+    direct = collate_pixels([ds[0], ds[1]])
+    assert torch.equal(direct["target"], batch["target"]) and torch.equal(direct["source"], batch["source"])
