@@ -74,8 +74,11 @@ def test_the_ego_frame_is_level_with_the_road(video_scene):
     np.testing.assert_allclose(ego @ cam.cam2ego, scene.c2w("front"), atol=1e-9)
     assert cam.cam2ego[2, 3] == pytest.approx(1.6)  # on the road, under the camera
     # forward along the drive, z up: the truth's 3 deg pitch and no roll come back within 1 deg
+    # and 2 deg (0.5 deg of roll on an idle machine; 1.2 deg in one run of the suite under load,
+    # where COLMAP gave other poses: docs/scene-layout.md, "Video input"); a wrong up axis is
+    # tens of degrees off
     assert np.degrees(np.arcsin(-cam.cam2ego[2, 2])) == pytest.approx(3.0, abs=1.0)
-    assert abs(cam.cam2ego[2, 0]) < np.sin(np.radians(1.0))
+    assert abs(cam.cam2ego[2, 0]) < np.sin(np.radians(2.0))
     assert ego[-1, 0, 3] > 15 and abs(ego[-1, 1, 3]) < 0.5 and abs(ego[-1, 2, 3]) < 0.3
 
 

@@ -295,3 +295,23 @@ def test_encode_on_a_device_computes_what_it_computes_on_the_cpu(smoke_build, wa
     for i in range(len(a)):
         for role in ("target", "source", "condition"):
             torch.testing.assert_close(a[i][f"{role}_latents"], b[i][f"{role}_latents"], rtol=2 ** -7, atol=1e-5)
+
+
+def test_on_ray_the_encode_stage_is_a_task_asking_for_its_gpu(smoke_build, wan_folder, copy_tree):
+    """A Ray build hands the encode (the stage declares a GPU) to a task with that request, capped
+    to the cluster: this one has no GPU, so the task runs on a worker's CPU, with the warning."""
+    from paradrive.pipeline import StageRegistry, run_build
+    from paradrive.pipeline.ray_executor import RayExecutor
+
+    asked = StageRegistry().resolve("smoke", {"encode": {"vae": str(wan_folder), "size": [8, 16],
+                                                         "num_frames": 1, "batch": 8}})
+    root = copy_tree(smoke_build["root"], "root")
+    executor = RayExecutor(num_cpus=2)
+    report = run_build(asked, smoke_build["scene_uris"], root / "data", stages=["encode"],
+                       manifests_dir=root / "manifests", build="smoke", executor=executor)
+    [result] = report.results
+    assert result.status == "done", result.error
+    assert result.summary["worker"]["pid"] != os.getpid()     # a Ray worker, not the driver
+    assert result.summary["worker"]["num_gpus"] == 0
+    assert any("'encode' declares gpu: 1" in w for w in executor.warnings)
+    assert cache.read_latents_index(root / "manifests" / "smoke")["totals"]["pairs"] > 0

@@ -8,6 +8,7 @@ failed did not); 2 a usage or configuration error, found before any stage ran; 1
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import resource
@@ -371,8 +372,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     for stage in build_stages:
         if on_start:
             on_start(f"build:{build}", stage)
-        result = run_build_stage(config, stage, build_uris, data_dir, Path(manifests_dir), build,
-                                 force=force, record=selection.record())
+        result = executor.run_build_stage(config, stage, functools.partial(
+            run_build_stage, config, stage, build_uris, data_dir, Path(manifests_dir), build,
+            force=force, record=selection.record()))
         failed_ids = {r.scene_id for r in report.results if r.status == "failed"}
         left_out = [StageResult(sid, stage, "failed", error=(
             f"{stage}: left out of build {build}: the scene has not finished "

@@ -50,6 +50,11 @@ class Executor(Protocol):
             verify_outputs: bool = False) -> list[StageResult]:
         ...
 
+    def run_build_stage(self, config: ResolvedConfig, stage: str,
+                        call: Callable[[], StageResult]) -> StageResult:
+        """Run ``call``, one build-scoped stage, where this executor runs work of its kind."""
+        ...
+
 
 def blocked_result(result: StageResult, stage: str) -> StageResult:
     """The result recorded for a stage that cannot run because an earlier one failed."""
@@ -59,6 +64,10 @@ def blocked_result(result: StageResult, stage: str) -> StageResult:
 
 class LocalExecutor:
     name = "local"
+
+    def run_build_stage(self, config: ResolvedConfig, stage: str,
+                        call: Callable[[], StageResult]) -> StageResult:
+        return call()
 
     def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
             force: bool = False, on_start: StartCallback | None = None,

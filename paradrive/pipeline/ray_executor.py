@@ -45,6 +45,7 @@ import os
 import socket
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -257,6 +258,28 @@ class RayExecutor:
             if started_here:
                 ray.shutdown()
 
+    def run_build_stage(self, config: ResolvedConfig, stage: str,
+                        call: Callable[[], StageResult]) -> StageResult:
+        """A build stage that declares a GPU (``encode``) runs as one Ray task with its stage's
+        resources, so a driver without a GPU hands it to a node with one; the others (the
+        manifest) stay in the driver, which holds their scene locks. The task reads and writes
+        the build folder and the data root at the driver's paths: on a cluster both are on
+        storage every node mounts (or the data root is a URL). ``summary["worker"]`` says where
+        it ran."""
+        if config.registry().specs[stage].resources.gpu <= 0:
+            return call()
+        ray, started_here = self._connect()
+        try:
+            options = self.plan(config, [stage], Capacity.of_nodes(ray.nodes()))[stage]
+            ref = ray.remote(_run_build_task).options(**options, max_retries=0, retry_exceptions=False,
+                                                      name=f"{stage}:build").remote(call)
+            result, where = ray.get(ref)
+        finally:
+            if started_here:
+                ray.shutdown()
+        result.summary["worker"] = {**where, "num_gpus": options["num_gpus"]}
+        return result
+
     def _run(self, ray, config, tasks, data_dir, force, on_start, on_result,
              locks, on_progress=None, verify_outputs=False) -> list[StageResult]:
         capacity = Capacity.of_nodes(ray.nodes())
@@ -284,6 +307,12 @@ class RayExecutor:
             dispatch.cancel_all()
             raise
         return dispatch.results
+
+
+def _run_build_task(call: Callable[[], StageResult]) -> tuple[StageResult, dict]:
+    """The body of a build stage's Ray task."""
+    started = time.time()
+    return call(), {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
 
 
 def _scene_id(scene_uri: str) -> str:
