@@ -114,6 +114,18 @@ def assert_a_drawing(path: Path, min_width: int, min_height: int, background=(25
     return pixels
 
 
+@pytest.fixture(scope="session")
+def wan_folder(tmp_path_factory) -> Path:
+    """A Wan2.1 folder in diffusers' layout with a tiny random VAE, umT5 and tokenizer (read only)."""
+    from paradrive.wan.text import make_tiny_text_encoder
+    from paradrive.wan.vae import make_tiny_vae
+
+    folder = tmp_path_factory.mktemp("wan")
+    make_tiny_vae(seed=0).save_pretrained(folder / "vae")
+    make_tiny_text_encoder(folder)
+    return folder
+
+
 @pytest.fixture
 def copy_tree(tmp_path):
     """Copy a built tree into this test's own folder before changing anything in it."""

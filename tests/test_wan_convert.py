@@ -8,23 +8,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
 from paradrive.data import PairDataset
 from paradrive.wan.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
-
-
-@pytest.fixture(scope="module")
-def wan_folder(tmp_path_factory) -> Path:
-    """A Wan2.1 diffusers folder with a tiny random VAE, umT5 and tokenizer."""
-    from paradrive.wan.text import make_tiny_text_encoder
-    from paradrive.wan.vae import make_tiny_vae
-
-    folder = tmp_path_factory.mktemp("wan")
-    make_tiny_vae(seed=0).save_pretrained(folder / "vae")
-    make_tiny_text_encoder(folder)
-    return folder
 
 
 def convert(*args: str) -> str:

@@ -21,7 +21,7 @@ pytest.importorskip("transformers")
 from paradrive.errors import ConfigError  # noqa: E402
 from paradrive.wan import latents as cache  # noqa: E402
 from paradrive.wan.encode import EncodeSettings, encode_build  # noqa: E402
-from paradrive.wan.text import empty_prompt_embedding, make_tiny_text_encoder  # noqa: E402
+from paradrive.wan.text import empty_prompt_embedding  # noqa: E402
 from paradrive.wan.vae import (decode_latents, encode_video, latent_frames, load_vae,  # noqa: E402
                                make_tiny_vae)
 
@@ -33,15 +33,6 @@ SETTINGS = dict(text_encoder=None, device="cpu", dtype="bfloat16", compute_dtype
 KILLED = dict(size=(24, 40), num_frames=1, shard_pairs=40, batch=8)
 CLI_SETS = ["--set", "encode.size=[24,40]", "--set", "encode.num_frames=1", "--set", "encode.shard_pairs=40",
             "--set", "encode.batch=8", "--device", "cpu"]
-
-
-@pytest.fixture(scope="module")
-def wan_folder(tmp_path_factory) -> Path:
-    """A Wan2.1 diffusers folder with a tiny random VAE, umT5 and tokenizer."""
-    folder = tmp_path_factory.mktemp("wan")
-    make_tiny_vae(seed=0).save_pretrained(folder / "vae")
-    make_tiny_text_encoder(folder)
-    return folder
 
 
 @pytest.fixture(scope="module")

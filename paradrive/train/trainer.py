@@ -212,6 +212,25 @@ class Trainer:
     checkpoint_format = CHECKPOINT_FORMAT
     resume_keys: tuple[str, ...] = ("model", "autoencoder", "seed")
 
+    def _restore(self, seed: int, stage: int, init: str | Path | None) -> bool:
+        """The data order's generator and counters at their start, then the run's ``last.pt``
+        (resume), else ``init``; stage 2 needs one of them. True when neither was there: a
+        stage 1 starting afresh."""
+        self.generator = torch.Generator().manual_seed(seed + 1000 * stage)
+        self.step = self.epoch = self.batch_in_epoch = 0
+        self._pending_optimizer: dict | None = None
+        resume = self.out_dir / "last.pt"
+        if resume.exists():
+            self._load(resume)
+        elif init is not None:
+            self._init_from(Path(init))
+        elif stage == 2:
+            raise ValueError("stage 2 starts from stage-1 weights: pass --init <stage-1 checkpoint> "
+                             "(e.g. <out>/stage1/last.pt)")
+        else:
+            return True
+        return False
+
     def _start(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset) -> int:
         """What every trainer holds before its model: the config, stage, run folder, data and
         device; torch's generator seeded. Returns the seed."""
@@ -237,19 +256,7 @@ class Trainer:
         self.batch_size = int(t["batch_size"])
         if len(dataset) < self.batch_size:
             raise ValueError(f"the dataset has {len(dataset)} pairs, fewer than train.batch_size={self.batch_size}")
-        self.generator = torch.Generator().manual_seed(seed + 1000 * stage)
-        self.step = 0
-        self.epoch = 0
-        self.batch_in_epoch = 0
-        self._pending_optimizer: dict | None = None
-        resume = self.out_dir / "last.pt"
-        if resume.exists():
-            self._load(resume)
-        elif init is not None:
-            self._init_from(Path(init))
-        elif stage == 2:
-            raise ValueError("stage 2 starts from stage-1 weights: pass --init <stage-1 checkpoint> "
-                             "(e.g. <out>/stage1/last.pt)")
+        self._restore(seed, stage, init)
         mask = trainable_mask(self.model, stage, t["stage1_trainable"])
         for name, p in self.model.named_parameters():
             p.requires_grad_(mask[name])

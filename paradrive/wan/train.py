@@ -111,18 +111,7 @@ class WanTrainer(Trainer):
         self.batch_size = int(t["batch_size"])
         if len(dataset) < self.batch_size:
             raise ValueError(f"the dataset has {len(dataset)} pairs, fewer than train.batch_size={self.batch_size}")
-        self.generator = torch.Generator().manual_seed(seed + 1000 * stage)
-        self.step = self.epoch = self.batch_in_epoch = 0
-        self._pending_optimizer: dict | None = None
-        resume = self.out_dir / "last.pt"
-        if resume.exists():
-            self._load(resume)
-        elif init is not None:
-            self._init_from(Path(init))
-        elif stage == 2:
-            raise ValueError("stage 2 starts from stage-1 weights: pass --init <stage-1 checkpoint> "
-                             "(e.g. <out>/stage1/last.pt)")
-        elif m["recammaster"] is not None:
+        if self._restore(seed, stage, init) and m["recammaster"] is not None:
             self._init_from_recammaster(Path(m["recammaster"]))
         params = trainable_parameters(self.wan, stage)
         self.optimizer = torch.optim.AdamW(params, lr=float(t["lr"]), betas=tuple(t["betas"]),
