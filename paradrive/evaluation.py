@@ -13,6 +13,10 @@ renders any pose exactly. For one scene this measures
   (offset 0, the fit's own quality on the clip frames);
 * **conditions**: each under-fitted checkpoint on the recorded trajectory against the recorded
   frames, as the condition streams are made;
+* **poses** (a video exported from a street, ``paradrive export video``): the SfM path's scale
+  error and, with only the first camera placed on the street's, its largest position and
+  rotation errors. Its shifted and recorded views are compared with the street's from the true
+  camera of each frame (see ``_truth_from_scene``);
 * **heldout** (any dataset, when the fit held views out, ``fit.holdout_every`` /
   ``fit.holdout_cameras``): each checkpoint rendered at the poses of the images the fit never saw,
   at the fit's resolution, against those images (PSNR, SSIM, and ``psnr_static`` /
@@ -174,7 +178,7 @@ class _EvalContext:
         from paradrive.gs.views import sky_dome_of
 
         self.scene, self.layout, self.street, self.moving = scene, layout, street, moving
-        self.to_truth = _truth_from_scene(scene, street)
+        self.anchors, self.instants = _truth_from_scene(scene, street)
         self.p, self.renders, self.fit, self.log = render_params, renders, fit, log
         self.sky = sky_dome_of(scene, fit.init if fit else None)
 
@@ -205,9 +209,9 @@ class _EvalContext:
             self.log.info("eval: %s %s cond@%d: PSNR %.2f SSIM %.3f", sid, cam_name, it,
                           q["psnr"], q["ssim"])
         final = self.model(p.source_checkpoint)
-        instants = [scene.frames[f].index for f in frames]  # actors move: truth at those frames
+        instants = [self.instants[f] for f in frames]  # actors move: truth at those frames
         rgb, dep = self.render(final, recorded, frames, out, depth=True)
-        truth = self.street.render(self.to_truth @ recorded, out.K, out.width, out.height,
+        truth = self.street.render(self.to_street(recorded, frames), out.K, out.width, out.height,
                                    frames=instants)
         recorded_doc = {"iteration": p.source_checkpoint, **image_quality(rgb, target),
                         "psnr_vs_truth": image_quality(rgb, truth["rgb"])["psnr"],
@@ -216,6 +220,10 @@ class _EvalContext:
         return {"intrinsics": out.intrinsics, "frames": frames, "conditions": conditions,
                 "shifted": shifted_rows, "recorded": recorded_doc,
                 "shifted_by_abs_offset": _by_abs_offset(shifted_rows)}
+
+    def to_street(self, c2w: np.ndarray, frames: list[int]) -> np.ndarray:
+        """Poses of the scene at ``frames`` in the street's world."""
+        return np.einsum("fij,fjk->fik", self.anchors[frames], c2w)
 
     def truth_quality(self, rgb, dep, truth: dict, instants: list[int], c2w, out) -> dict:
         from paradrive.gs.views import static_quality
@@ -233,9 +241,9 @@ class _EvalContext:
                              path=self.layout.renders_json, fix="evaluate with smaller offsets")
         shifted = poses[frames]
         name = source_stream(d, self.p.transform)
-        instants = [self.scene.frames[f].index for f in frames]
+        instants = [self.instants[f] for f in frames]
         rgb, dep = self.render(final, shifted, frames, out, depth=True)
-        truth = self.street.render(self.to_truth @ shifted, out.K, out.width, out.height,
+        truth = self.street.render(self.to_street(shifted, frames), out.K, out.width, out.height,
                                    frames=instants)
         q = image_quality(rgb, truth["rgb"])
         self.log.info("eval: %s %s %s: PSNR %.2f SSIM %.3f", self.scene.scene_id, cam_name,
@@ -322,13 +330,40 @@ def _truth_uri(scene) -> str | None:
     return scene.extra.get("video", {}).get("truth") if scene.dataset == "video" else None
 
 
-def _truth_from_scene(scene, street) -> np.ndarray:
-    """street-world-from-scene-world: the identity for a synthetic scene; for a video, whose world
-    is its own first ego pose found by SfM, the one that puts its first front camera on the
-    street's (no other alignment: scale, up and drift errors stay in the numbers)."""
+def _truth_from_scene(scene, street) -> tuple[np.ndarray, list[int]]:
+    """Per scene frame, street-world-from-scene-world (F, 4, 4) and the street's frame.
+
+    The identity and the same frame for a synthetic scene. A video's world is its own, found by
+    SfM: each frame's transform puts that frame's recorded camera on the street's camera of the
+    same moment, so a shifted view is compared with the street's view from the same offset
+    beside the true camera. The scale and the up axis count in the figures (the offset is taken
+    in the video's metres, along its road plane); drift along the path does not, as the fit saw
+    the images where SfM placed them: ``video_pose_errors`` measures it.
+    """
+    n = len(scene.frames)
     if street is None or scene.dataset == "synthetic":
-        return np.eye(4)
-    return street.c2w("front")[0] @ np.linalg.inv(scene.c2w("front")[0])
+        return np.repeat(np.eye(4)[None], n, axis=0), [f.index for f in scene.frames]
+    source = [int(i) for i in scene.extra["video"]["source_frames"]]
+    recorded = scene.c2w("front")
+    return np.einsum("fij,fjk->fik", street.c2w("front")[source], np.linalg.inv(recorded)), source
+
+
+def video_pose_errors(scene, street) -> dict:
+    """A video scene's poses against the street's: the path's scale error, and with the first
+    camera placed on the street's first camera (no other alignment), the largest position error
+    (metres and share of the path) and rotation error (degrees)."""
+    from paradrive.ingest.sfm import path_length
+
+    source = [int(i) for i in scene.extra["video"]["source_frames"]]
+    truth = street.c2w("front")[source]
+    est = scene.c2w("front")
+    placed = np.einsum("ij,fjk->fik", truth[0] @ np.linalg.inv(est[0]), est)
+    path = path_length(truth)
+    position = np.linalg.norm(placed[:, :3, 3] - truth[:, :3, 3], axis=1).max()
+    cos = (np.einsum("fij,fij->f", placed[:, :3, :3], truth[:, :3, :3]) - 1.0) / 2.0
+    return {"path_m": path, "scale_error": path_length(est) / path - 1.0,
+            "position_error_m": float(position), "position_error_of_path": float(position / path),
+            "rotation_error_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max())}
 
 
 def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, cameras, max_frames,
@@ -391,6 +426,8 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                                   "resolution; psnr_vs_truth: the same renders against the "
                                   "synthetic street's truth"},
            "cameras": doc_cams, **({"heldout": heldout} if heldout is not None else {})}
+    if scene.dataset == "video" and street is not None:
+        doc["poses"] = video_pose_errors(scene, street)
     folder = Path(out_dir) if out_dir is not None else scene_dir / "eval"
     folder.mkdir(parents=True, exist_ok=True)
     plot_eval(doc, folder / "eval.png")

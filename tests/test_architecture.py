@@ -31,7 +31,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.gs._fit_loss", "paradrive.gs.strategy", "paradrive.gs.ply",
         "paradrive.synthetic.raycast",
         "paradrive.ingest.protowire", "paradrive.ingest.tfrecord", "paradrive.ingest.undistort",
-        "paradrive.ingest.waymo_proto", "paradrive.ingest.sfm",
+        "paradrive.ingest.waymo_proto", "paradrive.ingest.sfm", "paradrive.ingest.roadmotion",
         "paradrive.train.autoencoder", "paradrive.train.flow", "paradrive.train.model",
         "paradrive.wan", "paradrive.wan.vae", "paradrive.wan.text", "paradrive.wan.recam",
     ),

@@ -368,6 +368,24 @@ def test_lidar_init_filters_points_and_colours_them_from_images(tiny_scene):
     assert torch.isfinite(raw["scales"]).all() and raw["shN"].shape[1:] == (15, 3)
 
 
+def test_sparse_lidar_is_topped_up_with_image_based_points(tiny_scene):
+    """A video's few SfM points: under init_top_up of init_points, frustum points fill the rest,
+    after the LiDAR points, which stay as they were; init_top_up 0 keeps the LiDAR alone."""
+    from paradrive.scene import load_scene
+
+    scene = load_scene(tiny_scene)
+    views = load_views(scene, None, 1)
+    log = __import__("logging").getLogger("test")
+    sparse = {**TINY_FIT, "init": "auto", "init_points": 800, "lidar_max_points": 100}
+    alone = initial_model(scene, views, fit_params("smoke", **sparse, init_top_up=0.0),
+                          scene_scale_of(scene.c2w("front")), log)
+    topped = initial_model(scene, views, fit_params("smoke", **sparse, init_top_up=0.5),
+                           scene_scale_of(scene.c2w("front")), log)
+    assert alone[3]["init"]["method"] == "lidar" and alone[3]["init"]["points"] == 100
+    assert topped[3]["init"]["method"] == "lidar+frustum" and topped[3]["init"]["points"] == 800
+    torch.testing.assert_close(topped[0]["means"][:100], alone[0]["means"][:100], rtol=0, atol=0)
+
+
 def test_lidar_free_init_lands_near_the_surfaces(tiny_scene):
     from paradrive.scene import load_scene
 

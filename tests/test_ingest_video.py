@@ -58,12 +58,32 @@ def test_every_frame_registers_in_metres_against_the_truth(video_scene):
     assert scene.dataset == "video" and len(scene.frames) == 24 and list(scene.cameras) == ["front"]
     assert summary["video"]["registered"] == "0-23"
     assert summary["video"]["intrinsics"]["estimated"] is False
+    # the issue's goals: scale within 3 %, and with only the first frame aligned every position
+    # within 2 % of the path (the road points alone, 'by_road_points', give 4-5 % here)
+    scale = summary["video"]["scale"]
+    assert scale["height_from"] == "road motion" and scale["road_motion"]["pairs"] >= 5
     c2w = scene.c2w("front")
-    assert abs(path_length(c2w) / path_length(truth) - 1) < 0.06
-    # only the first frame aligned: every position within 6 % of the path
+    assert abs(path_length(c2w) / path_length(truth) - 1) < 0.03
     align = truth[0] @ geometry.invert(c2w[0])
     err = np.linalg.norm((align @ c2w)[:, :3, 3] - truth[:, :3, 3], axis=1)
-    assert err.max() < 0.06 * path_length(truth)
+    assert err.max() < 0.02 * path_length(truth)
+
+
+def test_eval_compares_each_frame_with_the_street_s_camera_of_that_moment(video_scene):
+    """eval's anchors put every recorded camera on the street's true one (a shifted view is then
+    compared with the true view beside it), and its pose errors are the path's own."""
+    from paradrive.evaluation import _truth_from_scene, video_pose_errors
+
+    scene, _ = video_scene
+    street = SyntheticStreet(name="demo", seed=7, frames=24, width=320, height=192)
+    anchors, instants = _truth_from_scene(scene, street)
+    assert instants == list(range(24))
+    np.testing.assert_allclose(np.einsum("fij,fjk->fik", anchors, scene.c2w("front")),
+                               street.c2w("front"), atol=1e-9)
+    errors = video_pose_errors(scene, street)
+    c2w, truth = scene.c2w("front"), truth_c2w()
+    assert errors["scale_error"] == pytest.approx(path_length(c2w) / path_length(truth) - 1)
+    assert 0 < errors["position_error_of_path"] < 0.02 and errors["rotation_error_deg"] < 2.0
 
 
 def test_the_ego_frame_is_level_with_the_road(video_scene):
@@ -85,7 +105,11 @@ def test_the_ego_frame_is_level_with_the_road(video_scene):
 def test_sfm_points_are_the_fit_s_initial_points(video_scene):
     scene, summary = video_scene
     points = scene.lidar_points()
-    assert points is not None and len(points) == summary["video"]["points"] > 100
+    assert points is not None and summary["video"]["points"] > 100
+    # each point under every frame that sees it: several copies each (the model may hold a few
+    # coincident points, so the distinct ones are at most as many)
+    n = summary["video"]["points"]
+    assert 0.9 * n <= len(np.unique(points, axis=0)) <= n and len(points) > 2 * n
     # most lie within the street's 60 m ahead, above the road by at most a few facades
     ahead = points[:, 0]
     assert np.median(ahead) > 0 and np.percentile(points[:, 2], 5) > -1.0

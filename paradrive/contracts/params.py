@@ -61,6 +61,7 @@ class FitParams(StageParams):
     init_depth_max: float
     init_depth_candidates: int
     init_ground_margin: float | None
+    init_top_up: float
     lidar_voxel: float
     lidar_max_points: int
     sky_points: int

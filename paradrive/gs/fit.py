@@ -170,6 +170,17 @@ def _lidar_split(scene, graph: Graph) -> tuple[np.ndarray | None, list[np.ndarra
             [np.concatenate(x) if x else np.zeros((0, 3)) for x in local])
 
 
+def _frustum_init(views: list[View], n_points: int, scene, graph: Graph, p: FitParams,
+                  gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n_points`` rays of the image-based init, less those inside a moving actor's swept box."""
+    means, rgb = gsinit.frustum_points_init(views, n_points=n_points, depth_min=p.init_depth_min,
+                                            depth_max=p.init_depth_max,
+                                            depth_candidates=p.init_depth_candidates,
+                                            ground_margin=p.init_ground_margin, generator=gen)
+    keep = _outside_swept_boxes(means, scene, graph)
+    return means[keep], rgb[keep]
+
+
 def _outside_swept_boxes(means: torch.Tensor, scene, graph: Graph) -> torch.Tensor:
     """(N,) bool: points in no moving actor's box at any frame (a LiDAR-free init cannot tell
     which frame a point came from, so the whole swept volume is left to the actors)."""
@@ -208,15 +219,12 @@ def initial_model(scene, views: list[View], p: FitParams, scene_scale: float,
                                               max_points=min(p.lidar_max_points, budget),
                                               generator=gen)
         how = "lidar"
+        if len(means) < p.init_top_up * budget:  # sparse: a video's SfM points
+            f_means, f_rgb = _frustum_init(ordered, budget - len(means), scene, graph, p, gen)
+            means, rgb = torch.cat([means, f_means]), torch.cat([rgb, f_rgb])
+            how = "lidar+frustum"
     else:
-        means, rgb = gsinit.frustum_points_init(ordered, n_points=budget,
-                                                depth_min=p.init_depth_min,
-                                                depth_max=p.init_depth_max,
-                                                depth_candidates=p.init_depth_candidates,
-                                                ground_margin=p.init_ground_margin,
-                                                generator=gen)
-        keep = _outside_swept_boxes(means, scene, graph)
-        means, rgb = means[keep], rgb[keep]
+        means, rgb = _frustum_init(ordered, budget, scene, graph, p, gen)
         how = "frustum"
     scales = gsinit.knn_scales(means, max_scale=0.1 * scene_scale)
     params = new_params(means, rgb, scales, opacity=p.init_opacity,

@@ -11,11 +11,13 @@ A video has no calibration and no LiDAR, so its poses come from the images alone
    adjustment drifts it far from the truth. Unknown ones are estimated as one shared
    SIMPLE_RADIAL camera.
 2. :func:`fit_road_plane`: a RANSAC plane through the points seen below and ahead of the camera,
-   among roughly level planes. Its normal is the up axis, and the camera's height above the
-   lowest dense layer of points in the ego lane (in reconstruction units) against the known mount
-   height gives the metric scale. A similarity fit of camera centres cannot give either on a
-   straight road: the centres are collinear, which leaves the roll about the road and the up
-   axis free.
+   among roughly level planes, and a first measure of the camera's height above it (the lowest
+   dense layer of points in the ego lane, in reconstruction units). :func:`level_with_path`
+   makes its normal perpendicular to the direction of travel; that is the up axis. The height
+   that sets the metric scale against the known mount height comes from the road's own motion
+   in the images (:mod:`paradrive.ingest.roadmotion`), which the points only start. A similarity
+   fit of camera centres cannot give either on a straight road: the centres are collinear,
+   which leaves the roll about the road and the up axis free.
 3. :func:`metric_rig`: the poses in the builder's conventions (docs/conventions.md): metres, a
    world whose origin is the first ego pose with z up, and an ego frame level with the road
    (x forward, y left, z up) under the camera, so a lateral shift moves along the road surface.
@@ -34,7 +36,8 @@ import numpy as np
 from paradrive import geometry
 
 __all__ = ["SfmError", "Intrinsics", "Reconstruction", "RoadPlane", "MetricRig", "reconstruct",
-           "registered_runs", "fit_road_plane", "metric_rig", "path_length", "format_runs"]
+           "registered_runs", "fit_road_plane", "level_with_path", "metric_rig", "path_length",
+           "format_runs"]
 
 
 class SfmError(ValueError):
@@ -64,7 +67,8 @@ class Reconstruction:
 
     c2w: (n, 4, 4) OpenCV camera-to-world, NaN for frames that did not register.
     points / colors: (M, 3) float64 triangulated points and their uint8 colours; ``point_frame``:
-    the first frame that observes each point, ``point_views`` how many frames observe it.
+    the first frame that observes each point, ``point_views`` how many frames observe it;
+    ``seen_point`` / ``seen_frame``: every observation, a point index and its frame.
     intrinsics / distortion: the camera the model used (distortion as OpenCV's (k1, k2, p1, p2,
     k3); zero where intrinsics were given). ``estimated``: whether the intrinsics were estimated.
     """
@@ -79,6 +83,8 @@ class Reconstruction:
     estimated: bool
     seconds: float
     models: int = 1
+    seen_point: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    seen_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def registered(self) -> np.ndarray:
@@ -174,14 +180,18 @@ def _read_model(model, names: list[str], given: Intrinsics | None) -> Reconstruc
     ids = sorted(model.points3D)
     points = np.array([model.points3D[p].xyz for p in ids], dtype=np.float64).reshape(-1, 3)
     colors = np.array([model.points3D[p].color for p in ids], dtype=np.uint8).reshape(-1, 3)
-    first = np.array([min(image_frame[e.image_id] for e in model.points3D[p].track.elements)
-                      for p in ids], dtype=np.int64)
+    seen = [(k, image_frame[e.image_id]) for k, p in enumerate(ids)
+            for e in model.points3D[p].track.elements]
+    seen_point, seen_frame = np.array(seen, dtype=np.int64).reshape(-1, 2).T
+    first = np.full(len(ids), len(names), dtype=np.int64)
+    np.minimum.at(first, seen_point, seen_frame)
     views = np.array([model.points3D[p].track.length() for p in ids], dtype=np.int64)
     camera = next(iter(model.cameras.values()))
     intrinsics, distortion = _camera(camera)
     return Reconstruction(c2w=c2w, points=points, colors=colors, point_frame=first, point_views=views,
                           intrinsics=given or intrinsics, distortion=distortion,
-                          estimated=given is None, seconds=0.0)
+                          estimated=given is None, seconds=0.0, seen_point=seen_point,
+                          seen_frame=seen_frame)
 
 
 def _camera(camera) -> tuple[Intrinsics, tuple[float, float, float, float, float]]:
@@ -368,6 +378,20 @@ def _plane_through(points: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, float(-normal @ centre)
 
 
+def level_with_path(up: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """``up`` made perpendicular to the direction from the first camera of ``c2w`` to the last.
+
+    A vehicle drives on the road, so its path runs level with the road's plane, while the plane
+    through triangulated points comes out tilted along the road by a few tenths of a degree: on
+    forward motion SfM trades a small pitch of every camera against the direction of travel,
+    which lifts each point by its distance times that pitch.
+    """
+    travel = c2w[-1, :3, 3] - c2w[0, :3, 3]
+    travel = travel / np.linalg.norm(travel)
+    level = up - (up @ travel) * travel
+    return level / np.linalg.norm(level)
+
+
 # --------------------------------------------------------------------------- metric poses
 
 @dataclass
@@ -403,8 +427,9 @@ def _mean_rotation(rotations: np.ndarray) -> np.ndarray:
     return r
 
 
-def metric_rig(c2w_model: np.ndarray, plane: RoadPlane, scale: float) -> MetricRig:
-    """Metric poses of registered cameras ``c2w_model`` (F, 4, 4) over ``plane``.
+def metric_rig(c2w_model: np.ndarray, up: np.ndarray, height: float, scale: float) -> MetricRig:
+    """Metric poses of registered cameras ``c2w_model`` (F, 4, 4) ``height`` model units above
+    a road whose unit normal is ``up``.
 
     The camera's mount on the vehicle is fixed: ``cam2ego`` is the mean over frames of the
     camera's attitude relative to a level frame whose x is its forward direction along the road,
@@ -412,12 +437,11 @@ def metric_rig(c2w_model: np.ndarray, plane: RoadPlane, scale: float) -> MetricR
     inverse mount, so ``c2w = ego2world . cam2ego`` holds exactly and the ego's y axis (the
     lateral shift) is level with the road wherever the camera's attitude on the vehicle is.
     """
-    up = plane.normal
     level = np.stack([_level_frame(up, c[:3, 2]) for c in c2w_model])
     mount = _mean_rotation(np.einsum("fji,fjk->fik", level, c2w_model[:, :3, :3]))
-    cam2ego = geometry.make_pose(mount, [0.0, 0.0, plane.height * scale])
+    cam2ego = geometry.make_pose(mount, [0.0, 0.0, height * scale])
     # model frame -> metric frame at the first ego pose: rotate, scale, re-anchor
-    ego0 = c2w_model[0] @ geometry.invert(geometry.make_pose(mount, [0.0, 0.0, plane.height]))
+    ego0 = c2w_model[0] @ geometry.invert(geometry.make_pose(mount, [0.0, 0.0, height]))
     rot0 = ego0[:3, :3].T
     world_from_model = np.eye(4)
     world_from_model[:3, :3] = scale * rot0

@@ -4,7 +4,7 @@ A dashcam video (any container PyAV reads) or a folder of frames (sorted by name
 canonical scene with one camera, ``front``: frames sampled at ``fps`` over ``[start, end)``
 seconds, poses from :mod:`paradrive.ingest.sfm` in metres (the road plane and the camera's
 height above it, or a speed / GPS track beside the video), the triangulated points stored where
-LiDAR points go (``lidar/<frame>.npy``, each point with the first frame that sees it) so the fit
+LiDAR points go (``lidar/<frame>.npy``, each point under every frame that sees it) so the fit
 starts from them, no actors.
 
 Query keys (all optional):
@@ -30,6 +30,7 @@ from __future__ import annotations
 import csv
 import math
 import shutil
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -38,8 +39,9 @@ import numpy as np
 
 from paradrive.errors import ParaDriveError, SceneError
 from paradrive.ingest.common import fps_from, save_points
-from paradrive.ingest.sfm import (Intrinsics, Reconstruction, SfmError, fit_road_plane,
-                                  format_runs, metric_rig, path_length, reconstruct,
+from paradrive.ingest.roadmotion import road_motion_height
+from paradrive.ingest.sfm import (Intrinsics, Reconstruction, RoadPlane, SfmError, fit_road_plane,
+                                  format_runs, level_with_path, metric_rig, path_length, reconstruct,
                                   registered_runs)
 from paradrive.ingest.undistort import distortion_is_zero, undistort_image
 from paradrive.scene import Camera, Frame, FrameCamera, Scene, write_image
@@ -289,11 +291,23 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
     return scene
 
 
-def _scale(rec: Reconstruction, run: slice, plane_height: float, opts: VideoOptions,
-           footage: Footage, path: Path, scene_id: str) -> tuple[float, dict]:
-    """Metres per model unit: from the camera height, or from the track where there is one."""
-    by_height = opts.height_m / plane_height
-    doc: dict[str, Any] = {"source": "height", "height_m": opts.height_m, "by_height": by_height}
+def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray, frame,
+           opts: VideoOptions, footage: Footage, path: Path,
+           scene_id: str) -> tuple[float, float, dict]:
+    """Metres per model unit, from the camera's height above the road (measured by the road's
+    motion, else by the SfM points on it) or from the track where there is one; that height in
+    model units; what was measured."""
+    start = time.perf_counter()
+    motion = road_motion_height(frame, rec.c2w[run], rec.intrinsics.K(), up, plane.height)
+    seconds = time.perf_counter() - start
+    camera_height = motion.height if motion is not None else plane.height
+    by_height = opts.height_m / camera_height
+    doc: dict[str, Any] = {"source": "height", "height_m": opts.height_m, "by_height": by_height,
+                           "height_from": "road motion" if motion is not None else "road points",
+                           "by_road_points": opts.height_m / plane.height}
+    if motion is not None:
+        doc["road_motion"] = {"pairs": len(motion.pairs), "spread": motion.spread,
+                              "seconds": seconds}
     track = track_path(path)
     if track.is_file():
         times = footage.times[run]
@@ -301,9 +315,9 @@ def _scale(rec: Reconstruction, run: slice, plane_height: float, opts: VideoOpti
         by_track = metres / path_length(rec.c2w[run])
         doc.update(source=kind, track=str(track), by_track=by_track,
                    height_vs_track=by_height / by_track - 1.0,
-                   camera_height_by_track_m=plane_height * by_track)
-        return by_track, doc
-    return by_height, doc
+                   camera_height_by_track_m=camera_height * by_track)
+        return by_track, camera_height, doc
+    return by_height, camera_height, doc
 
 
 def _scene(uri: SceneURI, rec: Reconstruction, footage: Footage, opts: VideoOptions,
@@ -316,24 +330,29 @@ def _scene(uri: SceneURI, rec: Reconstruction, footage: Footage, opts: VideoOpti
         raise SceneError(f"no metric scale: {exc}", scene_id=scene_id, path=path,
                          fix="the camera must see the road ahead: trim start=/end= to where it "
                              "does, or give a speed/GPS track as <stem>.csv (t,speed_mps)") from exc
-    scale, scale_doc = _scale(rec, run, plane.height, opts, footage, path, scene_id)
-    rig = metric_rig(rec.c2w[run], plane, scale)
+    K, dist = rec.intrinsics, rec.distortion
+
+    def frame(k: int) -> np.ndarray:
+        """Kept frame ``k``, undistorted."""
+        pixels = footage.pixels[kept[0] + k]
+        return pixels if distortion_is_zero(dist) else undistort_image(pixels, K.K(), dist)
+
+    up = level_with_path(plane.normal, rec.c2w[run])
+    scale, camera_height, scale_doc = _scale(rec, run, plane, up, frame, opts, footage, path,
+                                             scene_id)
+    rig = metric_rig(rec.c2w[run], up, camera_height, scale)
     travelled = path_length(rig.c2w)
     if travelled < MIN_PATH_M:
         raise SceneError(f"the camera moves {travelled:.2f} m over the kept frames: a static "
                          f"camera gives no baseline", scene_id=scene_id, path=path,
                          fix="trim start=/end= to where the vehicle drives")
-    K, dist = rec.intrinsics, rec.distortion
     camera = Camera(name=CAMERA, width=int(footage.pixels.shape[2]),
                     height=int(footage.pixels.shape[1]), fx=K.fx, fy=K.fy, cx=K.cx, cy=K.cy,
                     cam2ego=rig.cam2ego)
     frames = []
     for k, i in enumerate(range(kept[0], kept[1] + 1)):
-        pixels = footage.pixels[i]
-        if not distortion_is_zero(dist):
-            pixels = undistort_image(pixels, (K.fx, K.fy, K.cx, K.cy), dist)
         rel = f"images/{CAMERA}/{k:06d}.{params.image_ext}"
-        write_image(out_dir / rel, pixels, quality=params.jpeg_quality)
+        write_image(out_dir / rel, frame(k), quality=params.jpeg_quality)
         frames.append(Frame(index=k, timestamp_us=int(round(footage.times[i] * 1e6)),
                             ego2world=rig.ego2world[k],
                             cameras={CAMERA: FrameCamera(image=rel, c2w=rig.c2w[k])}))
@@ -355,9 +374,12 @@ def _scene(uri: SceneURI, rec: Reconstruction, footage: Footage, opts: VideoOpti
 
 
 def _save_model_points(rec: Reconstruction, rig, kept: tuple[int, int], out_dir: Path) -> None:
-    """The triangulated points in the scene world, each under the first kept frame that sees it
-    (``lidar/<frame>.npy``): the fit's point initialisation reads them as it reads LiDAR."""
-    world = rig.points(rec.points)
-    frame = np.clip(rec.point_frame, kept[0], kept[1]) - kept[0]
+    """The triangulated points in the scene world, each under every kept frame that sees it
+    (``lidar/<frame>.npy``), as a LiDAR sweep holds what its frame sees: the fit's depth term
+    then checks each point in all its views, near ones included, not only where it was first
+    seen far ahead; its point initialisation merges the copies (voxel filter)."""
+    world = rig.points(rec.points).astype(np.float32)
+    inside = (rec.seen_frame >= kept[0]) & (rec.seen_frame <= kept[1])
+    frame, point = rec.seen_frame[inside] - kept[0], rec.seen_point[inside]
     for k in np.unique(frame):
-        save_points(out_dir, int(k), world[frame == k])
+        save_points(out_dir, int(k), world[point[frame == k]])

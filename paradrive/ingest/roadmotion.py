@@ -1,0 +1,223 @@
+"""The camera's height above the road from the road's own motion in the images (SfM units).
+
+Triangulated road points are a poor ruler for the height: on forward motion structure from
+motion trades a small rotation of every camera against the direction of travel (about 0.2 deg on
+the synthetic street), and that lifts a point seen 10 m ahead by some 4 cm, a few per cent of a
+dashcam's height, always the same way. The pixels of the road itself are a better one. Between
+two frames ``i`` and ``j`` the road moves by the homography its plane induces,
+
+    x_j ~ K (R + u n^T) K^-1 x_i,   u = t / d,
+
+where ``X_j = R X_i + t`` is the relative pose from SfM (model units), ``n`` the road's unit
+normal seen from camera ``i`` (pointing down) and ``d`` the camera's height above the road. With
+``R`` and ``n`` held (``n`` made perpendicular to the pair's step: the vehicle drives on the
+road, and the SfM points leave their plane tilted by a few tenths of a degree, which would cost
+several per cent of height), the three numbers of ``u`` are fitted by aligning the ego lane's
+road pixels of the later frame onto the earlier one, where the road was further ahead and
+still in view (Gauss-Newton on a coarse-to-fine blur, with robust weights so that a vehicle in
+the lane counts little). Pixels that do not change over the video (a car's hood, a text
+overlay) and their neighbours are left out. The step's own length from SfM then gives
+``d = |t| / |u|``. Fitting ``u``'s direction too, rather than taking SfM's, keeps the rotation
+bias out of the size. The height is the median over pairs spread along the video.
+
+Pure numpy and deterministic: the same frames give the same height at any thread count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from paradrive import geometry
+from paradrive.ingest.sfm import level_with_path
+
+__all__ = ["RoadMotion", "road_motion_height"]
+
+LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class RoadMotion:
+    """The camera's height above the road (model units): the median over frame ``pairs`` of
+    their ``heights``; ``spread`` is the heights' interquartile range over the median."""
+
+    height: float
+    heights: np.ndarray
+    pairs: list[tuple[int, int]]
+    spread: float
+
+
+def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: np.ndarray,
+                       up: np.ndarray, height: float, *, pairs: int = 40, baseline: float = 1.5,
+                       near: float = 2.0, far: float = 8.0, lane: float = 1.4,
+                       max_width: int = 480, blurs: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5),
+                       iterations: int = 8, min_pairs: int = 5,
+                       static_std: float = 1.0 / 255.0) -> RoadMotion | None:
+    """The camera's height above the road by the road's motion, or None where fewer than
+    ``min_pairs`` frame pairs align (no road texture, a camera that barely moves).
+
+    image(k): frame ``k`` as (H, W, 3) uint8, pinhole ``K`` (undistorted). c2w: (F, 4, 4) OpenCV
+    camera-to-world of those frames in model units. up / height: the road's unit normal towards
+    the cameras and a first guess of the camera's height above it (from the SfM points), which
+    also decides the road pixels: ``near``..``far`` heights ahead, within ``lane`` heights to
+    either side. Pairs start at ``pairs`` evenly spaced frames; each pairs a frame with the first
+    one ``baseline`` heights further along the path. Images wider than ``max_width`` are halved
+    until they are not. Pixels whose grey level varies by less than ``static_std`` (standard
+    deviation over the frames used, in [0, 1]) are left out: they move with the camera.
+    """
+    centres = c2w[:, :3, 3]
+    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))]
+    starts = np.unique(np.linspace(0, len(c2w) - 1, pairs).round().astype(int))
+    ends = np.searchsorted(along, along[starts] + baseline * height)
+    chosen = [(int(i), int(j)) for i, j in zip(starts, ends) if j < len(c2w)]
+    if len(chosen) < min_pairs:
+        return None
+    gray, Kp = {}, np.array(K, dtype=np.float64)
+    for k in sorted({k for pair in chosen for k in pair}):
+        gray[k], Kp = _reduce(K, _gray(image(k)), max_width)
+    # what does not change over the video is not the road: a car's hood, a text overlay
+    still = np.std(np.stack(list(gray.values())), axis=0) <= static_std
+    # and the blur would smear it over the road pixels next to it
+    moving = ~_dilate(still, int(np.ceil(3 * max(blurs))))
+    heights, used = [], []
+    for i, j in chosen:
+        # the later frame's road pixels, found in the earlier frame: the road comes towards the
+        # camera, so where frame j sees it frame i saw it further up, still in view
+        rel = geometry.invert(c2w[i]) @ c2w[j]  # X_i = R X_j + t
+        down = -c2w[j, :3, :3].T @ level_with_path(up, c2w[[i, j]])
+        u = _fit_step(gray[j], gray[i], moving, Kp, rel[:3, :3], rel[:3, 3] / height, down,
+                      height, near=near, far=far, lane=lane, blurs=blurs, iterations=iterations)
+        if u is not None:
+            heights.append(float(np.linalg.norm(rel[:3, 3]) / np.linalg.norm(u)))
+            used.append((i, j))
+    if len(heights) < min_pairs:
+        return None
+    values = np.array(heights)
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return RoadMotion(height=float(median), heights=values, pairs=used,
+                      spread=float((q3 - q1) / median))
+
+
+def _gray(rgb: np.ndarray) -> np.ndarray:
+    return (np.asarray(rgb, dtype=np.float32) @ LUMA) / 255.0
+
+
+def _reduce(K: np.ndarray, img: np.ndarray, max_width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image box-halved until at most ``max_width`` wide, and K to match (pixel centres at
+    +0.5, so halving maps image coordinates x to x / 2 exactly)."""
+    K = np.array(K, dtype=np.float64)
+    while img.shape[1] > max_width:
+        img = _halve(img)
+        K[:2] *= 0.5
+    return img, K
+
+
+def _halve(img: np.ndarray) -> np.ndarray:
+    h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+    img = img[:h, :w]
+    return 0.25 * (img[0::2, 0::2] + img[1::2, 0::2] + img[0::2, 1::2] + img[1::2, 1::2])
+
+
+def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    """``mask`` grown by ``r`` pixels (a square window)."""
+    h, w = mask.shape
+    padded = np.pad(mask, r)
+    rows = np.zeros((h + 2 * r, w), dtype=bool)
+    for k in range(2 * r + 1):
+        rows |= padded[:, k:k + w]
+    out = np.zeros((h, w), dtype=bool)
+    for k in range(2 * r + 1):
+        out |= rows[k:k + h]
+    return out
+
+
+def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    """Separable Gaussian blur with edge replication."""
+    r = max(1, int(np.ceil(3 * sigma)))
+    taps = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    taps = (taps / taps.sum()).astype(np.float32)
+    h, w = img.shape
+    padded = np.pad(img, ((0, 0), (r, r)), mode="edge")
+    rows = sum(t * padded[:, k:k + w] for k, t in enumerate(taps))
+    padded = np.pad(rows, ((r, r), (0, 0)), mode="edge")
+    return sum(t * padded[k:k + h] for k, t in enumerate(taps))
+
+
+def _road_pixels(moving: np.ndarray, Kinv: np.ndarray, down: np.ndarray, height: float,
+                 near: float, far: float, lane: float) -> np.ndarray:
+    """(N, 3) homogeneous centres of the ``moving`` pixels whose ray meets the road
+    ``near``..``far`` heights ahead and within ``lane`` heights to the side."""
+    rows, cols = np.mgrid[0:moving.shape[0], 0:moving.shape[1]]
+    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(moving.shape)], -1).reshape(-1, 3)
+    rays = pix @ Kinv.T
+    towards = rays @ down
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ground = rays * (height / towards)[:, None]
+    keep = (moving.reshape(-1) & (towards > 1e-6) & (ground[:, 2] > near * height) & (ground[:, 2] < far * height)
+            & (np.abs(ground[:, 0]) < lane * height))
+    return pix[keep]
+
+
+def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray):
+    """Bilinear samples of ``img`` at image coordinates (pixel centres at +0.5), and a mask of
+    the points inside it."""
+    h, w = img.shape
+    fx, fy = x - 0.5, y - 0.5
+    inside = (fx >= 0) & (fy >= 0) & (fx <= w - 1.001) & (fy <= h - 1.001)
+    fx, fy = np.clip(fx, 0, w - 1.001), np.clip(fy, 0, h - 1.001)
+    x0, y0 = fx.astype(np.int64), fy.astype(np.int64)
+    ax, ay = fx - x0, fy - y0
+    top = img[y0, x0] * (1 - ax) + img[y0, x0 + 1] * ax
+    bottom = img[y0 + 1, x0] * (1 - ax) + img[y0 + 1, x0 + 1] * ax
+    return top * (1 - ay) + bottom * ay, inside
+
+
+def _fit_step(a: np.ndarray, b: np.ndarray, moving: np.ndarray, K: np.ndarray, R: np.ndarray,
+              u: np.ndarray, down: np.ndarray, height: float, *, near: float, far: float, lane: float,
+              blurs: tuple[float, ...], iterations: int, min_pixels: int = 400,
+              max_turn_deg: float = 5.0) -> np.ndarray | None:
+    """u = t / d that aligns image ``b`` onto image ``a``'s ``moving`` road pixels, from ``u``;
+    None when too few road pixels stay in view or the fitted step turns more than
+    ``max_turn_deg`` from SfM's (the alignment locked onto something else)."""
+    Kinv = np.linalg.inv(K)
+    pix = _road_pixels(moving, Kinv, down, height, near, far, lane)
+    if len(pix) < min_pixels:
+        return None
+    start = u.copy()
+    still = (~moving).astype(np.float32)
+    base = pix @ (K @ R @ Kinv).T       # K R K^-1 x, per pixel
+    plane = pix @ (Kinv.T @ down)       # n^T K^-1 x, per pixel
+    for sigma in blurs:
+        sa, sb = _blur(a, sigma), _blur(b, sigma)
+        ref, _ = _sample(sa, pix[:, 0], pix[:, 1])
+        gy, gx = np.gradient(sb)
+        for _ in range(iterations):
+            y = base + plane[:, None] * (K @ u)[None]
+            qx, qy = y[:, 0] / y[:, 2], y[:, 1] / y[:, 2]
+            value, inside = _sample(sb, qx, qy)
+            inside &= _sample(still, qx, qy)[0] < 0.01  # not onto what moves with the camera
+            if inside.sum() < min_pixels:
+                return None
+            ix, _ = _sample(gx, qx, qy)
+            iy, _ = _sample(gy, qx, qy)
+            # d value / d u = grad . d q / d y . plane * K
+            dq = np.stack([ix / y[:, 2], iy / y[:, 2],
+                           -(ix * y[:, 0] + iy * y[:, 1]) / y[:, 2] ** 2], -1)
+            J = (dq @ K) * plane[:, None]
+            r = value - ref
+            w = inside / np.sqrt(r * r + 0.02 ** 2)  # Charbonnier weights: a car ahead counts little
+            # einsum, not BLAS: sums in one order at any thread count
+            H = np.einsum("ni,n,nj->ij", J, w, J)
+            if not np.isfinite(H).all() or np.trace(H) <= 1e-12:
+                return None  # no texture to align
+            gradient = np.einsum("ni,n,n->i", J, w, r)
+            step = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(3), -gradient)
+            u = u + step
+            if np.linalg.norm(step) < 1e-5 * np.linalg.norm(u):
+                break
+    if not np.isfinite(u).all():
+        return None
+    cos = u @ start / (np.linalg.norm(u) * np.linalg.norm(start))
+    return u if cos > np.cos(np.deg2rad(max_turn_deg)) else None
