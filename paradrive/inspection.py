@@ -22,7 +22,7 @@ import numpy as np
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, atomic_path, sha256_file
 from paradrive.pairs import build_file, iter_shard, read_index, read_pairs, shard_paths
-from paradrive.streams import format_offset
+from paradrive.streams import format_offset, stream_transform
 from paradrive.trajectories import rig_picture, trajectories_picture
 
 __all__ = ["summarize", "verify_build", "default_jobs", "contact_sheet", "trajectories_picture", "rig_picture", "register"]
@@ -242,6 +242,21 @@ def _pick_pairs(rows: list[dict], count: int) -> list[dict]:
     return chosen[:count]
 
 
+def sheet_labels(row: dict, kind: str) -> list[tuple[str, str, str]]:
+    """(role, what it shows, its checkpoint) per video of a pair on the contact sheet; a
+    longitudinal build's source is moved along the path, not shifted beside it."""
+    streams = (row.get("source_stream") or "", row.get("condition_stream") or "")
+    moved = any(stream_transform(name) == "longitudinal" for name in streams)
+    shift = f"{'moved' if moved else 'shifted'} {format_offset(row['offset_m'])}"
+    if kind == "inference":
+        return [("source", "recorded camera", ""),
+                ("condition", shift, f"ckpt {row['condition_iteration']}"),
+                ("target", f"true view, {shift}", "")]
+    return [("source", shift, f"ckpt {row['source_iteration']}"),
+            ("condition", "recorded path", f"ckpt {row['condition_iteration']}"),
+            ("target", "recorded camera", "")]
+
+
 def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, frames: int = 3,
                   thumb_width: int = 208) -> Path:
     """A PNG with ``pairs`` pairs: source / condition / target thumbnails at ``frames`` frames."""
@@ -280,16 +295,7 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
                                 f"condition PSNR {psnr:.1f} dB" if psnr is not None else
                                 row["pair_id"], fill=(0, 0, 0), font=font)
         y += head
-        shift = f"shifted {format_offset(row['offset_m'])}"
-        if index.kind == "inference":
-            labels = [("source", "recorded camera", ""),
-                      ("condition", shift, f"ckpt {row['condition_iteration']}"),
-                      ("target", f"true view, {shift}", "")]
-        else:
-            labels = [("source", shift, f"ckpt {row['source_iteration']}"),
-                      ("condition", "recorded path", f"ckpt {row['condition_iteration']}"),
-                      ("target", "recorded camera", "")]
-        for (role, line2, line3) in labels:
+        for (role, line2, line3) in sheet_labels(row, index.kind):
             if row[f"{role}_uri"] is None:  # an inference row of a real log: no true view
                 continue
             video = build_file(build_dir, row[f"{role}_uri"],

@@ -13,7 +13,7 @@ from conftest import stage_params
 import typer
 from typer.testing import CliRunner
 
-from paradrive.inspection import register, summarize, verify_build
+from paradrive.inspection import register, sheet_labels, summarize, verify_build
 from paradrive.stages.manifest import build_manifest
 from paradrive.pairs import read_index
 from test_manifest import scenes_entry, write_clip_scene
@@ -124,6 +124,18 @@ def test_sheet_and_trajectory_pictures(build, tmp_path):
     assert (np.abs(picture[..., 0] - picture[..., 2]) > 80).sum() > 500
     assert (tmp_path / "sheet_rig.png").is_file() and "sheet_rig.png" in result.output
     assert not [p for p in os.listdir(tmp_path) if ".tmp-" in p]
+
+
+def test_sheet_labels_say_moved_for_a_longitudinal_source_and_shifted_for_a_lateral_one():
+    row = {"offset_m": 4.0, "source_iteration": 7500, "condition_iteration": 100,
+           "source_stream": "source+long+4m", "condition_stream": "cond@000100"}
+    assert sheet_labels(row, "pairs")[0] == ("source", "moved +4m", "ckpt 7500")
+    lateral = {**row, "offset_m": -2.0, "source_stream": "source-2m"}
+    assert sheet_labels(lateral, "pairs")[0] == ("source", "shifted -2m", "ckpt 7500")
+    # an inference set: the condition is the moved render, the target the true moved view
+    inference = {**row, "source_stream": "target", "condition_stream": "source+long+4m"}
+    assert [line for _, line, _ in sheet_labels(inference, "inference")] == [
+        "recorded camera", "moved +4m", "true view, moved +4m"]
 
 
 def test_the_plan_is_framed_on_the_paths_with_the_legend_outside_and_nothing_cut(build, tmp_path):

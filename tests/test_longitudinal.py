@@ -15,7 +15,7 @@ from paradrive import geometry
 from paradrive.cli import app
 from paradrive.contracts.records import IndexRecord
 from paradrive.evaluation import evaluate_scene
-from paradrive.pairs import read_pairs
+from paradrive.pairs import read_index, read_pairs
 from paradrive.pipeline import StageRegistry, run_build
 from paradrive.scene import load_scene
 from paradrive.streams import (plan_streams, source_clip_windows, source_stream, stream_transform)
@@ -144,6 +144,23 @@ def test_eval_scores_longitudinal_sources_against_the_truth_per_offset(long_buil
     # a step along the road sees what the fit saw from a neighbouring recorded frame
     assert min(psnr.values()) > 18.0, psnr
     assert json.loads((tmp_path / "eval.json").read_text())["cameras"]["front"]["shifted"] == rows
+
+
+def test_the_plan_counts_the_longitudinal_pairs_the_build_made(long_build):
+    """Sources kept on the path: the plan lays the windows as render does, for an ingested scene
+    and for its URI alone, and counts fewer pairs than the lateral plan where the path is short."""
+    from paradrive.pipeline.budget import plan_build
+
+    rows = read_index(long_build["build"]).totals.rows
+    config = long_build["config"]
+    assert plan_build(config, [SCENE], long_build["data"]).pairs == rows
+    assert plan_build(config, [SCENE], None).pairs == rows
+    short = "synthetic:demo?seed=7&frames=16"   # 12 m: +-4 m keeps frames 5..10 on the path
+    lateral = plan_build(StageRegistry().resolve("smoke"), [short], None)
+    moved = plan_build(StageRegistry().resolve("smoke", {"render": LONG}), [short], None)
+    assert lateral.pairs > 0 and moved.pairs < lateral.pairs and not lateral.unfit
+    assert list(moved.unfit) == ["synthetic-demo-s7-frames16"]
+    assert "for 6 of its 16 frames (5..10), a clip needs 8" in moved.unfit["synthetic-demo-s7-frames16"]
 
 
 def test_a_scene_too_short_for_its_longitudinal_windows_fails_before_its_fit(tmp_path):

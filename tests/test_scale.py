@@ -103,6 +103,31 @@ def test_a_touched_clip_is_read_again_and_damage_is_still_found(scaled, copy_tre
     assert run().status == "done"
 
 
+def test_a_published_copy_damaged_at_the_same_size_is_healed_by_a_plain_re_run(scaled, copy_tree):
+    """manifest.media: copy, so the build's videos are files of their own (no inode shared with
+    the clips); one byte of one inverted in place: the next build publishes again."""
+    bench = scaled["bench"]
+    work = copy_tree(scaled["work"], "work")
+    from paradrive.pipeline import StageRegistry
+
+    overrides = {**bench.OVERRIDES, "manifest": {**bench.OVERRIDES.get("manifest", {}), "media": "copy"}}
+    config = StageRegistry().resolve(bench.PROFILE, overrides)
+
+    def publish():
+        return run_build(config, scaled["uris"], work / "data", stages=["manifest"],
+                         manifests_dir=work / "manifests", build=bench.BUILD).results[-1]
+
+    assert publish().status == "done" and publish().status == "skipped"
+    build = work / "manifests" / bench.BUILD
+    video = sorted((build / read_index(build).version / "media").rglob("*.mp4"))[5]
+    body = bytearray(video.read_bytes())
+    body[len(body) // 2] ^= 0xFF
+    video.write_bytes(bytes(body))
+    assert not verify_build(build)["ok"]
+    assert publish().status == "done"
+    assert verify_build(build)["ok"] and read_index(build).media.placed.get("copy", 0) >= 1
+
+
 def test_verify_in_parallel_finds_what_verify_alone_finds(scaled, copy_tree):
     build = copy_tree(scaled["work"] / "manifests" / scaled["bench"].BUILD, "build")
     version = build / read_index(build).version

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import typer
 import yaml
 from rich.console import Console
@@ -36,7 +37,8 @@ from paradrive.pipeline.runner import read_marker
 from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
 from paradrive.storage import DataRoot
-from paradrive.streams import clip_shortfall, clip_windows, frames_needed, plan_streams
+from paradrive.streams import (ClipWindow, clip_shortfall, clip_windows, frames_needed,
+                               plan_streams, source_clip_windows)
 from paradrive.uri import parse_uri
 
 OTHER = "other"
@@ -118,6 +120,8 @@ class Shape:
     known: str        # "ingested", "uri" or "typical <dataset> log"
     gaussians: float | None = None   # of every checkpoint, when a fit with these parameters ran
     sfm_frames: int = 0   # frames whose poses structure from motion finds (a video's)
+    # a longitudinal build's cameras' recorded paths (N, 4, 4): where its sources stay on them
+    paths: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass
@@ -170,15 +174,16 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
     """Work per stage and size per folder of one scene with these stage parameters."""
     ingest, fit, render = params["ingest"], params["fit"], params["render"]
     stored_mp = shape.frames * sum(w * h for w, h in shape.cameras.values()) / MB
-    windows, _ = clip_windows(shape.frames, render["clip_frames"], render["clips"])
     offsets = render["longitudinal_offsets_m"] if render.get("transform") == "longitudinal" \
         else render["offsets_m"]
     streams = len(plan_streams(render["condition_checkpoints"], render["source_checkpoint"], offsets))
     out_mp = render["width"] * render["height"] / MB
     cams = [c for c in render["cameras"] if c in shape.cameras] or list(render["cameras"])
+    by_cam = camera_windows(render, shape, cams)
+    windows = sum(len(w) for w in by_cam.values())
     checkpoints = sorted(fit["checkpoints"])
-    rendered_mp = len(cams) * len(frames_needed(windows)) * streams * out_mp
-    encoded_mp = len(cams) * len(windows) * streams * render["clip_frames"] * out_mp
+    rendered_mp = sum(len(frames_needed(w)) for w in by_cam.values()) * streams * out_mp
+    encoded_mp = windows * streams * render["clip_frames"] * out_mp
     return {
         "compute:ingest": stored_mp, "compute:fit": float(checkpoints[-1]),
         "compute:render": rendered_mp, "compute:clip": encoded_mp,
@@ -189,10 +194,21 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
         "bytes:gs": shape.gaussians if shape.gaussians is not None
         else float(fit["init_points"] * (len(checkpoints) - 1) + fit["max_gaussians"]),
         "bytes:renders": rendered_mp, "bytes:clips": encoded_mp,
-        "pairs": float(len(cams) * len(windows) * len(offsets)
-                       * len(render["condition_checkpoints"])),
-        **encode_units(params.get("encode"), render, len(cams) * len(windows) * streams),
+        "pairs": float(windows * len(offsets) * len(render["condition_checkpoints"])),
+        **encode_units(params.get("encode"), render, windows * streams),
     }
+
+
+def camera_windows(render: dict, shape: Shape, cams: list[str]) -> dict[str, list[ClipWindow]]:
+    """Each camera's clip windows: over the whole scene, or in a longitudinal build whose paths
+    are known, over the frames where every source stays on the camera's path (as render lays
+    them); a log not yet ingested is counted as if they all did."""
+    if render.get("transform") == "longitudinal" and shape.paths:
+        return {c: source_clip_windows(shape.paths[c], render["clip_frames"], render["clips"],
+                                       render["longitudinal_offsets_m"], "longitudinal")[0]
+                for c in cams if c in shape.paths}
+    windows, _ = clip_windows(shape.frames, render["clip_frames"], render["clips"])
+    return {c: windows for c in cams}
 
 
 def encode_units(encode: dict | None, render: dict, videos: int) -> dict[str, float]:
@@ -214,20 +230,32 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
     if data_dir is not None:
         layout = SceneLayout.of(data_dir, parsed.scene_id)
         if layout.scene_json.is_file():
-            return _ingested_shape(layout, config.params["fit"])
+            shape = _ingested_shape(layout, config.params["fit"])
+            if _longitudinal(config):
+                from paradrive.scene import load_scene
+
+                scene = load_scene(layout.root)
+                shape.paths = {c: scene.c2w(c) for c in scene.cameras}
+            return shape
     params = config.typed("ingest")
     if parsed.kind == "synthetic":
         from paradrive.ingest.synthetic import street_from_uri
 
         street = street_from_uri(parsed, params)
         frames = min(street.frames, params.max_frames or street.frames)
-        return Shape(frames, {c: (street.width, street.height) for c in street.cameras}, "uri")
+        paths = {c: street.c2w(c)[:frames] for c in street.cameras} if _longitudinal(config) else {}
+        return Shape(frames, {c: (street.width, street.height) for c in street.cameras}, "uri",
+                     paths=paths)
     typical = logs[parsed.kind]
     names = (params.camera_sets.get(parsed.kind) or typical["cameras"]) if params.cameras == "auto" \
         else params.cameras or typical["cameras"]
     frames = min(typical["frames"], params.max_frames or typical["frames"])
     return Shape(frames, {c: (typical["width"], typical["height"]) for c in names},
                  f"typical {parsed.kind} log", sfm_frames=frames if parsed.kind == "video" else 0)
+
+
+def _longitudinal(config: ResolvedConfig) -> bool:
+    return config.params["render"].get("transform") == "longitudinal"
 
 
 def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
@@ -317,9 +345,19 @@ def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -
         plan.scenes += 1
         short = clip_shortfall(shape.frames, list(shape.cameras), config.params["render"]["cameras"],
                                config.params["render"]["clip_frames"])
-        if short is not None:
+        reason = short and f"{short.what}; {short.fix}"
+        render = config.params["render"]
+        for cam in [c for c in render["cameras"] if c in shape.paths] if reason is None else []:
+            windows, skipped = source_clip_windows(shape.paths[cam], render["clip_frames"],
+                                                   render["clips"], render["longitudinal_offsets_m"],
+                                                   "longitudinal")
+            if not windows:  # as render's admit: no clip keeps the sources on the path
+                reason = (f"camera {cam}: {skipped[0]['reason']}; set a shorter render.clip_frames, "
+                          f"smaller render.longitudinal_offsets_m, or use another scene")
+                break
+        if reason is not None:
             # the build fails such a scene right after its ingest: only the ingest is spent
-            plan.unfit[parse_uri(uri).scene_id] = f"{short.what}; {short.fix}"
+            plan.unfit[parse_uri(uri).scene_id] = reason
             u = {k: v if k in ("compute:ingest", "bytes:images", "bytes:masks", "bytes:lidar") else 0.0
                  for k, v in u.items()}
         plan.pairs += int(u["pairs"])

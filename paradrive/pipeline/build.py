@@ -27,7 +27,7 @@ from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions, scene_
 from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
-    load_entry, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint,
+    load_entry, local_sha256, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint,
     summary_of,
     typed_params, written_outputs,
 )
@@ -312,9 +312,11 @@ def _published(index: Path, fp: str) -> bool:
 
 
 def _intact(marker: dict | None, runs: dict, build_dir: Path) -> bool:
-    """A build stage's marker agrees with its scenes and files."""
+    """A build stage's marker agrees with its scenes and files, contents included: a published
+    copy damaged in place at the same size is found (its stat changed, so it is read again) and
+    the stage runs again, as a scene stage would."""
     return (marker is not None and marker.get("scene_runs") == runs
-            and not damaged_outputs(marker, local_size(build_dir)))
+            and not damaged_outputs(marker, local_size(build_dir), local_sha256(build_dir)))
 
 
 def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path | DataRoot, *,
