@@ -9,6 +9,7 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import uuid
 from pathlib import Path
 import posixpath
@@ -152,3 +153,13 @@ def path_inside(root: str | os.PathLike, rel: object, what: str, *,
         return path
     raise PathEscapeError(f"{what}: {rel!r} is a link to {resolved}, outside {root}; replace it "
                           f"with the file itself or re-create the folder")
+
+
+def stop_point(name: str) -> None:
+    """Stop this process at a named step (``publish:first-media``, ``fit:checkpoint-25``, ...)
+    when ``PARADRIVE_STOP_AT`` names it.
+
+    Tests stop a real build at an exact step this way: the process stops itself (SIGSTOP), the
+    test sees it stopped (``waitpid`` with ``WUNTRACED``), then kills or interrupts it."""
+    if os.environ.get("PARADRIVE_STOP_AT") == name:
+        os.kill(os.getpid(), signal.SIGSTOP)

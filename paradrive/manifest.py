@@ -26,7 +26,6 @@ import errno
 import json
 import os
 import shutil
-import signal
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -40,8 +39,8 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import (PathEscapeError, is_temporary, path_inside, sha256_file, temporary_name,
-                          write_json)
+from paradrive.io import (PathEscapeError, is_temporary, path_inside, sha256_file, stop_point,
+                          temporary_name, write_json)
 from paradrive.pairs import (COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri,
                              read_index)
 from paradrive.contracts.layout import (BUILD_MARKER, SHARD_PATTERN, VERSION_PREFIX, BuildLayout,
@@ -370,15 +369,6 @@ def _link_or_copy(src: Path, dst: Path) -> str:
 
 # --------------------------------------------------------------------------- publish
 
-def stop_point(name: str) -> None:
-    """Stop this process at a named step of publishing when ``PARADRIVE_STOP_AT`` names it.
-
-    Tests kill a real build at an exact step this way: the process stops itself (SIGSTOP), the
-    test sees it stopped (``waitpid`` with ``WUNTRACED``) and kills it."""
-    if os.environ.get("PARADRIVE_STOP_AT") == name:
-        os.kill(os.getpid(), signal.SIGSTOP)
-
-
 def claim_build_folder(build_dir: str | Path, build: str) -> BuildLayout:
     """The build folder, created with the builder's marker, or an existing one that carries it.
 
@@ -534,4 +524,4 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
 
 
 __all__ = ["MediaFile", "claim_build_folder", "publish", "read_clips", "scene_rows", "place_file",
-           "rows_to_table", "split_rows", "staging_version", "stop_point", "video_quality"]
+           "rows_to_table", "split_rows", "staging_version", "video_quality"]

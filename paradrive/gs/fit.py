@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from paradrive.actors import Actor, dynamic_mask, moving_actors
 from paradrive.devices import resolve_backend, resolve_device
 from paradrive.errors import SceneError
-from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries
+from paradrive.io import atomic_path, load_tensors, remove_stale_temporaries, stop_point
 from paradrive.metrics import peak_rss_mb, psnr, ssim
 from paradrive.contracts.layout import SceneLayout, actor_files
 from paradrive.contracts.records import FitRecord
@@ -425,6 +425,7 @@ def _fit(run: _Fit, progress, stop_after) -> FitRecord:
         loss = run.iterate()
         if run.step in p.checkpoints:
             run.checkpoint()
+            stop_point(f"fit:checkpoint-{run.step}")
         elif run.step % max(p.state_interval, 1) == 0:
             run.save_state()
         if progress is not None and (run.step % 10 == 0 or run.step == total):

@@ -29,7 +29,7 @@ from paradrive.data import output_geometry, recammaster_camera
 from paradrive.devices import resolve_device
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import remove_stale_temporaries, sha256_file, write_json
-from paradrive.manifest import stop_point
+from paradrive.io import stop_point
 from paradrive.pairs import build_file, read_index, read_pairs
 from paradrive.contracts.records import IndexRecord
 from paradrive.video import each_frame
