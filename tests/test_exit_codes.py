@@ -115,9 +115,14 @@ def _running(ledger: Path) -> list[tuple[str, str]]:
 def test_ctrl_c_says_what_it_stopped_and_a_plain_rerun_finishes(tmp_path):
     args = ("--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit")
     # the build stops itself inside the fit, after its first checkpoint, however loaded the
-    # machine: Ctrl-C then lands in the fit for certain
+    # machine: Ctrl-C then lands in the fit for certain. It starts with Ctrl-C's own handler:
+    # a suite launched in the background by a non-interactive shell ignores SIGINT, and a
+    # process inherits that (Python then installs no KeyboardInterrupt handler)
     env = {**_env(), "PARADRIVE_STOP_AT": "fit:checkpoint-25"}
-    proc = subprocess.Popen(_command(tmp_path, *args), cwd=REPO, env=env, stdout=subprocess.PIPE,
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "sys.argv = ['paradrive', *sys.argv[1:]]; from paradrive.cli import main; main()")
+    command = [sys.executable, "-c", code, *_command(tmp_path, *args)[3:]]
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         _, status = os.waitpid(proc.pid, os.WUNTRACED)
