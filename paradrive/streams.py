@@ -15,7 +15,7 @@ ids, inference truth files): :func:`format_offset`.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -135,6 +135,19 @@ def source_clip_windows(c2w_path: np.ndarray, clip_frames: int, names: Sequence[
               f"for {len(span)} of its {n} frames{where}, a clip needs {clip_frames}")
     return ([ClipWindow(w.name, w.start + span.start, w.num_frames) for w in windows],
             [{"clip": s["clip"], "reason": reason} for s in skipped])
+
+
+def path_shortfall(paths: Mapping[str, np.ndarray], clip_frames: int, names: Sequence[str],
+                   offsets_m: Sequence[float]) -> Shortfall | None:
+    """Why a longitudinal build's cameras, moving along ``paths`` ((N, 4, 4) each), give no clip
+    that keeps every source on the recorded path, or None when each gives one."""
+    for name, c2w in paths.items():
+        windows, skipped = source_clip_windows(c2w, clip_frames, names, offsets_m, "longitudinal")
+        if not windows:
+            return Shortfall(f"camera {name}: {skipped[0]['reason']}",
+                             "set a shorter render.clip_frames, smaller "
+                             "render.longitudinal_offsets_m, or use another scene")
+    return None
 
 
 def frames_needed(windows: Iterable[ClipWindow]) -> list[int]:

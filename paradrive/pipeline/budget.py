@@ -38,7 +38,7 @@ from paradrive.pipeline.specs import ResolvedConfig
 from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
 from paradrive.storage import DataRoot
 from paradrive.streams import (ClipWindow, clip_shortfall, clip_windows, frames_needed,
-                               plan_streams, source_clip_windows)
+                               path_shortfall, plan_streams, source_clip_windows)
 from paradrive.uri import parse_uri
 
 OTHER = "other"
@@ -347,14 +347,11 @@ def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -
                                config.params["render"]["clip_frames"])
         reason = short and f"{short.what}; {short.fix}"
         render = config.params["render"]
-        for cam in [c for c in render["cameras"] if c in shape.paths] if reason is None else []:
-            windows, skipped = source_clip_windows(shape.paths[cam], render["clip_frames"],
-                                                   render["clips"], render["longitudinal_offsets_m"],
-                                                   "longitudinal")
-            if not windows:  # as render's admit: no clip keeps the sources on the path
-                reason = (f"camera {cam}: {skipped[0]['reason']}; set a shorter render.clip_frames, "
-                          f"smaller render.longitudinal_offsets_m, or use another scene")
-                break
+        if reason is None and shape.paths:  # as render's admit: sources kept on the path
+            short = path_shortfall({c: shape.paths[c] for c in render["cameras"] if c in shape.paths},
+                                   render["clip_frames"], render["clips"],
+                                   render["longitudinal_offsets_m"])
+            reason = short and f"{short.what}; {short.fix}"
         if reason is not None:
             # the build fails such a scene right after its ingest: only the ingest is spent
             plan.unfit[parse_uri(uri).scene_id] = reason

@@ -57,8 +57,8 @@ from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
 from paradrive.contracts.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
                                       SkippedClip, SkyDomeRecord, WindowRecord)
 from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_shortfall, crop_resize,
-                               frames_needed, output_camera, plan_streams, source_clip_windows,
-                               source_poses)
+                               frames_needed, output_camera, path_shortfall, plan_streams,
+                               source_clip_windows, source_poses)
 
 if TYPE_CHECKING:
     from paradrive.gs.graph import FittedModel
@@ -147,14 +147,11 @@ def admit(layout: SceneLayout, ingested: Mapping[str, Any], params: Params) -> N
         raise SceneError(short.what, scene_id=layout.root.name, path=layout.scene_json, fix=short.fix)
     if params.transform == "longitudinal" and layout.scene_json.is_file():
         scene = load_scene(layout.root)  # the path's length decides where sources stay on it
-        for name in params.cameras:
-            windows, skipped = source_clip_windows(scene.c2w(name), params.clip_frames, params.clips,
-                                                   params.source_offsets, params.transform)
-            if not windows:
-                raise SceneError(f"camera {name}: {skipped[0]['reason']}", scene_id=scene.scene_id,
-                                 path=layout.scene_json,
-                                 fix="set a shorter render.clip_frames, smaller "
-                                     "render.longitudinal_offsets_m, or use another scene")
+        short = path_shortfall({name: scene.c2w(name) for name in params.cameras},
+                               params.clip_frames, params.clips, params.source_offsets)
+        if short is not None:
+            raise SceneError(short.what, scene_id=scene.scene_id, path=layout.scene_json,
+                             fix=short.fix)
 
 
 def plan_camera(scene: Scene, name: str, params: Params, log: logging.Logger) -> CameraPlan:
