@@ -15,8 +15,8 @@ road, and the SfM points leave their plane tilted by a few tenths of a degree, w
 several per cent of height), the three numbers of ``u`` are fitted by aligning the ego lane's
 road pixels of the later frame onto the earlier one, where the road was further ahead and
 still in view (Gauss-Newton on a coarse-to-fine blur, with robust weights so that a vehicle in
-the lane counts little). Pixels that do not change over the video (a car's hood, a text
-overlay) and their neighbours are left out. The step's own length from SfM then gives
+the lane counts little). Pixels that move with the camera (the ego mask: a car's hood, see
+:mod:`paradrive.ingest.egomask`) and their neighbours are left out. The step's own length from SfM then gives
 ``d = |t| / |u|``. Fitting ``u``'s direction too, rather than taking SfM's, keeps the rotation
 bias out of the size. The height is the median over pairs spread along the video.
 
@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from paradrive import geometry
+from paradrive.ingest.egomask import ego_mask
 from paradrive.ingest.sfm import level_with_path
 
 __all__ = ["RoadMotion", "road_motion_height"]
@@ -54,7 +55,7 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
                        near: float = 2.0, far: float = 8.0, lane: float = 1.4,
                        max_width: int = 480, blurs: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5),
                        iterations: int = 8, min_pairs: int = 5,
-                       static_std: float = 1.0 / 255.0) -> RoadMotion | None:
+                       ego: np.ndarray | None = None) -> RoadMotion | None:
     """The camera's height above the road by the road's motion, or None where fewer than
     ``min_pairs`` frame pairs align (no road texture, a camera that barely moves).
 
@@ -64,8 +65,8 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     also decides the road pixels: ``near``..``far`` heights ahead, within ``lane`` heights to
     either side. Pairs start at ``pairs`` evenly spaced frames; each pairs a frame with the first
     one ``baseline`` heights further along the path. Images wider than ``max_width`` are halved
-    until they are not. Pixels whose grey level varies by less than ``static_std`` (standard
-    deviation over the frames used, in [0, 1]) are left out: they move with the camera.
+    until they are not. The ego mask (H, W) bool, pixels that move with the camera, is left out;
+    without one it is found in the frames used (:func:`paradrive.ingest.egomask.ego_mask`).
     """
     centres = c2w[:, :3, 3]
     along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))]
@@ -77,8 +78,12 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     gray, Kp = {}, np.array(K, dtype=np.float64)
     for k in sorted({k for pair in chosen for k in pair}):
         gray[k], Kp = _reduce(K, _gray(image(k)), max_width)
-    # what does not change over the video is not the road: a car's hood, a text overlay
-    still = np.std(np.stack(list(gray.values())), axis=0) <= static_std
+    # what moves with the camera is not the road: a car's hood
+    if ego is None:
+        frames = [gray[k] for k in sorted(gray)]
+        still = ego_mask(list(zip(frames[:-1], frames[1:])))
+    else:
+        still = _reduce(K, ego.astype(np.float32), max_width)[0] > 0
     # and the blur would smear it over the road pixels next to it
     moving = ~_dilate(still, int(np.ceil(3 * max(blurs))))
     heights, used = [], []

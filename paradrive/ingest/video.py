@@ -44,6 +44,7 @@ from paradrive.ingest.sfm import (Intrinsics, Reconstruction, RoadPlane, SfmErro
                                   format_runs, level_with_path, metric_rig, path_length, reconstruct,
                                   registered_runs)
 from paradrive.ingest.undistort import distortion_is_zero, undistort_image
+from paradrive.ingest.videomasks import write_video_masks
 from paradrive.scene import Camera, Frame, FrameCamera, Scene, write_image
 from paradrive.uri import SceneURI
 
@@ -358,6 +359,7 @@ def _scene(uri: SceneURI, rec: Reconstruction, footage: Footage, opts: VideoOpti
                             cameras={CAMERA: FrameCamera(image=rel, c2w=rig.c2w[k])}))
     if params.lidar:
         _save_model_points(rec, rig, kept, out_dir)
+    masks = write_video_masks(frame, rig.c2w, rig.ego2world, K.K(), out_dir, CAMERA, scene_id=scene_id)
     video = {"file": uri.path, "fps": opts.fps, "source_frames": footage.source_frames[run],
              "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy,
                             "estimated": rec.estimated, "distortion": list(dist)},
@@ -365,7 +367,8 @@ def _scene(uri: SceneURI, rec: Reconstruction, footage: Footage, opts: VideoOpti
              "sampled": len(footage.source_frames), "kept": [kept[0], kept[1]],
              "scale_m_per_unit": scale, "scale": scale_doc, "path_m": travelled,
              "road_plane": {"inliers": plane.inliers, "candidates": plane.candidates},
-             "points": int(len(rec.points)), "sfm_seconds": rec.seconds, "models": rec.models}
+             "points": int(len(rec.points)), "sfm_seconds": rec.seconds, "models": rec.models,
+             "masks": masks}
     if opts.truth:
         video["truth"] = opts.truth
     stamps = [f.timestamp_us for f in frames]  # a video slower than fps= keeps its own rate
