@@ -115,3 +115,4 @@ class ManifestParams(StageParams):
     kind: str
     exclude_splits: list[str]
     min_heldout_psnr: float | None
+    max_dynamic_fraction: float | None

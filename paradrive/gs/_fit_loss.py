@@ -131,7 +131,7 @@ def fit_loss_torch(out: Tensor, gt: Tensor, sky: Tensor | None, target: DepthTar
     """The same loss as torch operations, on any device: out (1, H, W, D) the render with the
     expected depth (not the accumulated one) as its 4th channel when there is a sky or depth
     term; ``inverse`` False takes the depth term in metres; ``masked`` (H, W) bool pixels (moving
-    actors without a node) cost nothing."""
+    actors without a node, a video's ego and moving masks) cost nothing."""
     pred = out[0, ..., :3]
     if masked is not None:
         pred = torch.where(masked[..., None], gt, pred)
