@@ -27,7 +27,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["ego_mask"]
+__all__ = ["agreement", "blur", "ego_mask", "grey"]
 
 LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -70,13 +70,32 @@ def ego_mask(pairs: Sequence[tuple[np.ndarray, np.ndarray]], *, window: int = 7,
 def _unchanged(a: np.ndarray, b: np.ndarray, window: int, sigma: float, flat: float) -> np.ndarray:
     """Per pixel, how much frames ``a`` and ``b`` agree around it: the windowed correlation of
     their band-passed grey levels, or 1 where both are flat and equal."""
+    corr, _ = agreement(a, b, window, sigma)
+    equal = _box(np.abs(np.asarray(a, dtype=np.float32) - np.asarray(b, dtype=np.float32)), window) < flat
+    return np.where(equal, 1.0, corr)
+
+
+def agreement(a: np.ndarray, b: np.ndarray, window: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) float32 each: the windowed correlation of two frames' band-passed grey levels
+    (``a``, ``b``: (H, W) in [0, 1]; the band-pass takes away a Gaussian blur of ``sigma``
+    pixels; ``window``: the square window, pixels), and the texture in two directions both
+    frames have there: the smaller of the two frames' smaller structure-tensor eigenvalue, as
+    an RMS gradient (an edge or a line along which things may slide has none)."""
     a, b = np.asarray(a, dtype=np.float32), np.asarray(b, dtype=np.float32)
-    da, db = a - _blur(a, sigma), b - _blur(b, sigma)
+    da, db = a - blur(a, sigma), b - blur(b, sigma)
     noise = (0.5 / 255.0) ** 2  # below any texture a video keeps
     corr = _box(da * db, window) / np.sqrt((_box(da * da, window) + noise)
                                            * (_box(db * db, window) + noise))
-    equal = _box(np.abs(a - b), window) < flat
-    return np.where(equal, 1.0, corr)
+    return corr, np.minimum(_corner(da, window), _corner(db, window))
+
+
+def _corner(d: np.ndarray, window: int) -> np.ndarray:
+    """The square root of the smaller eigenvalue of ``d``'s structure tensor over the window."""
+    gy, gx = np.gradient(d)
+    xx, yy, xy = _box(gx * gx, window), _box(gy * gy, window), _box(gx * gy, window)
+    half = 0.5 * (xx + yy)
+    low = half - np.sqrt(np.maximum(half ** 2 - (xx * yy - xy ** 2), 0.0))
+    return np.sqrt(np.maximum(low, 0.0))
 
 
 def _box(img: np.ndarray, size: int) -> np.ndarray:
@@ -90,7 +109,7 @@ def _box(img: np.ndarray, size: int) -> np.ndarray:
     return (s / (size * size)).astype(np.float32)
 
 
-def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
+def blur(img: np.ndarray, sigma: float) -> np.ndarray:
     """Separable Gaussian blur with edge replication."""
     r = max(1, int(np.ceil(3 * sigma)))
     taps = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
