@@ -133,8 +133,11 @@ def fit_loss_torch(out: Tensor, gt: Tensor, sky: Tensor | None, target: DepthTar
     term; ``inverse`` False takes the depth term in metres; ``masked`` (H, W) bool pixels (moving
     actors without a node, a video's ego and moving masks) cost nothing."""
     pred = out[0, ..., :3]
-    if masked is not None:
-        pred = torch.where(masked[..., None], gt, pred)
+    if masked is not None:  # zero on both sides: no pull, and SSIM windows across the edge see
+        # the same whatever was recorded there
+        blank = torch.zeros((), dtype=pred.dtype, device=pred.device)
+        pred = torch.where(masked[..., None], blank, pred)
+        gt = torch.where(masked[..., None], blank.to(gt.dtype), gt)
     lam = terms.ssim_lambda
     loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
     if sky is not None and sky.any():

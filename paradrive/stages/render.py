@@ -278,7 +278,8 @@ class _Renderer:
             for j in range(len(result["rgb"])):
                 if ego is not None:  # the hood moves with the camera: the recorded one, put back
                     recorded = crop_resize(self.scene.load_image(plan.frames[k], plan.name), plan.out)
-                    result["rgb"][j] = (1.0 - ego) * result["rgb"][j] + ego * (recorded / 255.0)
+                    blend = (1.0 - ego) * result["rgb"][j] + ego * recorded
+                    result["rgb"][j] = np.clip(np.round(blend), 0, 255).astype(np.uint8)
                 self.write_frame(folder, plan.frames[k], result, j)
                 k += 1
             self.tick(len(result["rgb"]))
