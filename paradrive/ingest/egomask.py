@@ -14,9 +14,8 @@ parallel to the drive also looks unchanged and would reach up from the hood's ed
 margin. Far things look unchanged between successive frames too, but the moving road cuts them
 off from the bottom.
 
-Not found: a still overlay away from the bottom edge (a logo, a clock), which nothing here
-tells from the far scenery; such an input should be cropped (``start``/``end`` and a crop of the
-frames) before ingest.
+A still overlay away from the bottom edge (a logo, a clock) is found by comparing frames far
+apart instead (:func:`paradrive.ingest.videomasks.overlay_mask`, with :func:`agreement`).
 
 Pure numpy and deterministic.
 """

@@ -2,9 +2,10 @@
 
 Both are found in the video alone, with the SfM poses and the road plane (no labels, no
 weights), and saved where :class:`~paradrive.contracts.layout.SceneLayout` says:
-``masks/ego/<camera>.png`` (:mod:`paradrive.ingest.egomask`: the hood) and
-``masks/motion/<camera>/<frame>.png`` (255 = moving). The fit leaves both out of every loss; the
-render puts the recorded pixels back where the ego mask is.
+``masks/ego/<camera>.png`` (the hood, :mod:`paradrive.ingest.egomask`, and still overlays
+anywhere, :func:`overlay_mask`) and ``masks/motion/<camera>/<frame>.png`` (255 = moving). The
+fit leaves both out of every loss; the render puts the recorded pixels back where the ego mask
+is.
 
 Moving things. A static point seen below the horizon lies no farther than the road behind it,
 so between two frames it moves at least as far along its epipolar line as that road point would
@@ -34,11 +35,15 @@ ahead along the path):
    car's roof, move in the image;
 5. the specks are removed and each moving region is stood up as a wall from its lowest pixels to
    ``object_height_m`` above the road there: the test only sees what has the road behind it,
-   and a car's roof lies above the horizon.
+   and a car's roof lies above the horizon. A region narrower than ``min_width_m`` where it
+   meets the road is dropped: no road user is that narrow, while a static thing far nearer
+   than the road behind it (a post of a barrier) whose true match lies beyond the shares
+   searched, with a look-alike nearer along its way, makes such specks.
 
 What no monocular motion test can see: oncoming traffic (it moves faster than the road, as a
 static point nearer than the road would) and a car standing still. Plain surfaces of a moving
-car match anywhere along their way and count as neither; the stand-up fills them.
+car match anywhere along their way and count as neither; the stand-up fills them. The shadow
+a car casts moves with it and is masked with it.
 docs/scene-layout.md ("Masks") has the figures on a real clip.
 """
 
@@ -167,8 +172,9 @@ def overlay_mask(pairs: list[tuple[np.ndarray, np.ndarray]], cv2, *, window: int
     unless more than ``max_lasting`` of the textured pixels in a ring around it (``ring`` of
     the image width) last too (far scenery the camera never turns away from lasts, but so does
     the scenery around it; a flat sky around a logo has no texture and does not count). A kept
-    region has its holes filled (the flat inside of a logo, a clock's changing digits) and
-    grows by ``margin`` of the image width. Whatever lasts is left out of the fit and shown as
+    region has its holes filled (the flat inside of a logo, a clock's changing digits), gives
+    back the half window the correlation spread it by, and grows by ``margin`` of the image
+    width. Whatever lasts is left out of the fit and shown as
     recorded in every rendered stream, which for far scenery is nearly right anyway.
     """
     measures = [agreement(a, b, window, sigma) for a, b in pairs]
@@ -186,9 +192,11 @@ def overlay_mask(pairs: list[tuple[np.ndarray, np.ndarray]], cv2, *, window: int
         around &= ~region
         if lasting[around].sum() <= max_lasting * max(int(textured[around].sum()), 1):
             out |= _filled(region, cv2)
-    if out.any():
+    if out.any():  # the windows spread what lasts by half a window: taken back, then the margin
         g = max(1, int(round(margin * w)))
-        out = cv2.dilate(out.astype(np.uint8), np.ones((2 * g + 1,) * 2, np.uint8)) > 0
+        out = cv2.erode(out.astype(np.uint8), np.ones((window // 2 * 2 + 1,) * 2, np.uint8),
+                        borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        out = cv2.dilate(out, np.ones((2 * g + 1,) * 2, np.uint8)) > 0
     return out
 
 
@@ -463,10 +471,12 @@ class MovingFinder:
 @dataclass(frozen=True)
 class MaskScores:
     """Masks against hand-labelled boxes: ``coverage`` the share of the boxes' pixels masked
-    (all frames pooled) and its lowest frame, ``road_masked`` the share of the road region
-    masked (pooled) and its highest frame, per frame in ``frames``."""
+    (all frames and boxes pooled), per box name in ``named``, and its lowest frame;
+    ``road_masked`` the share of the road region masked (pooled) and its highest frame; per
+    frame in ``frames`` (coverage, road masked)."""
 
     coverage: float
+    named: dict[str, float]
     worst_coverage: float
     road_masked: float
     worst_road_masked: float
@@ -486,33 +496,40 @@ def road_region(c2w: np.ndarray, ego2world: np.ndarray, K: np.ndarray, width: in
     return (down < 0) & (local[..., 0] > near) & (local[..., 0] < far) & (np.abs(local[..., 1]) < side)
 
 
-def score_masks(masks: dict[int, np.ndarray], boxes: dict[int, np.ndarray],
+def score_masks(masks: dict[int, np.ndarray], boxes: dict[int, dict[str, np.ndarray]],
                 road: dict[int, np.ndarray], ego: np.ndarray) -> MaskScores:
-    """Score moving ``masks`` per frame against the hand-labelled ``boxes`` (per frame, (H, W)
-    bool: the union of the boxes) and the ``road`` region (per frame, (H, W) bool); the road
-    measured is the region less the boxes grown by a tenth of the image height around them
-    (a car's shadow moves with it) and less the ego mask."""
+    """Score moving ``masks`` per frame ((H, W) bool) against the hand-labelled ``boxes`` (per
+    frame, per name, (H, W) bool) and the ``road`` region (per frame, (H, W) bool); the road
+    measured is the region less the boxes grown by 2.5 % of the image height (a car's shadow
+    moves with it) and less the ego mask."""
     per: dict[int, tuple[float, float]] = {}
-    hit = total = road_hit = road_total = 0
+    hits: dict[str, list[int]] = {}
+    road_hit = road_total = 0
     for k, mask in masks.items():
-        box = boxes[k]
-        grow = max(1, int(0.025 * box.shape[0]))
-        near = _grow(box, grow)
-        region = road[k] & ~near & ~ego
-        per[k] = (float(mask[box].mean()), float(mask[region].mean()))
-        hit, total = hit + int(mask[box].sum()), total + int(box.sum())
+        union = np.zeros(mask.shape, dtype=bool)
+        for name, box in boxes[k].items():
+            counts = hits.setdefault(name, [0, 0])
+            counts[0] += int(mask[box].sum())
+            counts[1] += int(box.sum())
+            union |= box
+        region = road[k] & ~_grow(union, max(1, int(0.025 * mask.shape[0]))) & ~ego
+        per[k] = (float(mask[union].mean()), float(mask[region].mean()))
         road_hit, road_total = road_hit + int(mask[region].sum()), road_total + int(region.sum())
-    return MaskScores(coverage=hit / max(total, 1), worst_coverage=min(c for c, _ in per.values()),
+    hit, total = (sum(c[i] for c in hits.values()) for i in (0, 1))
+    return MaskScores(coverage=hit / max(total, 1), named={n: c[0] / max(c[1], 1) for n, c in hits.items()},
+                      worst_coverage=min(c for c, _ in per.values()),
                       road_masked=road_hit / max(road_total, 1),
                       worst_road_masked=max(r for _, r in per.values()), frames=per)
 
 
 def _grow(mask: np.ndarray, r: int) -> np.ndarray:
-    out = mask.copy()
-    for axis in (0, 1):
-        src = out.copy()
-        for s in range(1, r + 1):
-            out |= np.roll(src, s, axis=axis) | np.roll(src, -s, axis=axis)
+    """``mask`` grown by ``r`` pixels (a square), not past the image's edges."""
+    h, w = mask.shape
+    padded = np.pad(mask, r)
+    out = np.zeros_like(mask)
+    for dy in range(2 * r + 1):
+        for dx in range(2 * r + 1):
+            out |= padded[dy:dy + h, dx:dx + w]
     return out
 
 
@@ -547,11 +564,9 @@ def labelled_scores(scene_dir: Path, labels: Path, calibration: Path,
         k = by_time.get(int(frame))
         if k is None:
             continue
-        box = np.zeros((cam.height, cam.width), dtype=bool)
-        for x0, y0, x1, y1 in named.values():
-            box |= (u >= x0) & (u < x1) & (v >= y0) & (v < y1)
+        boxes[k] = {name: (u >= x0) & (u < x1) & (v >= y0) & (v < y1)
+                    for name, (x0, y0, x1, y1) in named.items()}
         masks[k] = read_image(layout.motion_mask(camera, k))[..., 0] > 127
-        boxes[k] = box
         road[k] = road_region(scene.frames[k].cameras[camera].c2w, scene.frames[k].ego2world, K,
                               cam.width, cam.height)
     if not masks:
