@@ -1,5 +1,7 @@
-"""Masks: the ego mask (what moves with the camera) is found, the pairs carry the share of their
-target masked as moving, and manifest.max_dynamic_fraction filters on it at publish."""
+"""Masks: the ego mask (what moves with the camera: a hood, still overlays anywhere) is found,
+the moving masks of a real clip cover its cars and not its road, the pairs carry the share of
+their target masked as moving, and manifest.max_dynamic_fraction filters on it at publish. (The
+fit and the render's use of the masks are tested in test_gs_fit.py and test_render.py.)"""
 
 from __future__ import annotations
 
