@@ -244,7 +244,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
                                  f"nothing to write")
     params = dict(config.params[stage])
-    fp = fingerprint(stage, params if record is None else {**params, "selection": record}, inputs)
+    hashed = spec.fingerprinted(params)   # as every other stage's: one rule for what counts
+    fp = fingerprint(stage, hashed if record is None else {**hashed, "selection": record}, inputs)
     index = BuildLayout(build_dir).index_json
     if not force and _published(index, fp) and _intact(read_marker(build_dir, stage), runs, build_dir):
         return StageResult(label, stage, "skipped", fingerprint=fp)
@@ -260,8 +261,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
                            log=log, fingerprint=fp, selection=record)
         with _scene_locks(root, scenes, build, log, inputs, spec.needs):
             summary = summary_of(func(ctx))
-        declared = expand_outputs(spec.outputs, config.params[stage])
-        outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
+        # what this run wrote: the versions a publish keeps for their readers are no output of it
+        outputs = {rel: info for rel, info in written_outputs(build_dir, before, []).items()
                    if not matches(rel, NOT_OWNED)}
         write_json(marker_path(build_dir, stage),
                    {"stage": stage, "build": build, "fingerprint": fp, "scene_runs": runs,

@@ -21,6 +21,8 @@ What a value may be is declared beside its default: ``min`` / ``max`` (inclusive
 ``below`` (exclusive), ``choices``, ``pattern`` (a regular expression the whole string
 matches), ``nonempty`` (a list, string or mapping), ``items`` (the same rules for each element of
 a list or each value of a mapping) and ``nullable`` (null is taken although the default is not).
+``fingerprint: false`` leaves a parameter out of the stage's fingerprint (one that decides how
+long files stay, like ``manifest.keep_versions_for``, not what the stage writes).
 A float is never NaN or infinite. The defaults are checked when the stage file is read, every
 profile and ``--set`` value when it is applied, so a build refuses a value that cannot work
 before any stage runs, naming the parameter, the value, what is allowed and where it came from.
@@ -125,6 +127,9 @@ class Param(Bounds):
     # value types taken when the default's own type is not the only one, e.g. [str, list]
     types: list[Literal["str", "int", "float", "bool", "list", "dict"]] | None = None
     nullable: bool = False   # null is taken although the default is not null
+    # false: the value decides how long files stay or how a stage goes about its work, never
+    # what it writes, so it is left out of the stage's fingerprint
+    fingerprint: bool = True
 
 
 class StageSpec(BaseModel):
@@ -174,9 +179,11 @@ class StageSpec(BaseModel):
         return {k: p.default for k, p in self.params.items()}
 
     def fingerprinted(self, params: dict[str, Any]) -> dict[str, Any]:
-        """The parameters that decide what the stage writes: all but the retention switches,
-        which only decide how long the files stay."""
-        return {k: v for k, v in params.items() if k not in self.retention}
+        """The parameters that decide what the stage writes: all but the retention switches
+        and the parameters declared ``fingerprint: false``, which only decide how long the
+        files stay."""
+        return {k: v for k, v in params.items() if k not in self.retention
+                and (k not in self.params or self.params[k].fingerprint)}
 
     def released(self, params: dict[str, Any]) -> list[str]:
         """The outputs (globs) whose retention switch is off in ``params``."""
