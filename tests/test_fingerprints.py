@@ -73,6 +73,20 @@ def test_changing_render_offsets_rerenders_and_reclips_but_does_not_refit(build)
     assert sorted({r["offset_m"] for r in rows}) == [-2.0, 2.0]
 
 
+def test_a_build_stage_parameter_outside_the_fingerprint_changes_nothing(build, stage_dir):
+    """The build stages are fingerprinted as the scene stages are (``spec.fingerprinted``): a
+    parameter declared ``fingerprint: false`` (how long versions stay) republishes nothing."""
+    manifest = stage_dir / "manifest.yaml"
+    manifest.write_text(manifest.read_text() + '  keep_for: {default: 1d, doc: "how long old '
+                        'versions stay", fingerprint: false}\n')
+    build()
+    published = json.loads((build.build_dir / "index.json").read_text())["config_fingerprint"]
+    result = build({"manifest": {"keep_for": "2d"}})
+    assert result[("build:fp", "manifest")] == "skipped"
+    assert json.loads((build.build_dir / "index.json").read_text())["config_fingerprint"] == published
+    assert build({"manifest": {"shard_rows": 7}})[("build:fp", "manifest")] == "done"
+
+
 def test_changing_an_ingest_param_redoes_everything(build):
     build()
     result = build({"ingest": {"synthetic_frames": 6}})
