@@ -54,13 +54,11 @@ def _split_csv(value: str | None) -> list[str] | None:
 
 
 def collect_scene_uris(scene: list[str], scenes: list[str]) -> list[str]:
-    """URIs from --scene (one URI each) and --scenes (a list file, a folder of logs, or URIs)."""
-    uris = list(scene)
-    if scenes:
-        from paradrive.pipeline.scenes import expand_scene_inputs
+    """URIs from --scene (one URI each) and --scenes (a list file, a folder of logs, or URIs),
+    each log once and each with a scene id of its own (:mod:`paradrive.pipeline.scenes`)."""
+    from paradrive.pipeline.scenes import scene_uris
 
-        uris.extend(expand_scene_inputs(scenes))
-    return uris
+    return scene_uris(scene, scenes)
 
 
 @app.command()
@@ -97,6 +95,7 @@ def build(
     """
     from paradrive.pipeline import StageRegistry, parse_overrides
     from paradrive.pipeline.choose import make_executor
+    from paradrive.pipeline.scenes import check_present
 
     build_uris: list[str] | None = None
     try:
@@ -106,10 +105,10 @@ def build(
         config = StageRegistry().resolve(profile, overrides)
         stage_list = _split_csv(stages)
         config.check(stage_list)  # unknown stages and values no stage can take fail before any work
-        ledger = _open_ledger(manifests, build_name)
         if retry_failed:
             if scene or scenes:
                 fail("--retry-failed takes the scenes from the ledger; leave out --scene/--scenes")
+            ledger = _open_ledger(manifests, build_name)
             uris = ledger.failed_scene_uris()
             if not uris:
                 out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene",
@@ -120,8 +119,11 @@ def build(
             uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
             if not uris:
                 fail(f"--scenes {' '.join(scenes)}: no scenes found")
+        check_present(uris)   # inputs that are not there: one line, before the ledger or a lock
         selection = select_scenes(config, uris, split, exclude_split)
         uris = selection.uris
+        if not retry_failed:
+            ledger = _open_ledger(manifests, build_name)
         options = {"address": address, "gpu_policy": gpu_policy, "max_in_flight": max_in_flight,
                    "max_retries": max_retries} if executor == "ray" else {}
         runner = make_executor(executor, **options)

@@ -87,9 +87,11 @@ def test_a_synthetic_scene_is_sized_by_its_uri_and_a_short_one_gives_no_pairs():
     assert short.bytes["images"] < long.bytes["images"]
 
 
-def test_cli_plan_prints_the_projection_and_json():
+def test_cli_plan_prints_the_projection_and_json(tmp_path):
     runner = CliRunner()
-    args = ["plan", "--scene", WAYMO[0], "--data", "/nonexistent-data-root"]
+    segment = tmp_path / "segment-1_with_camera_labels.tfrecord"
+    segment.write_bytes(b"")   # planned by its URI: the file is only looked for
+    args = ["plan", "--scene", f"waymo:{segment}", "--data", "/nonexistent-data-root"]
     result = runner.invoke(app, [*args, "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)

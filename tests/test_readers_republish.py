@@ -215,6 +215,18 @@ def test_a_bad_keep_time_is_refused_before_any_work_in_one_line(tmp_path):
                                    "--set", "manifest.keep_versions_for=soon"], env={"COLUMNS": "300"})
     assert res.exit_code == 2, res.output
     line = res.output.strip()
-    assert "\n" not in line and "manifest.keep_versions_for" in line and "'soon' is not a duration" in line
-    assert "e.g. '1d', '12h' or '0s'" in line
+    assert "\n" not in line
+    assert ("--set: manifest.keep_versions_for = 'soon' is not allowed (allowed: matching "
+            "[0-9]+([.][0-9]+)?[smhdw]); change it to an allowed value") in line
     assert not (tmp_path / "data").exists()
+
+
+def test_a_keep_time_is_a_number_and_one_unit():
+    from paradrive.contracts.params import duration_seconds
+
+    assert [duration_seconds(t) for t in ("0s", "90s", "1.5h", "1d", "2w")] == [0, 90, 5400, DAY,
+                                                                              14 * DAY]
+    for bad in ("1", "1 day", "-1d", "1d2h", ""):
+        with pytest.raises(ValueError, match="is not a duration: write a number and one unit"):
+            duration_seconds(bad)
+    assert stage_params("manifest", {"keep_versions_for": "12h"}).keep_versions_seconds == DAY / 2

@@ -424,17 +424,18 @@ def register(app: typer.Typer) -> None:
         """Project pairs, media and intermediate bytes and CPU / GPU hours of a build, before it runs."""
         from paradrive.pipeline import StageRegistry, parse_overrides
         from paradrive.pipeline.build import default_selection
-        from paradrive.pipeline.scenes import expand_scene_inputs
+        from paradrive.pipeline.scenes import check_present, scene_uris
 
         try:
             config = StageRegistry().resolve(profile, parse_overrides(set_))
-            given = list(scene) + (expand_scene_inputs(scenes) if scenes else [])
+            given = scene_uris(scene, scenes)
+            check_present(given)   # a plan of logs that are not there projects nothing real
             uris = default_selection(config, given).uris
             if not uris:
                 raise ConfigError("no scenes to plan: give --scene or --scenes")
             plan = plan_build(config, uris, data if data.is_dir() else None)
         except (ConfigError, ParaDriveError, ValueError) as exc:
-            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}")
+            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
             raise typer.Exit(2) from exc
         if as_json:
             print(json.dumps(plan.as_json(), indent=2))

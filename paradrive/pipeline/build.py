@@ -25,6 +25,7 @@ from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions, scene_lock
 from paradrive.pipeline.progress import ProgressSink
+from paradrive.pipeline.scenes import SceneInput, check_present, distinct_scenes
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
     load_entry, local_sha256, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint,
@@ -345,12 +346,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
     config.check(scene_stages + build_stages)  # a value no stage can take fails before any runs
-    seen, uris = set(), []
-    for uri in scene_uris:
-        parse_uri(uri)  # a malformed URI is a usage error for the whole build
-        if uri not in seen:
-            seen.add(uri)
-            uris.append(uri)
+    # a malformed URI, or one log given twice, is a usage error for the whole build
+    uris = distinct_scenes([SceneInput(uri, uri) for uri in scene_uris])
+    check_present(uris)   # and so is a log that is not there: no scene starts, no lock is taken
     build_uris: list[str] = []
     in_build: set[str] = set()
     for uri in list(build_scene_uris or []) + uris:  # the whole build's order comes first

@@ -134,11 +134,14 @@ class Holder:
 
 @dataclass
 class HeldLock:
-    """A lock this process holds; ``took_over`` describes a dead or expired holder it replaced."""
+    """A lock this process holds; ``took_over`` describes a dead or expired holder it replaced.
+    ``discard``: remove the lock file on release (set for a scene that never started, so a
+    build of logs that were not there leaves no lock file behind)."""
 
     scene_id: str
     holder: Holder
     took_over: str = ""
+    discard: bool = False
 
 
 # -- a folder root: flock ---------------------------------------------------------------------
@@ -152,20 +155,39 @@ def _file_lock(root: DataRoot, scene_id: str, options: LockOptions,
                log: logging.Logger) -> Iterator[HeldLock]:
     path = _lock_file(root, scene_id)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _locked_file(path, scene_id, options, log)
     try:
-        _wait(scene_id, options, log, lambda: _try_flock(fd), lambda: _read_record(path))
         previous = Holder.parse(os.pread(fd, 1 << 16, 0))
         me = Holder.me(options.build)
         os.ftruncate(fd, 0)
         os.pwrite(fd, me.dumps().encode(), 0)
         took_over = previous.describe() if previous else ""  # it ended without letting go
+        held = HeldLock(scene_id, me, took_over)
         try:
-            yield HeldLock(scene_id, me, took_over)
+            yield held
         finally:
+            if held.discard:  # removed while held: a waiter that took the old file tries again
+                path.unlink(missing_ok=True)
             os.ftruncate(fd, 0)  # an empty record: let go cleanly
             fcntl.flock(fd, fcntl.LOCK_UN)
     finally:
+        os.close(fd)
+
+
+def _locked_file(path: Path, scene_id: str, options: LockOptions, log: logging.Logger) -> int:
+    """An open descriptor of the lock file at ``path``, flocked. A holder may remove the file
+    (its scene never started); a build that took the lock of a file no longer at ``path`` lets
+    it go and takes the one there now, so two builds never hold one scene through two files."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            _wait(scene_id, options, log, lambda: _try_flock(fd), lambda: _read_record(path))
+            with contextlib.suppress(FileNotFoundError):
+                if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                    return fd
+        except BaseException:
+            os.close(fd)
+            raise
         os.close(fd)
 
 

@@ -470,8 +470,11 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                                error=f"scene {scene_id}: {stage}: cannot lock "
                                      f"{root.scene_location(scene_id)}: {type(exc).__name__}: "
                                      f"{exc}; check the data root and re-run")
-        result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress,
-                             verify_outputs)
+        try:
+            result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress,
+                                 verify_outputs)
+        finally:   # however it ended: a scene that never started keeps no lock file
+            held.discard = not scene_dir_for(root.local, scene_id).exists()
         result.took_over = held.took_over
         return result
 
