@@ -467,11 +467,12 @@ def _land(layout: BuildLayout, staging: Path, index: dict, keep_for: float) -> s
     record = IndexRecord.model_validate({**index, "version": version})
     record.save(staging / INDEX_JSON)
     previous = _current_version(layout)
+    first = not layout.index_json.exists()   # then no version here was ever published
     os.replace(staging, layout.version(version))
     stop_point("publish:before-switch")
     record.save(layout.index_json)
     stop_point("publish:after-switch")
-    expire_versions(layout, keep_for, current=version, previous=previous)
+    expire_versions(layout, keep_for, current=version, previous=previous, first=first)
     return version
 
 
@@ -486,15 +487,18 @@ def published_at(layout: BuildLayout, version: str) -> float:
 
 
 def kept_versions(layout: BuildLayout, keep_for: float, *, current: str | None,
-                  previous: str | None, now: float | None = None) -> list[str]:
+                  previous: str | None, first: bool = False, now: float | None = None) -> list[str]:
     """The version folders a publish keeps, oldest first: the ``current`` one, the ``previous``
     one it replaced, and every earlier one replaced less than ``keep_for`` seconds ago (a
     version is replaced when the one after it is published). A version published after the
     previous one that never became current (a publish killed before its switch) no reader can
-    hold: it goes. Without a readable current index nothing is judged and every folder stays."""
+    hold: it goes, and so does every other one at a ``first`` publish (no index was there
+    before it). Without a current version nothing is judged and every folder stays."""
     versions = layout.versions()
     if current is None:
         return versions
+    if first:
+        return [current]
     number = {v: version_number(v) for v in versions}
     floor = number.get(previous or "", number[current])
     held = [v for v in versions if number[v] <= floor or v == current]
@@ -507,11 +511,11 @@ def kept_versions(layout: BuildLayout, keep_for: float, *, current: str | None,
 
 
 def expire_versions(layout: BuildLayout, keep_for: float, *, current: str,
-                    previous: str | None) -> list[str]:
+                    previous: str | None, first: bool = False) -> list[str]:
     """Remove the version folders :func:`kept_versions` lets go; returns their names. Each is
     renamed to a temporary name first, so a half-removed folder is never taken for a version
     (and a killed removal is finished by the next publish)."""
-    kept = set(kept_versions(layout, keep_for, current=current, previous=previous))
+    kept = set(kept_versions(layout, keep_for, current=current, previous=previous, first=first))
     gone = [v for v in layout.versions() if v not in kept]
     for name in gone:
         folder = layout.version(name)

@@ -147,7 +147,9 @@ def test_the_rule_in_one_function(tmp_path, contents):
     # an index that names v-000002 while v-000003 and v-000004 were never switched to (killed
     # publishes): no reader can hold those two
     assert rule(0.0, current="v-000002", previous="v-000001") == ["v-000001", "v-000002"]
-    assert rule(DAY, current="v-000004", previous=None) == layout.versions()
+    assert rule(DAY, current="v-000004", previous=None) == layout.versions()   # an unreadable index
+    # no index before: the other folders are a killed first publish's, never read
+    assert kept_versions(layout, DAY, current="v-000004", previous=None, first=True) == ["v-000004"]
 
 
 def test_a_reader_opened_on_a_version_whose_time_ran_out_is_told_to_reopen(tmp_path, contents):
