@@ -36,7 +36,8 @@ class StageParams(BaseModel):
         except ValidationError as exc:
             err = exc.errors()[0]
             where = ".".join(str(x) for x in err["loc"])
-            raise ConfigError(f"{stage}.{where}: {err['msg']} (got {err.get('input')!r})") from exc
+            why = err["msg"].removeprefix("Value error, ")   # a validator's own sentence
+            raise ConfigError(f"{stage}.{where}: {why} (got {err.get('input')!r})") from exc
         params._source = dict(values)
         return params
 
