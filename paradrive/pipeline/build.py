@@ -2,7 +2,8 @@
 
 Exit codes of a build (also the CLI's): 0 every scene finished every asked stage; 3 partial (some
 scenes failed, the others landed); 1 no scene landed (a scene whose ingest landed but whose fit
-failed did not); 2 a usage or configuration error, found before any stage ran; 130 interrupted.
+failed did not); 2 a usage or configuration error, found before any stage ran; 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM).
 """
 
 from __future__ import annotations
