@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, PrivateAttr, ValidationError
 
 from paradrive.errors import ConfigError
 from paradrive.contracts.layout import BuildLayout, SceneLayout
+from paradrive.contracts.records import StageMarker
 
 
 class StageParams(BaseModel):
@@ -66,7 +67,7 @@ class StageContext(Generic[P]):
     params: P
     log: logging.Logger
     progress: Callable[..., None] = _no_progress
-    upstream: dict[str, dict] = field(default_factory=dict)  # markers of the stages it needs
+    upstream: dict[str, StageMarker] = field(default_factory=dict)  # markers of the stages it needs
     hashes: dict[str, str] = field(default_factory=dict)  # sha256 of outputs the stage computed
 
     @property

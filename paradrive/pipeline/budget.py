@@ -268,7 +268,7 @@ def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
     shape = Shape(len(doc["frames"]), cams, "ingested",
                   sfm_frames=len(doc["frames"]) if doc.get("dataset") == "video" else 0)
     marker = read_marker(layout.root, "fit")
-    if marker and layout.fit_json.is_file() and fit_params in (None, marker.get("params")):
+    if marker and layout.fit_json.is_file() and fit_params in (None, marker.params):
         shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
     return shape
 
@@ -311,19 +311,19 @@ def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, fl
     layout = SceneLayout(scene_dir)
     if markers["ingest"] is None or not layout.scene_json.is_file():
         return []
-    params = {s: {**config.params[s], **((m or {}).get("params") or {})} for s, m in markers.items()}
+    params = {s: {**config.params[s], **((m.params if m else None) or {})} for s, m in markers.items()}
     u = units(params, _ingested_shape(layout, None))
     fitted = layout.fit_json.is_file() and FitRecord.load(layout.fit_json).device.startswith("cuda")
     gpu = "gpu" if fitted else "cpu"
     specs = config.registry().specs
     out = []
     for stage, marker in markers.items():
-        if marker is None or "outputs" not in marker:
+        if marker is None or marker.outputs is None:
             continue
         device = gpu if specs[stage].resources.gpu > 0 else "cpu"
-        out.append((f"compute:{stage}", device, float(marker.get("seconds", 0.0)), u[f"compute:{stage}"]))
-        files = {**marker["outputs"], **marker.get("dropped", {}).get("files", {})}
-        sizes = by_folder({rel: int(info["bytes"]) for rel, info in files.items()})
+        out.append((f"compute:{stage}", device, float(marker.seconds or 0.0), u[f"compute:{stage}"]))
+        files = {**marker.outputs, **(marker.dropped.files if marker.dropped else {})}
+        sizes = by_folder({rel: info.bytes for rel, info in files.items()})
         out += [(f"bytes:{name}", "", float(sizes[name]), u[f"bytes:{name}"])
                 for name in STAGE_OWNS[stage] if sizes[name] and u[f"bytes:{name}"]]
     return out

@@ -13,7 +13,6 @@ nuScenes ``6cams``), which the ReCamDriving recipe keeps.
 from __future__ import annotations
 
 import importlib
-import json
 import os
 import shutil
 from pathlib import Path
@@ -28,6 +27,7 @@ from paradrive.scene import Scene, load_scene, write_image, write_scene
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.params import IngestParams as Params
 from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import StageMarker
 from paradrive.uri import parse_uri
 
 READERS = {
@@ -53,12 +53,8 @@ def params_of(values: Mapping[str, Any] | None = None) -> Params:
 def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
     """The parameter mapping the scene at ``layout`` was ingested with (its stage marker), or
     None where it has no readable marker (a scene folder made without the runner)."""
-    try:
-        doc = json.loads(layout.marker("ingest").read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-    values = doc.get("params") if isinstance(doc, dict) else None
-    return values if isinstance(values, dict) else None
+    marker = StageMarker.read(layout.marker("ingest"))
+    return marker.params if marker is not None else None
 
 
 def recorded_params(layout: SceneLayout) -> Params:
