@@ -69,6 +69,9 @@ class StageContext(Generic[P]):
     progress: Callable[..., None] = _no_progress
     upstream: dict[str, StageMarker] = field(default_factory=dict)  # markers of the stages it needs
     hashes: dict[str, str] = field(default_factory=dict)  # sha256 of outputs the stage computed
+    # every stage's parameters in this build: what fills a gap where an earlier stage's marker,
+    # written by an older version, lacks a parameter (never a way around this stage's own)
+    build_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def scene_dir(self) -> Path:

@@ -565,6 +565,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
                                layout=SceneLayout(scene_dir), data_dir=data_dir,
                                params=typed_params(spec, params), log=log, upstream=upstream,
+                               build_params=config.params,
                                progress=StageProgress(scene_id, stage, log, on_progress, guard=guard))
             summary = summary_of(func(ctx))
             missing = outputs_present(scene_dir, spec, params)

@@ -425,6 +425,20 @@ class StageRegistry:
 
 
 _REGISTRIES: dict[tuple, StageRegistry] = {}
+
+
+def cached_registry(stages_dir: str | Path | None = None) -> StageRegistry:
+    """The stage definitions of ``stages_dir`` (default: :func:`default_stages_dir`), read once
+    while the folder's stage files keep their sizes and modification times (a stat of each,
+    never a read, tells)."""
+    folder = Path(stages_dir) if stages_dir else default_stages_dir()
+    key = (str(folder), tuple((p.name, st.st_size, st.st_mtime_ns)
+                              for p in sorted(folder.glob("*.yaml")) for st in [p.stat()]))
+    if key not in _REGISTRIES:
+        if len(_REGISTRIES) >= 8:  # tests resolve many stage folders in one process
+            _REGISTRIES.clear()
+        _REGISTRIES[key] = StageRegistry(folder)
+    return _REGISTRIES[key]
 _LAST_REGISTRY: list[tuple[ResolvedConfig, StageRegistry]] = []
 
 
@@ -444,15 +458,9 @@ class ResolvedConfig(BaseModel):
         size and modification time, so an edited stage file is read again."""
         if _LAST_REGISTRY and _LAST_REGISTRY[0][0] is self:
             return _LAST_REGISTRY[0][1]
-        folder = Path(self.stages_dir)
-        key = (str(folder), tuple((p.name, st.st_size, st.st_mtime_ns)
-                                  for p in sorted(folder.glob("*.yaml")) for st in [p.stat()]))
-        if key not in _REGISTRIES:
-            if len(_REGISTRIES) >= 8:  # tests resolve many stage folders in one process
-                _REGISTRIES.clear()
-            _REGISTRIES[key] = StageRegistry(folder)
-        _LAST_REGISTRY[:] = [(self, _REGISTRIES[key])]
-        return _REGISTRIES[key]
+        registry = cached_registry(self.stages_dir)
+        _LAST_REGISTRY[:] = [(self, registry)]
+        return registry
 
     def selected(self, stages: list[str] | None = None) -> list[str]:
         """The stages a build runs, in order: ``stages``, or every stage switched on

@@ -41,13 +41,18 @@ READERS = {
 INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
 
 
-def params_of(values: Mapping[str, Any] | None = None) -> Params:
-    """Ingest parameters from a recorded mapping (a scene's ingest marker); the YAML's values
-    fill what an older marker lacks, and keys the YAML no longer has are left out."""
-    from paradrive.pipeline.specs import StageRegistry
+def params_of(values: Mapping[str, Any] | None = None,
+              defaults: Mapping[str, Any] | None = None) -> Params:
+    """Ingest parameters from a recorded mapping (a scene's ingest marker). What an older
+    marker lacks comes from ``defaults``: the build's own ingest parameters (its profile and
+    ``--set``), or where none are given the stage file's defaults (read once, not per call);
+    keys the stage no longer has are left out."""
+    if defaults is None:
+        from paradrive.pipeline.specs import cached_registry
 
+        defaults = cached_registry().specs["ingest"].defaults()
     known = {k: v for k, v in (values or {}).items() if k in Params.model_fields}
-    return Params.of("ingest", {**StageRegistry().resolve(None).params["ingest"], **known})
+    return Params.of("ingest", {**defaults, **known})
 
 
 def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
@@ -57,10 +62,10 @@ def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
     return marker.params if marker is not None else None
 
 
-def recorded_params(layout: SceneLayout) -> Params:
-    """The parameters the scene at ``layout`` was ingested with, typed; the YAML's values where
-    it has no marker."""
-    return params_of(recorded_values(layout))
+def recorded_params(layout: SceneLayout, defaults: Mapping[str, Any] | None = None) -> Params:
+    """The parameters the scene at ``layout`` was ingested with, typed; ``defaults`` (the
+    build's ingest parameters) where its marker lacks one or it has none (:func:`params_of`)."""
+    return params_of(recorded_values(layout), defaults)
 
 
 class IngestSummary(dict[str, Any]):
