@@ -495,7 +495,3 @@ class StageMarker(Record):
                 ValidationError):
             return None
         return marker if marker.schema_version == cls.SCHEMA_VERSION else None
-
-    @property
-    def summary_or_empty(self) -> dict[str, Any]:
-        return dict(self.summary or {})

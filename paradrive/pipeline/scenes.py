@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from paradrive.errors import ConfigError
-from paradrive.ingest.waymo import SUFFIXES as WAYMO_SUFFIXES
 from paradrive.uri import KINDS, SceneURI, parse_uri, scene_name, short_hash, with_name
 
 _TRAILING_COMMENT = re.compile(r"\s+#.*$")
@@ -55,6 +54,14 @@ class SceneInput:
 
     def describe(self) -> str:
         return self.where if self.uri in self.where else f"{self.where} ({self.uri})"
+
+
+def _waymo_suffixes() -> tuple[str, ...]:
+    """A Waymo segment's file suffixes; imported when a path is looked at, so a build (and every
+    command) starts without the log readers and what they import (torch)."""
+    from paradrive.ingest.waymo import SUFFIXES
+
+    return tuple(SUFFIXES)
 
 
 def is_uri(text: str) -> bool:
@@ -176,7 +183,7 @@ def _expand(item: str, base: Path, depth: int, within: Path | None, where: str) 
     if path.is_dir():
         return [SceneInput(uri, where) for uri in scenes_in_folder(path)]
     if path.is_file():
-        if path.suffix in WAYMO_SUFFIXES:
+        if path.suffix in _waymo_suffixes():
             return [SceneInput(f"waymo:{path.resolve()}", where)]
         if depth > 4:
             raise ConfigError(f"{path}: scene lists nest more than 4 deep; is a list including itself?")
@@ -235,7 +242,7 @@ def scenes_in_folder(folder: Path) -> list[str]:
     if is_drivestudio_scene(folder):
         return [f"drivestudio:{folder}"]
     found = [p for p in sorted(folder.rglob("*"))
-             if p.is_file() and p.suffix in WAYMO_SUFFIXES and not p.name.startswith(".")]
+             if p.is_file() and p.suffix in _waymo_suffixes() and not p.name.startswith(".")]
     scenes = [p for p in sorted(folder.iterdir()) if p.is_dir() and is_drivestudio_scene(p)]
     for p in found + scenes:
         _inside(p, folder, f"{p}")
