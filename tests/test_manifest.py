@@ -337,7 +337,9 @@ def test_schema_md_duckdb_example_runs_on_a_build(built, monkeypatch):
     duckdb = pytest.importorskip("duckdb")
     monkeypatch.chdir(built.parent)
     (sql,) = _schema_examples("sql")
-    sql = sql.replace("manifests/default/", f"{built.name}/")
+    # the example names the version index.json names (older ones a publish keeps sit beside it)
+    assert "manifests/default/v-000003/" in sql
+    sql = sql.replace("manifests/default/v-000003/", f"{built.name}/{read_index(built).version}/")
     rows = duckdb.sql(sql).fetchall()
     assert rows and sum(r[-1] for r in rows) == 144
 
