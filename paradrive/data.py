@@ -49,8 +49,8 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, check_relative, sha256_file
-from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, iter_shard, read_index,
-                             shard_paths)
+from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, current_version,
+                             iter_shard, read_index, shard_paths)
 from paradrive.video import each_frame
 from paradrive.wan.latents import LatentReader
 
@@ -236,6 +236,9 @@ class PairDataset(Dataset):
             videos: ``target_latents``, ``source_latents``, ``condition_latents`` (C, T', h, w) in
             ``dtype``, ``camera``, ``rel_pose``, ``text_embedding`` (:class:`paradrive.wan.latents.LatentReader`);
             the frame options do not apply (the cache fixed frames and size).
+        version: the version folder to read (``v-<nnnnnn>``, while a publish keeps it); None
+            reads the one ``index.json`` names at open. Either way the dataset reads that one
+            version to the end, whatever is published meanwhile (:attr:`version` says which).
 
     ``frames_decoded`` counts the frames the decoder produced in this process (those before a
     window included), so a caller can see what seeking saved.
@@ -246,9 +249,9 @@ class PairDataset(Dataset):
                  resize: str = "crop", pose_format: str | None = None, prompt: str = "",
                  verify_checksums: bool = False, decode_threads: int = 1,
                  dtype: torch.dtype | str = torch.float32, reuse_buffers: bool = True,
-                 latents: bool = False):
+                 latents: bool = False, version: str | None = None):
         self.build = Path(build)
-        self.index = read_index(self.build)
+        self.index = read_index(self.build, version)   # resolved once: every read stays in it
         if frame_stride < 1 or frame_offset < 0 or (num_frames is not None and num_frames < 1):
             raise ValueError("frame_stride must be >= 1, frame_offset >= 0 and num_frames >= 1")
         if pose_format not in (None, "recammaster"):
@@ -301,6 +304,11 @@ class PairDataset(Dataset):
     # ------------------------------------------------------------ rows
     def __len__(self) -> int:
         return int(self._starts[-1])
+
+    @property
+    def version(self) -> str | None:
+        """The version folder this dataset reads (None: a build published before versions)."""
+        return self.index.version
 
     @property
     def pair_ids(self) -> list[str]:
@@ -435,12 +443,20 @@ class PairIterableDataset(IterableDataset):
     worker w takes batches w, w + num_workers, ...: a DataLoader collecting from its workers in
     turn then delivers the rank's sequence in order, so "samples consumed" is an exact position.
 
-    Resume. ``state_dict(samples_consumed)`` records the epoch and the samples of this rank's
-    epoch sequence already used; after ``load_state_dict`` the next iterator of that epoch starts
+    Resume. ``state_dict(samples_consumed)`` records the epoch, the samples of this rank's
+    epoch sequence already used and the build version read; after ``load_state_dict`` (which
+    opens that version again, while a publish keeps it) the next iterator of that epoch starts
     right after them. With ``num_workers=0`` the dataset counts by itself; with workers (whose
     copies of the dataset the main process cannot see) the trainer counts the samples its loader
     delivered since the iterator started (batches x batch_size) and passes that number.
     ``set_epoch(e)`` before each epoch (as with DistributedSampler).
+
+    A republished build. The dataset reads the version it opened to the end, however often the
+    build is published meanwhile (a publish keeps it for ``manifest.keep_versions_for``). To
+    pick up a new version, call ``set_epoch(e, refresh=True)``: at that epoch boundary, and only
+    there, it opens the version ``index.json`` names now (every rank must then see the same
+    one: refresh on all ranks at the same boundary). DataLoader workers get the new version
+    with their next iterator, unless ``persistent_workers=True`` keeps their old copy.
 
     Args (beyond PairDataset's, which pass through): seed, shuffle, rank, world_size (default
     from torch.distributed when initialised, else 0 and 1), batch_size, partition.
@@ -451,6 +467,7 @@ class PairIterableDataset(IterableDataset):
                  partition: str = "pad", **pair_options):
         super().__init__()
         self.dataset = PairDataset(build, **pair_options)
+        self._options = {k: v for k, v in pair_options.items() if k != "version"}
         drank, dworld = _dist_rank_world()
         self.rank = drank if rank is None else int(rank)
         self.world_size = dworld if world_size is None else int(world_size)
@@ -469,9 +486,36 @@ class PairIterableDataset(IterableDataset):
         self._yielded = 0                              # counted here when iterated in-process
 
     # ------------------------------------------------------------ order
-    def set_epoch(self, epoch: int) -> None:
+    def set_epoch(self, epoch: int, *, refresh: bool = False) -> bool:
+        """Start epoch ``epoch``; with ``refresh``, first open the build's current version if a
+        publish replaced the one read so far. Returns whether the version changed."""
         self.epoch = int(epoch)
         self._yielded = 0
+        return self.refresh() if refresh else False
+
+    @property
+    def version(self) -> str | None:
+        """The build version being read."""
+        return self.dataset.version
+
+    def refresh(self) -> bool:
+        """Open the version ``index.json`` names now, if it is another; only between epochs (a
+        resume point pending for this epoch keeps the version it was saved with)."""
+        if self._resume is not None and self._resume[0] == self.epoch:
+            return False
+        now = current_version(self.dataset.build)
+        if now is None or now == self.dataset.version:
+            return False
+        self._open(now)
+        return True
+
+    def _open(self, version: str) -> None:
+        dataset = PairDataset(self.dataset.build, version=version, **self._options)
+        if self.partition == "drop" and len(dataset) < self.world_size:
+            raise ValueError(f"version {version} of {dataset.build} has {len(dataset)} pairs for "
+                             f"{self.world_size} ranks: partition='drop' leaves nothing; use "
+                             f"partition='pad'")
+        self.dataset = dataset
 
     def __len__(self) -> int:
         """Samples each rank yields per epoch."""
@@ -522,9 +566,18 @@ class PairIterableDataset(IterableDataset):
         used = self._yielded if samples_consumed is None else int(samples_consumed)
         return {"epoch": self.epoch, "samples_consumed": self._start() + used,
                 "seed": self.seed, "shuffle": self.shuffle, "num_pairs": len(self.dataset),
-                "rank": self.rank, "world_size": self.world_size, "partition": self.partition}
+                "rank": self.rank, "world_size": self.world_size, "partition": self.partition,
+                "version": self.dataset.version}
 
     def load_state_dict(self, state: dict) -> None:
+        saved = state.get("version")
+        if saved is not None and saved != self.dataset.version:
+            try:   # the epoch goes on where it stopped: in the version it was reading
+                self._open(saved)
+            except ParaDriveError as exc:
+                raise ValueError(f"cannot resume epoch {state.get('epoch')} mid-way: {exc}; or "
+                                 f"start epoch {int(state.get('epoch', 0)) + 1} without the "
+                                 f"saved state") from exc
         for key in ("seed", "shuffle", "num_pairs", "world_size", "partition"):
             mine = len(self.dataset) if key == "num_pairs" else getattr(self, key)
             if key in state and state[key] != mine:

@@ -5,9 +5,15 @@ from __future__ import annotations
 import errno
 
 # exit codes of a build (and of the CLI): every scene landed; no scene landed; a usage or
-# configuration error (before any stage ran); some scenes landed, some failed; Ctrl-C, as a
-# shell reports a process SIGINT ended
+# configuration error (before any stage ran); some scenes landed, some failed; Ctrl-C and
+# SIGTERM, as a shell reports a process those signals ended
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PARTIAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_TERMINATED = 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM reached a build: it unwinds as Ctrl-C does (every ``with`` and ``finally`` on
+    the way cleans up), then exits with :data:`EXIT_TERMINATED`."""
 
 
 class ParaDriveError(Exception):

@@ -612,7 +612,7 @@ def view_build(build_dir: str | Path, out: str | Path, *, pair_ids: Sequence[str
     """Write the recording of a published build's pairs (``pair_ids``, or its first ones) to ``out``."""
     build_dir = Path(build_dir)
     index = read_index(build_dir)
-    rows = read_pairs(build_dir, BUILD_COLUMNS).to_pylist()
+    rows = read_pairs(build_dir, BUILD_COLUMNS, index).to_pylist()
     if not rows:
         raise ParaDriveError(f"{build_dir / INDEX_JSON}: the build has no pairs to show; build "
                              f"scenes into it first (paradrive build)")
