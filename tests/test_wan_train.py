@@ -133,7 +133,8 @@ def test_wan_trainer_steps_on_a_device_compute_what_they_compute_on_the_cpu(tmp_
         trainer = WanTrainer({**config(), "device": str(DEVICE)}, 1, tmp_path / "dev", LatentPairs())
         losses = trainer.train(2)
         assert all(p.device == DEVICE for p in trainer.model.parameters())
-    assert losses == cpu
+    # the stand-in device sums some gradients in another order (differences of ~1e-9)
+    torch.testing.assert_close(losses, cpu, rtol=1e-5, atol=1e-6)
 
 
 def test_train_command_runs_both_wan_stages_on_a_smoke_build_and_samples(smoke_build, tmp_path):
