@@ -31,7 +31,7 @@ from pydantic import ValidationError
 
 from paradrive.data import PairDataset, epoch_order, per_rank, to_unit_range
 from paradrive.devices import resolve_device
-from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
+from paradrive.io import UnsafeFileError, atomic_path, load_tensors, stop_point, write_text
 from paradrive.errors import ConfigError
 from paradrive.pipeline.specs import Param, coerce, default_stages_dir
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
@@ -305,6 +305,7 @@ class Trainer:
             if problems:
                 self.notes.append(f"{problems[0]}; resuming from {path} (step {ckpt['step']}), the "
                                   f"checkpoint before it")
+                self._rotate = False   # the damaged last.pt is overwritten, never kept as previous.pt
             elif path == previous:
                 self.notes.append(f"{last} is missing (a run stopped while replacing it); resuming from "
                                   f"{path} (step {ckpt['step']})")
@@ -330,6 +331,7 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)
         self.notes: list[str] = []   # what a user should read: a fallback to an earlier checkpoint
+        self._rotate = True           # the next save keeps the last.pt it replaces as previous.pt
         self._ddp: torch.nn.Module | None = None
         t = self.config["train"]
         self.batch_size, self.accumulation = int(t["batch_size"]), int(t["grad_accumulation"])
@@ -436,8 +438,9 @@ class Trainer:
         last = self.out_dir / "last.pt"
         with atomic_path(last) as tmp:
             torch.save(state, tmp)
-            if last.exists():
+            if last.exists() and self._rotate:
                 os.replace(last, self.out_dir / PREVIOUS)
+        self._rotate = True
         every = int(self.config["train"]["checkpoint_every"])
         if every and self.step % every == 0:
             with atomic_path(self.out_dir / f"ckpt_{self.step:06d}.pt") as tmp:
@@ -611,6 +614,7 @@ class Trainer:
                         or (every_ckpt and self.step % every_ckpt == 0):
                     if self.world.main:
                         self.save()
+                        stop_point(f"train:stage{self.stage}-saved-{self.step}")
                     barrier(self.world)
                 if self.step >= total:
                     break

@@ -62,6 +62,16 @@ def tiny_transformer_config() -> dict[str, Any]:
             "eps": 1e-6, "rope_max_seq_len": 64}
 
 
+def wan21_t2v_1_3b_config() -> dict[str, Any]:
+    """Wan2.1-T2V-1.3B's transformer as diffusers configures it (its ``transformer/config.json``):
+    30 blocks of width 1536 (12 heads of 128), FFN 8960, umT5's 4096-wide text. For sizes and
+    device checks with random weights; the real weights come from a local folder."""
+    return {"patch_size": (1, 2, 2), "num_attention_heads": 12, "attention_head_dim": 128, "in_channels": 16,
+            "out_channels": 16, "text_dim": 4096, "freq_dim": 256, "ffn_dim": 8960, "num_layers": 30,
+            "cross_attn_norm": True, "qk_norm": "rms_norm_across_heads", "eps": 1e-6, "image_dim": None,
+            "added_kv_proj_dim": None, "rope_max_seq_len": 1024}
+
+
 def make_tiny_transformer(seed: int = 0):
     """The tiny transformer with random weights drawn from ``seed`` (the same every call)."""
     from diffusers import WanTransformer3DModel
@@ -291,6 +301,17 @@ def checkpoint_parameter_names(model: ReCamDrivingWan, stage: int, ffn: bool = F
     and the checkpoint together are the whole model."""
     names = stage_parameter_names(model, 1)
     return names | stage_parameter_names(model, 2, ffn) if stage == 2 else names
+
+
+def checkpoint_size(model: ReCamDrivingWan, stage: int, ffn: bool = False) -> dict[str, int]:
+    """What a checkpoint of ``stage`` holds, counted: the parameters it saves (fp32, 4 bytes each)
+    and the trained ones whose AdamW moments it saves (two fp32 tensors each, 8 bytes), and their
+    bytes (``model`` may live on the meta device: only shapes are read)."""
+    count = dict(model.named_parameters())
+    saved = sum(count[n].numel() for n in checkpoint_parameter_names(model, stage, ffn))
+    trained = sum(count[n].numel() for n in stage_parameter_names(model, stage, ffn))
+    base = sum(p.numel() for p in model.transformer.parameters())
+    return {"base": base, "saved": saved, "trained": trained, "bytes": 4 * saved + 8 * trained}
 
 
 def trainable_parameters(model: ReCamDrivingWan, stage: int, ffn: bool = False) -> list[nn.Parameter]:
