@@ -162,3 +162,23 @@ def test_tiny_model_counts_match_its_parameters():
     assert size["base"] == sum(p.numel() for p in model.transformer.parameters())
     trained = stage_parameter_names(model, 2)
     assert size["trained"] == sum(p.numel() for n, p in model.named_parameters() if n in trained)
+
+
+def test_a_damaged_init_checkpoint_is_named_in_one_line(tmp_path):
+    wan(tmp_path / "s1").train(1)
+    DAMAGE["cut off"](tmp_path / "s1" / "last.pt")
+    with pytest.raises(DamagedCheckpoint, match=r"^--init .*last.pt is not a whole checkpoint"):
+        WanTrainer(load_wan_config("smoke"), 2, tmp_path / "s2", LatentPairs(2), init=tmp_path / "s1" / "last.pt")
+
+
+def test_a_step_that_fails_stops_the_run_in_one_line(wan_builds, tmp_path):
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+
+    result = CliRunner().invoke(app, ["train", "--build", str(wan_builds["train"]), "--model", "wan", "--config",
+                                      "smoke", "--out", str(tmp_path / "run"), "--steps", "3", "--set",
+                                      "train.lr=1.0e+30"])
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+    (line,) = [line for line in result.output.splitlines() if line.strip()]
+    assert line.startswith("error: stage 1 stopped at step") and "loss is not finite" in line

@@ -191,3 +191,27 @@ def test_training_reads_a_builds_cached_latents_without_the_vae(smoke_build, wan
     losses = trainer.train(2)
     assert len(losses) == 2 and all(torch.isfinite(torch.tensor(losses)))
     assert trainer._vae is None   # never loaded: the cache holds the latents and the text embedding
+
+
+def test_settings_the_model_cannot_read_are_refused_before_any_step(tmp_path):
+    few = load_wan_config("smoke", {"model": {"max_frames": 3}})   # 5-frame clips: 2 + 2 latent frames
+    with pytest.raises(ConfigError, match="need 4 .*set model.max_frames=4"):
+        WanTrainer(few, 1, tmp_path / "a", LatentPairs())
+    odd = load_wan_config("smoke", {"data": {"height": 40}})       # a 5-row latent grid, patches of 2
+    with pytest.raises(ConfigError, match="multiples of 16x16"):
+        WanTrainer(odd, 1, tmp_path / "b", LatentPairs())
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_stage2_trains_the_ffn_only_when_asked(tmp_path):
+    WanTrainer(config(), 1, tmp_path / "s1", LatentPairs()).train(1)
+    init = tmp_path / "s1" / "last.pt"
+    paper = WanTrainer(config(), 2, tmp_path / "s2", LatentPairs(), init=init)
+    beyond = WanTrainer(load_wan_config("smoke", {"model": {"stage2_ffn": True}}), 2, tmp_path / "s2f",
+                        LatentPairs(), init=init)
+    trained = {n for n, p in paper.model.named_parameters() if p.requires_grad}
+    more = {n for n, p in beyond.model.named_parameters() if p.requires_grad}
+    assert not any(".ffn." in n for n in trained) and more - trained == {
+        n for n, _ in beyond.model.named_parameters() if ".ffn." in n}
+    beyond.train(1)
+    assert any(".ffn." in k for k in weights(tmp_path / "s2f" / "last.pt"))   # and its checkpoint holds them

@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import EXIT_FAILED, ParaDriveError
 from paradrive.io import path_inside
 
 console = Console(stderr=True)
@@ -75,7 +75,7 @@ def _train(build: Path, stage: int, config: str | None, out_dir: Path | None, st
     except (ValueError, FileNotFoundError, TypeError, ParaDriveError) as exc:
         _fail(str(exc))
     if not trainer.world.main:   # rank 0 alone prints, writes and samples
-        trainer.train(int(cfg["train"]["steps"] if steps is None else steps))
+        _run(trainer, int(cfg["train"]["steps"] if steps is None else steps))
         return
     for line in notes + trainer.notes:
         console.print(f"[yellow]note:[/] {escape(line)}", soft_wrap=True)
@@ -86,7 +86,7 @@ def _train(build: Path, stage: int, config: str | None, out_dir: Path | None, st
                         disable=not console.is_terminal)
     with progress:
         task = progress.add_task("train", total=total, completed=min(trainer.step, total), stage=stage, loss="-")
-        losses = trainer.train(total, on_step=lambda s, l: progress.update(task, completed=s, loss=f"{l:.4f}"))
+        losses = _run(trainer, total, on_step=lambda s, l: progress.update(task, completed=s, loss=f"{l:.4f}"))
     if losses:
         k = max(1, min(10, len(losses) // 4))
         first, last = sum(losses[:k]) / k, sum(losses[-k:]) / k
@@ -127,6 +127,17 @@ def _train(build: Path, stage: int, config: str | None, out_dir: Path | None, st
             write_video(path, video, float(s["fps"]))
             typer.echo(f"sample of {item['pair_id']} ({video.shape[0]} frames, offset "
                        f"{item['offset_m']} m) -> {path}")
+
+
+def _run(trainer, total: int, on_step=None) -> list[float]:
+    """``trainer.train``; a failure of a step (a loss that is not finite, a pair that cannot be
+    read) is one line, exit 1: the run resumes from its last checkpoint once fixed."""
+    try:
+        return trainer.train(total, on_step=on_step)
+    except (FloatingPointError, ParaDriveError) as exc:
+        console.print(f"[bold red]error:[/] stage {trainer.stage} stopped at step {trainer.step}: {escape(str(exc))}; "
+                      f"a re-run resumes from {trainer.out_dir / 'last.pt'}", soft_wrap=True)
+        raise typer.Exit(EXIT_FAILED) from None
 
 
 def _load_config(model: str, config: str | None, overrides: dict, folders: dict[str, Path | None]) -> dict:

@@ -570,9 +570,8 @@ class Trainer:
             with sync:
                 loss = self.loss(self.latents(batch), self._generators(m))
                 if not all_agree(bool(torch.isfinite(loss)), self.world):
-                    raise FloatingPointError(f"stage {self.stage} step {self.step}: the loss is not finite "
-                                             f"on some process ({loss.item()} here); lower train.lr or check "
-                                             f"the data ({batch['pair_id']})")
+                    raise FloatingPointError(f"the loss is not finite on some process ({loss.item()} here); "
+                                             f"lower train.lr or check the data ({batch['pair_id']})")
                 (loss / len(micro)).backward()
             value += float(loss.detach()) / len(micro)
         clip = float(self.config["train"]["grad_clip"])

@@ -85,14 +85,20 @@ def to_channels_first(frames: torch.Tensor) -> torch.Tensor:
     return frames.permute(0, 2, 1, 3, 4)
 
 
-def check_frames(config: Mapping[str, Any]) -> None:
+def check_shape(config: Mapping[str, Any], model: ReCamDrivingWan) -> None:
     """ConfigError before any work when the frame embedding cannot cover a clip's target and
-    source latent frames together."""
-    frames, cover = int(config["data"]["num_frames"]), int(config["model"]["max_frames"])
+    source latent frames together, or the frames do not divide into the transformer's patches."""
+    d = config["data"]
+    frames, cover = int(d["num_frames"]), int(config["model"]["max_frames"])
     need = 2 * len(latent_frame_indices(frames))
     if need > cover:
         raise ConfigError(f"model.max_frames = {cover}: {frames}-frame clips need {need} (the target's and "
                           f"the source's latent frames together); set model.max_frames={need} or more")
+    _, p_h, p_w = model.transformer.config.patch_size
+    unit_h, unit_w = 8 * p_h, 8 * p_w   # the VAE's 8x, then the transformer's patch
+    if int(d["height"]) % unit_h or int(d["width"]) % unit_w:
+        raise ConfigError(f"data.height x data.width = {d['height']}x{d['width']}: the VAE's 8x and the "
+                          f"transformer's {p_h}x{p_w} patch need multiples of {unit_h}x{unit_w} (e.g. 480x832)")
 
 
 # -- the build's pairs ---------------------------------------------------------------------------
@@ -273,9 +279,9 @@ class WanTrainer(WanRunner, Trainer):
         # the reference's __init__ builds its own model: only its first steps are shared
         self._start(config, stage, out_dir, dataset)
         m = self.config["model"]
-        check_frames(self.config)
         self.ffn = bool(m["stage2_ffn"])
         self.model = build_wan_model(self.config, stage).to(self.device)
+        check_shape(self.config, self.wan)
         self.wan.enable_gradient_checkpointing(bool(m["gradient_checkpointing"]))
         self.base = base_record(self.config, self.wan)
         self._setup_inputs()
@@ -397,6 +403,6 @@ def _autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
 
 
 __all__ = ["CHECKPOINT_FORMAT", "DamagedCheckpoint", "WanRunner", "WanTrainer", "base_record", "build_wan_model",
-           "cache_mismatch", "check_base", "check_frames", "empty_text_embedding", "generated_frames",
+           "cache_mismatch", "check_base", "check_shape", "empty_text_embedding", "generated_frames",
            "latent_frame_indices", "load_wan_config", "load_wan_vae", "open_wan_dataset", "relative_camera",
            "to_channels_first"]
