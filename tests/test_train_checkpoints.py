@@ -92,17 +92,23 @@ def test_a_checkpoint_that_really_needs_pickle_is_still_refused_as_such(tmp_path
 
 
 def test_train_command_reports_a_damaged_checkpoint_in_one_line(wan_builds, tmp_path):
+    from typer.testing import CliRunner
+
+    from paradrive.cli import app
+
     out = tmp_path / "run"
-    args = [sys.executable, "-m", "paradrive.cli", "train", "--build", str(wan_builds["train"]), "--model", "wan",
-            "--config", "smoke", "--out", str(out), "--steps", "2", "--set", "train.save_every=1"]
-    assert subprocess.run(args, capture_output=True, text=True, timeout=600).returncode == 0
+    args = ["train", "--build", str(wan_builds["train"]), "--model", "wan", "--config", "smoke", "--out", str(out),
+            "--steps", "2", "--set", "train.save_every=1"]
+    assert CliRunner().invoke(app, args).exit_code == 0
     DAMAGE["cut off"](out / "stage1" / "last.pt")
-    fell_back = subprocess.run(args, capture_output=True, text=True, timeout=600)
-    assert fell_back.returncode == 0, fell_back.stderr
-    assert "note:" in fell_back.stderr and "resuming from" in fell_back.stderr and "step 1" in fell_back.stderr
+    fell_back = CliRunner().invoke(app, args)
+    assert fell_back.exit_code == 0, fell_back.output
+    assert "note:" in fell_back.output and "resuming from" in fell_back.output and "(step 1)" in fell_back.output
     for name in ("last.pt", PREVIOUS):
         DAMAGE["garbage"](out / "stage1" / name)
-    refused = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    # the real command, as a user's shell runs it: one line on stderr, exit 2
+    refused = subprocess.run([sys.executable, "-m", "paradrive.cli", *args], capture_output=True, text=True,
+                             timeout=600)
     assert refused.returncode == 2
     lines = [line for line in refused.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and "not a whole checkpoint" in lines[0], refused.stderr

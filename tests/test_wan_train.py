@@ -173,11 +173,11 @@ def test_train_command_runs_both_wan_stages_on_a_smoke_build_and_samples(smoke_b
     assert reference.exit_code == 2 and "add --model wan" in reference.output
 
 
-def test_training_reads_a_builds_cached_latents_without_the_vae(smoke_build, wan_folder, copy_tree, tmp_path):
+def test_training_reads_a_builds_cached_latents_without_the_vae(wan_builds, wan_folder, copy_tree, tmp_path):
     from paradrive.wan.encode import EncodeSettings, encode_build
     from paradrive.wan.train import open_wan_dataset
 
-    build = copy_tree(smoke_build["build_dir"], "smoke")
+    build = copy_tree(wan_builds["train"], "train")   # one scene of 5-frame clips: half the smoke build's videos
     encode_build(build, EncodeSettings(vae=str(wan_folder), text_encoder=None, device="cpu",
                                        dtype="bfloat16", compute_dtype="float32", batch=2, shard_pairs=20,
                                        num_frames=5, size=(48, 80), resize="crop"))   # small: fast
