@@ -105,3 +105,13 @@ def test_generate_reports_a_row_it_cannot_read_and_makes_the_others(encoded, wan
     assert len(failed) == 1 and rows.pair_ids[0] in failed[0]
     made = sorted(str(p.relative_to(tmp_path / "v")) for p in (tmp_path / "v").rglob("*.mp4"))
     assert made == sorted(f"{pid}.mp4" for pid in rows.pair_ids[1:3])
+
+
+def test_an_unreadable_cache_is_named_and_auto_reads_the_videos(encoded, wan_folder, tmp_path):
+    build = tmp_path / "train"
+    shutil.copytree(encoded, build, symlinks=True)
+    (build / "latents" / "index.json").write_text("{ not json")
+    out = train(build, tmp_path / "r", 1, wan_folder, "--set", "data.input=latents", code=2)
+    assert "its latent cache" in out and "cannot be read" in out and "is not valid JSON" in out
+    auto = train(build, tmp_path / "a", 1, wan_folder, "--steps", "1")
+    assert "cannot be read" in auto and "encoding the videos on the fly" in auto and "stage 1: 1 steps" in auto

@@ -104,14 +104,14 @@ def check_shape(config: Mapping[str, Any], model: ReCamDrivingWan) -> None:
 # -- the build's pairs ---------------------------------------------------------------------------
 def cache_mismatch(build_dir: str | Path, config: Mapping[str, Any]) -> str | None:
     """Why the build's latent cache cannot feed this run (its frames, size or VAE differ from the
-    config's, or it is unreadable), as a phrase; None when it fits."""
+    config's, or it is unreadable), as what follows "the cache" in a sentence; None when it fits."""
     from paradrive.wan.vae import folder_checksum, vae_folder
 
     d = config["data"]
     try:
         doc = read_latents_index(build_dir)
     except ParaDriveError as exc:
-        return f"it cannot be read ({exc})"
+        return f"cannot be read ({exc})"
     differ = []
     if int(doc["num_frames"]) != int(d["num_frames"]):
         differ.append(f"{doc['num_frames']} frames, this run reads {d['num_frames']} (data.num_frames)")
@@ -126,7 +126,7 @@ def cache_mismatch(build_dir: str | Path, config: Mapping[str, Any]) -> str | No
         if own != doc["vae"]["sha256"]:
             differ.append(f"by the VAE in {doc['vae']['path']} (sha256 {doc['vae']['sha256'][:12]}…), this run's "
                           f"model.vae {vae} is another (sha256 {own[:12]}…)")
-    return "; ".join(f"encoded {d}" if d.startswith("by ") else f"encoded at {d}" for d in differ) or None
+    return "; ".join(f"was encoded {d}" if d.startswith("by ") else f"was encoded at {d}" for d in differ) or None
 
 
 def open_wan_dataset(build_dir: str | Path, config: Mapping[str, Any], notes: list[str] | None = None) -> PairDataset:
@@ -146,9 +146,9 @@ def open_wan_dataset(build_dir: str | Path, config: Mapping[str, Any], notes: li
             return PairDataset(build_dir, latents=True, dtype="float32")
         where = latents_index_path(build_dir)
         if d["input"] == "latents":
-            raise ConfigError(f"--build {build_dir}: its latent cache ({where}) was {why}; {fix}")
+            raise ConfigError(f"--build {build_dir}: its latent cache ({where}) {why}; {fix}")
         if notes is not None:
-            notes.append(f"--build {build_dir}: its latent cache ({where}) was {why}; encoding the videos on "
+            notes.append(f"--build {build_dir}: its latent cache ({where}) {why}; encoding the videos on "
                          f"the fly instead (data.input=auto); to train from the cache, {fix.split(', or ')[0]}")
     elif d["input"] == "latents":
         raise ConfigError(f"--build {build_dir}: data.input=latents but the build has no cached latents; "
