@@ -423,7 +423,7 @@ COMMAND_MODULES = [
     ("paradrive.pipeline.status", "status"),
     ("paradrive.pipeline.budget", "plan"),
     ("paradrive.train.cli", "train"),
-    ("paradrive.wan.cli", "encode"),   # and convert
+    ("paradrive.wan.cli", "encode"),   # and convert, generate
 ]
 
 

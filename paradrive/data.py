@@ -54,7 +54,8 @@ from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, cu
 from paradrive.video import each_frame
 from paradrive.wan.latents import LatentReader
 
-__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera", "to_unit_range"]
+__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "epoch_order", "output_geometry", "per_rank",
+           "recammaster_camera", "to_unit_range"]
 
 # Columns of a row; they and the per-frame poses are read one row group at a time, when a
 # sample needs them. Opening a build reads only the ids and URIs, to check them.
@@ -424,6 +425,22 @@ class PairDataset(Dataset):
 
 # --------------------------------------------------------------------------- iterable
 
+def epoch_order(num_pairs: int, seed: int, epoch: int, world_size: int = 1, shuffle: bool = True,
+                partition: str = "pad") -> np.ndarray:
+    """The pair indices of one epoch over every rank, (``per_rank(...) * world_size``,): a
+    permutation drawn from ``(seed, epoch)`` (pair_id order with ``shuffle=False``) padded by its
+    first elements or cut to a multiple of ``world_size``; rank r reads elements r, r + world_size, ...
+    (``[r::world_size]``). The one order of :class:`PairIterableDataset` and the trainers."""
+    order = (np.random.default_rng([int(seed), int(epoch)]).permutation(num_pairs) if shuffle
+             else np.arange(num_pairs))
+    return np.resize(order, per_rank(num_pairs, world_size, partition) * world_size)
+
+
+def per_rank(num_pairs: int, world_size: int, partition: str = "pad") -> int:
+    """Samples each rank reads per epoch: ``ceil(n / w)`` (``pad``) or ``n // w`` (``drop``)."""
+    return math.ceil(num_pairs / world_size) if partition == "pad" else num_pairs // world_size
+
+
 def _dist_rank_world() -> tuple[int, int]:
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         return torch.distributed.get_rank(), torch.distributed.get_world_size()
@@ -519,16 +536,12 @@ class PairIterableDataset(IterableDataset):
 
     def __len__(self) -> int:
         """Samples each rank yields per epoch."""
-        n, w = len(self.dataset), self.world_size
-        return math.ceil(n / w) if self.partition == "pad" else n // w
+        return per_rank(len(self.dataset), self.world_size, self.partition)
 
     def epoch_order(self, epoch: int | None = None) -> np.ndarray:
         """The whole epoch's sequence of pair indices (after padding or dropping)."""
         epoch = self.epoch if epoch is None else int(epoch)
-        n = len(self.dataset)
-        order = (np.random.default_rng([int(self.seed), epoch]).permutation(n) if self.shuffle
-                 else np.arange(n))
-        return np.resize(order, len(self) * self.world_size)
+        return epoch_order(len(self.dataset), self.seed, epoch, self.world_size, self.shuffle, self.partition)
 
     def rank_order(self, epoch: int | None = None) -> np.ndarray:
         """This rank's sequence of pair indices for the epoch."""
