@@ -24,7 +24,10 @@ decodes a whole video it does not need. swscale converts each frame to planar RG
 through one conversion context per video and with the decoder's thread count, and each plane
 goes straight into the channels-first output: copied for uint8, converted and normalised in place
 for a float type while the plane is still in cache (no interleaved array, no second pass over the
-sample).
+sample). That per-frame work is numpy's, never a torch op: torch would split each plane over its
+intra-op threads, and where other work takes every core each such call waits for threads that
+get no core (37 times slower), so the adapter keeps its speed in any process, whatever
+``torch.get_num_threads()`` its caller left, and never changes it.
 
 Opening a build reads only the pair ids and URIs of its shards (the ids are kept as Arrow, the
 URIs checked once each); a row's other columns and its poses are read with its row group when a
@@ -33,12 +36,13 @@ sample needs them, so a 115K-row build opens in about a second and costs a worke
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import weakref
 from pathlib import Path
 from typing import Any
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -54,7 +58,8 @@ from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, it
 from paradrive.video import each_frame
 from paradrive.wan.latents import LatentReader
 
-__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera", "to_unit_range"]
+__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "frame_array", "output_geometry", "plane_sink",
+           "recammaster_camera", "to_unit_range"]
 
 # Columns of a row; they and the per-frame poses are read one row group at a time, when a
 # sample needs them. Opening a build reads only the ids and URIs, to check them.
@@ -94,6 +99,54 @@ def _unit_range_into(out: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
     subtraction is in place. Both steps are exact at 0 and 255 (a multiply by 1 / 127.5 with a
     fused add would give 255 -> 1.0000001)."""
     return torch.div(frames, 127.5, out=out).sub_(1.0)
+
+
+@functools.cache
+def _plane_writer(dtype: torch.dtype) -> Callable[[np.ndarray, np.ndarray], None]:
+    """``write(channel, plane)``: a uint8 (H, W) colour plane into one channel of a frame buffer,
+    given as a numpy view (16-bit floats as int16, see :func:`frame_array`).
+
+    In numpy, which never splits one call over threads: a torch op on a frame this size spreads
+    it over the intra-op threads, and on a machine whose cores are all busy every such call
+    waits for threads that get no core (three 121-frame samples at 320x192: 21.6 s with torch's
+    two threads, 0.58 s with one). Each float type gives exactly :func:`to_unit_range` of the
+    uint8 plane: float32 by the same two correctly rounded steps (x / 127.5, then - 1), the
+    16-bit types (which numpy computes slowly or lacks) by a table of those 256 values.
+    """
+    if dtype == torch.uint8:
+        return np.copyto
+    if dtype == torch.float32:
+        def unit_range(channel: np.ndarray, plane: np.ndarray) -> None:
+            np.divide(plane, np.float32(127.5), out=channel)
+            np.subtract(channel, np.float32(1.0), out=channel)
+        return unit_range
+    table = frame_array(to_unit_range(torch.arange(256, dtype=torch.uint8, device="cpu"), dtype))
+
+    def look_up(channel: np.ndarray, plane: np.ndarray) -> None:
+        np.take(table, plane, out=channel)
+    return look_up
+
+
+def frame_array(frames: torch.Tensor) -> np.ndarray:
+    """A numpy view of CPU ``frames`` (float16 and bfloat16, which numpy lacks or computes
+    slowly, as int16 bits) for :func:`plane_sink` to write into."""
+    return (frames.view(torch.int16) if frames.element_size() == 2 else frames).numpy()
+
+
+def plane_sink(channels: Callable[[int], np.ndarray], geo: dict,
+               dtype: torch.dtype) -> Callable[[int, tuple[np.ndarray, ...]], None]:
+    """A sink for ``each_frame(..., planar=True)``: frame ``idx``'s (R, G, B) planes, cut to
+    ``geo``'s crop (:func:`output_geometry`), written as ``dtype`` into ``channels(idx)``, the
+    frame's three (H, W) channels in a :func:`frame_array` view. No torch op runs per frame
+    (see :func:`_plane_writer`)."""
+    write = _plane_writer(dtype)
+    oh, ow = geo["size"]
+    y0, x0 = geo["crop"]
+
+    def sink(idx: int, planes: tuple[np.ndarray, ...]) -> None:
+        for channel, plane in zip(channels(idx), planes):
+            write(channel, plane[y0:y0 + oh, x0:x0 + ow])
+    return sink
 
 
 class FramePool:
@@ -366,23 +419,12 @@ class PairDataset(Dataset):
                                      f"manifest ({sha[:12]}…); the file is corrupt, re-run the "
                                      f"manifest stage or restore it")
             self._verified.add(uri)
-        oh, ow = geo["size"]
-        y0, x0 = geo["crop"]
-        out = self.buffers.take((len(frames), 3, oh, ow), self.dtype)
+        out = self.buffers.take((len(frames), 3, *geo["size"]), self.dtype)
+        array = frame_array(out)
         position = {f: k for k, f in enumerate(frames)}
-        floating = self.dtype.is_floating_point
-
-        def fill(idx: int, planes: tuple[np.ndarray, ...]) -> None:
-            for channel, plane in zip(out[position[idx]], planes):
-                pixels = torch.from_numpy(plane[y0:y0 + oh, x0:x0 + ow])
-                if floating:
-                    _unit_range_into(channel, pixels)
-                else:
-                    channel.copy_(pixels)
-
         stats: dict = {}
-        each_frame(path, frames, fill, size=geo["resize"], threads=self.decode_threads, stats=stats,
-                   planar=True)
+        each_frame(path, frames, plane_sink(lambda idx: array[position[idx]], geo, self.dtype),
+                   size=geo["resize"], threads=self.decode_threads, stats=stats, planar=True)
         self.frames_decoded += stats.get("decoded", 0)
         return out
 

@@ -216,6 +216,62 @@ def test_without_reuse_every_sample_is_new_memory_and_a_pickled_pool_starts_empt
     assert pickle.loads(pickle.dumps(pooled.buffers)).held_bytes() == 0
 
 
+@pytest.fixture(scope="module")
+def wide_build(tmp_path_factory):
+    """One pair of 3 frames of 256x192: a colour plane (49,152 pixels) is more than torch's
+    grain size, the element count past which one torch op is split over its intra-op threads."""
+    data = tmp_path_factory.mktemp("wide")
+    scene = write_clip_scene(data / "data", "synthetic-wide", clips=("front",), offsets=(2.0,),
+                             conditions=(100,), num_frames=3, width=256, height=192)
+    build_manifest(data / "b", [scenes_entry(scene)], stage_params("manifest", {}))
+    return data / "b"
+
+
+# torch splits an op over its intra-op threads only past this many elements (at::internal::GRAIN_SIZE)
+TORCH_GRAIN_SIZE = 32768
+# what torch.from_numpy and Tensor.numpy() record: none of them computes or copies
+NON_COMPUTING_OPS = {"aten::view", "aten::to", "aten::detach", "detach", "aten::lift_fresh",
+                     "aten::resolve_conj", "aten::resolve_neg", "aten::alias", "aten::as_strided"}
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "float32", "bfloat16", "float16"])
+def test_reading_a_sample_runs_no_torch_op_that_threads_could_split(wide_build, dtype):
+    """On a machine whose cores are busy, every torch op split over intra-op threads waits for
+    threads that get no core: the frame path must run none, whatever the caller's thread count."""
+    from torch.profiler import ProfilerActivity, profile
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        ds = PairDataset(wide_build, dtype=dtype)
+        ds[0]
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            sample = ds[0]
+        threads = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+    assert sample["target"].shape == (3, 3, 192, 256)
+    splittable = {(e.name, n) for e in prof.events()
+                  for n in [max((int(np.prod(s)) for s in e.input_shapes if s), default=0)]
+                  if n > TORCH_GRAIN_SIZE and e.name not in NON_COMPUTING_OPS}
+    assert not splittable
+    assert threads == 2   # the caller's setting is left as it was
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.float16])
+def test_every_byte_value_normalises_exactly_as_to_unit_range(dtype):
+    from paradrive.data import frame_array, output_geometry, plane_sink
+
+    values = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    out = torch.empty((1, 3, 16, 16), dtype=dtype, device="cpu")
+    array = frame_array(out)
+    plane_sink(lambda idx: array[idx], output_geometry(16, 16, None), dtype)(0, (values,) * 3)
+    expected = to_unit_range(torch.from_numpy(values), dtype)
+    assert all(torch.equal(out[0, c].view(torch.int16 if out.element_size() == 2 else torch.int32),
+                           expected.view(torch.int16 if out.element_size() == 2 else torch.int32))
+               for c in range(3))
+
+
 def test_an_unknown_dtype_is_refused_with_the_choices(build):
     with pytest.raises(ValueError, match="uint8, float32, float16, bfloat16"):
         PairDataset(build, dtype="int16")

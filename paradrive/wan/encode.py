@@ -25,7 +25,7 @@ import pyarrow as pa
 import torch
 
 import paradrive
-from paradrive.data import output_geometry, recammaster_camera
+from paradrive.data import frame_array, output_geometry, plane_sink, recammaster_camera
 from paradrive.devices import resolve_device
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import remove_stale_temporaries, sha256_file, write_json
@@ -155,15 +155,10 @@ class _Encoder:
         ``PairDataset`` decodes them (planar RGB, area resize, centre crop, x / 127.5 - 1)."""
         geo = output_geometry(width, height, self.plan.size, self.settings.resize)
         path = build_file(self.build_dir, uri, f"{self.build_dir}: row {pair_id}", self.index)
-        oh, ow = geo["size"]
-        y0, x0 = geo["crop"]
-        out = torch.empty((3, self.plan.frames, oh, ow), dtype=torch.float32, device="cpu")
-
-        def fill(idx: int, planes: tuple[np.ndarray, ...]) -> None:
-            for channel, plane in zip(out[:, idx], planes):
-                torch.div(torch.from_numpy(plane[y0:y0 + oh, x0:x0 + ow]), 127.5, out=channel).sub_(1.0)
-
-        each_frame(path, list(range(self.plan.frames)), fill, size=geo["resize"], planar=True)
+        out = torch.empty((3, self.plan.frames, *geo["size"]), dtype=torch.float32, device="cpu")
+        array = frame_array(out)
+        each_frame(path, list(range(self.plan.frames)), plane_sink(lambda idx: array[:, idx], geo, torch.float32),
+                   size=geo["resize"], planar=True)
         return out
 
     def encode(self, videos: list[torch.Tensor]) -> torch.Tensor:

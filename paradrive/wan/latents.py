@@ -135,6 +135,20 @@ def write_text_embedding(path: Path, embedding: torch.Tensor) -> dict:
 
 # --------------------------------------------------------------------------- reading
 
+def _widened(latents: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``latents`` as ``dtype``. The default pairing, bfloat16 stored and float32 asked for, is
+    widened in numpy, bit for bit as torch does it but in one thread: a torch conversion this
+    size spreads over the intra-op threads, which wait for a core on a busy machine, as the
+    adapter's frames would (``paradrive.data``). Any other change of type is torch's."""
+    if latents.dtype == dtype:
+        return latents
+    if dtype == torch.float32 and latents.dtype == torch.bfloat16:
+        # a bfloat16 is the top half of the float32 it stands for
+        bits = np.left_shift(latents.view(torch.int16).numpy().view(np.uint16), 16, dtype=np.uint32)
+        return torch.from_numpy(bits.view(np.float32))
+    return latents.to(dtype)
+
+
 @dataclass
 class _Shard:
     path: Path
@@ -210,7 +224,7 @@ class LatentReader:
                                  f"pair {i} is {row['pair_id']}; {_ENCODE_FIX} again")
         videos = handle.get_slice("pair_videos")[local:local + 1][0].tolist()
         stacked = handle.get_slice("latents")
-        sample: dict[str, Any] = {f"{role}_latents": stacked[v:v + 1][0].to(self.dtype)
+        sample: dict[str, Any] = {f"{role}_latents": _widened(stacked[v:v + 1][0], self.dtype)
                                   for role, v in zip(LATENT_ROLES, videos) if v >= 0}
         rel = handle.get_slice("rel_pose")[local:local + 1][0]
         pose = torch.eye(4, dtype=torch.float32, device="cpu").repeat(rel.shape[0], 1, 1)
