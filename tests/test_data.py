@@ -563,3 +563,54 @@ def test_a_bad_uri_names_the_first_row_that_holds_it(build, tmp_path):
     with pytest.raises(PathEscapeError, match=rf"{re.escape(str(shard))}: row {re.escape(pair_id)} "
                                               rf"column condition_uri: path '\.\./\.\./outside\.mp4'"):
         PairDataset(large)
+
+
+# --------------------------------------------------------------------------- arguments
+
+@pytest.mark.parametrize("arguments, named", [
+    ({"output_size": (0, 0)}, "PairDataset(output_size=(0, 0)): must be (height, width), two integers >= 1"),
+    ({"output_size": (-8, 16)}, "PairDataset(output_size=(-8, 16)): must be (height, width)"),
+    ({"output_size": (32, 32, 3)}, "PairDataset(output_size=(32, 32, 3)): must be (height, width)"),
+    ({"output_size": 32}, "PairDataset(output_size=32): must be (height, width)"),
+    ({"output_size": (32.5, 32)}, "PairDataset(output_size=(32.5, 32)): must be (height, width)"),
+    ({"num_frames": 0}, "PairDataset(num_frames=0): must be an integer >= 1, or None"),
+    ({"num_frames": True}, "PairDataset(num_frames=True): must be an integer >= 1"),
+    ({"frame_stride": 0}, "PairDataset(frame_stride=0): must be an integer >= 1"),
+    ({"frame_offset": -1}, "PairDataset(frame_offset=-1): must be an integer >= 0"),
+    ({"resize": "fit"}, "PairDataset(resize='fit'): must be 'crop' or 'stretch'"),
+    ({"pose_format": "plucker"}, "PairDataset(pose_format='plucker'): must be None or 'recammaster'"),
+    ({"prompt": None}, "PairDataset(prompt=None): must be a string"),
+    ({"decode_threads": -1}, "PairDataset(decode_threads=-1): must be an integer >= 0"),
+    ({"dtype": "int16"}, "PairDataset(dtype='int16'): must be one of uint8, float32, float16, bfloat16"),
+    ({"verify_checksums": "yes"}, "PairDataset(verify_checksums='yes'): must be True or False"),
+    ({"reuse_buffers": 1}, "PairDataset(reuse_buffers=1): must be True or False"),
+    ({"latents": "auto"}, "PairDataset(latents='auto'): must be True or False"),
+    ({"latents": True, "num_frames": 5}, "PairDataset(latents=True, num_frames=5): the latent cache fixed"),
+    ({"latents": True, "output_size": (24, 40)}, "PairDataset(latents=True, output_size=(24, 40)): the latent"),
+    ({"latents": True, "dtype": "uint8"}, "PairDataset(latents=True, dtype='uint8'): latents are floating"),
+    ({"seed": -1}, "PairIterableDataset(seed=-1): must be an integer >= 0"),
+    ({"batch_size": 0}, "PairIterableDataset(batch_size=0): must be an integer >= 1"),
+    ({"world_size": 0}, "PairIterableDataset(world_size=0): must be an integer >= 1"),
+    ({"rank": 2, "world_size": 2}, "PairIterableDataset(rank=2): must be below world_size (2)"),
+    ({"partition": "even"}, "PairIterableDataset(partition='even'): must be 'pad' or 'drop'"),
+    ({"shuffle": None}, "PairIterableDataset(shuffle=None): must be True or False"),
+])
+def test_a_wrong_argument_is_refused_in_one_line_naming_it_before_the_build_is_opened(tmp_path, arguments, named):
+    # tmp_path holds no build: the arguments are refused before anything is read
+    cls = PairIterableDataset if named.startswith("PairIterableDataset") else PairDataset
+    with pytest.raises(ValueError) as refused:
+        cls(tmp_path / "no-build", **arguments)
+    message = str(refused.value)
+    assert message.startswith(named) and "\n" not in message
+
+
+def test_numpy_integers_and_a_list_size_are_accepted(build):
+    sample = PairDataset(build, dtype="uint8", num_frames=np.int64(2), output_size=[np.int32(16), 32])[0]
+    assert sample["target"].shape == (2, 3, 16, 32)
+
+
+def test_with_latents_a_prompt_is_refused_since_the_cache_holds_the_empty_prompt_alone(tmp_path):
+    with pytest.raises(ValueError) as refused:
+        PairDataset(tmp_path / "no-build", latents=True, prompt="a street at night")
+    assert str(refused.value).startswith("PairDataset(latents=True, prompt='a street at night'): the "
+                                         "latent cache holds the text embedding of the empty prompt alone")
