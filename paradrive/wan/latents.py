@@ -35,10 +35,14 @@ republished with other rows is never read with stale latents.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import os
-from collections.abc import Sequence
+import socket
+import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import atomic_path, path_inside, sha256_file
 from paradrive.pairs import read_index
 from paradrive.contracts.records import IndexRecord
@@ -107,6 +111,58 @@ def _file(build_dir: str | Path, rel: object, what: str) -> Path:
 
 
 # --------------------------------------------------------------------------- writing
+
+WRITER_LOCK = "writer.lock"
+
+
+class CacheLocked(ConfigError):
+    """Another encode writes this build's latent cache now."""
+
+
+@contextlib.contextmanager
+def writer_lock(build_dir: str | Path, what: str) -> Iterator[None]:
+    """Hold ``<build>/latents/writer.lock`` while writing the cache: one writer at a time.
+
+    Two encodes of one build (other settings, or the same twice) would each remove the other's
+    shards as stale and publish an index naming files that are gone. The lock is an ``flock``,
+    which the kernel drops when its holder dies (even by SIGKILL), so a re-run after a kill takes
+    it at once; the holder's host, pid, start time and ``what`` (its settings) are written in it.
+    A second encode does not wait: it raises :class:`CacheLocked` naming the holder.
+    """
+    folder = latents_dir(build_dir)
+    path = folder / WRITER_LOCK
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:   # a read-only build folder (a published copy, a read-only mount)
+        raise ConfigError(f"{folder}: the latent cache cannot be written there ({exc.strerror}); make "
+                          f"the build folder writable, or encode a writable copy of it") from exc
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise CacheLocked(f"{folder} is being written by another encode ({_holder(path)}); wait for "
+                              f"it to finish (or stop it), then run this encode again") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps({"host": socket.gethostname(), "pid": os.getpid(),
+                                  "since": time.strftime("%Y-%m-%d %H:%M:%S"), "what": what}).encode(), 0)
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def _holder(path: Path) -> str:
+    """Who holds the writer lock at ``path``, as its record says."""
+    try:
+        doc = json.loads(path.read_text())
+        return f"host {doc['host']}, pid {doc['pid']}, since {doc['since']}, {doc['what']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "its record is not written yet"
+
 
 def write_shard(path: Path, pair_ids: Sequence[str], latents: torch.Tensor, pair_videos: torch.Tensor,
                 rel_pose: torch.Tensor, camera: torch.Tensor) -> dict:
