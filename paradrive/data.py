@@ -123,7 +123,9 @@ def _plane_writer(dtype: torch.dtype) -> Callable[[np.ndarray, np.ndarray], None
     table = frame_array(to_unit_range(torch.arange(256, dtype=torch.uint8, device="cpu"), dtype))
 
     def look_up(channel: np.ndarray, plane: np.ndarray) -> None:
-        np.take(table, plane, out=channel)
+        # a byte is always an index of the table: "wrap" never wraps, and unlike the default
+        # ("raise") it writes straight into ``channel`` instead of through a buffer
+        np.take(table, plane, out=channel, mode="wrap")
     return look_up
 
 
