@@ -378,14 +378,38 @@ def export_cmd(
     carries the front camera only."""
     from paradrive.errors import SceneError
     from paradrive.ingest.export import export_scene
+    from paradrive.io import check_output
     from paradrive.pipeline import StageRegistry, parse_overrides
 
-    params = StageRegistry().resolve(profile, parse_overrides(set_)).typed("ingest")
+    try:
+        params = StageRegistry().resolve(profile, parse_overrides(set_)).typed("ingest")
+        check_output(out, "export: OUT", folder=True)   # a file, a device, a place not writable: before any work
+    except ConfigError as exc:
+        fail(str(exc))
+    before = set(out.rglob("*")) if out.is_dir() else None
     try:
         print(export_scene(scene, fmt, out, params, with_intrinsics=with_intrinsics))
     except (ValueError, SceneError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2)
+    except OSError as exc:   # the write failed on the way (disk full, file size limit, ...)
+        _remove_new(out, before)
+        fail(str(exc), EXIT_FAILED)
+
+
+def _remove_new(out: Path, before: set[Path] | None) -> None:
+    """What a failed export wrote under ``out``: all of it when ``out`` was not there before
+    (``before`` None), else the entries not in ``before``, so no part of a log is left."""
+    import shutil
+
+    if before is None:
+        shutil.rmtree(out, ignore_errors=True)
+        return
+    for path in sorted(set(out.rglob("*")) - before, key=lambda p: len(p.parts), reverse=True):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
 
 
 @app.command("view")
@@ -399,12 +423,13 @@ def view_cmd(
     """Write a scene (cameras, LiDAR, actors, the fit's Gaussians, renders and clips) or a build's
     pairs (source, condition and target videos, both cameras, scores) as a Rerun recording."""
     from paradrive import view
+    from paradrive.io import check_output
 
     try:
         kind, folder = view.resolve_target(target, data)
         if pair and kind != "build":
             raise ConfigError(f"--pair picks pairs of a build; {folder} is a scene folder")
-        out_file = save or view.default_output(folder)
+        out_file = check_output(save or view.default_output(folder), "--save")
         report = view.view_build(folder, out_file, pair_ids=pair) if kind == "build" else view.view_scene(folder, out_file)
         out.print(view.describe(report), markup=False, highlight=False, soft_wrap=True)
         for line in report.left_out:
@@ -413,7 +438,7 @@ def view_cmd(
             view.open_viewer(report.path)
     except ConfigError as exc:
         fail(str(exc))
-    except ParaDriveError as exc:
+    except (ParaDriveError, OSError) as exc:   # OSError: the write failed at the end (disk full, ...)
         fail(str(exc), EXIT_FAILED)
 
 

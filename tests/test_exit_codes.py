@@ -50,21 +50,26 @@ def test_scenes_that_all_failed_after_their_ingest_exit_1(tmp_path):
 
 
 def _small_disk() -> None:
-    """In the child: files stop growing past 500 kB, as on a full disk (EFBIG, not a signal)."""
+    """In the child: files stop growing past 500 kB (EFBIG, not a signal)."""
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     resource.setrlimit(resource.RLIMIT_FSIZE, (500_000, 500_000))
 
 
 @pytest.mark.slow
-def test_every_scene_failing_on_a_full_disk_exits_1_naming_the_folder_and_the_fix(tmp_path):
+def test_every_scene_failing_at_the_file_size_limit_exits_1_naming_the_folder_and_the_fix(tmp_path):
+    # no bytecode: a .pyc written under the limit would be cut short and break its module's imports
     res = subprocess.run(_command(tmp_path, "--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit"),
-                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=600,
-                         preexec_fn=_small_disk)
+                         cwd=REPO, env={**_env(), "PYTHONDONTWRITEBYTECODE": "1"}, capture_output=True,
+                         text=True, timeout=600, preexec_fn=_small_disk)
     assert res.returncode == EXIT_FAILED, res.stdout + res.stderr
     scene = tmp_path / "data" / "scenes" / "synthetic-p1-s3"
-    assert (f"failed fit      synthetic-p1-s3 — scene synthetic-p1-s3: fit failed: OSError: [Errno 27] "
-            f"File too large; no room to write in {scene}: free space there (or pass another --data) "
-            f"and re-run") in [line.strip() for line in res.stderr.splitlines()]
+    # EFBIG is the file size limit (ulimit -f), not free space
+    ckpt = scene / "gs" / "ckpt_000025.ply"
+    assert (f"failed fit      synthetic-p1-s3 — scene synthetic-p1-s3: fit failed: FileSizeLimitError: "
+            f"[Errno 27] file size limit (ulimit -f: 500,000 bytes) reached writing in {ckpt.parent}, not "
+            f"a full disk: raise it (ulimit -f unlimited) and re-run (while writing {ckpt}; nothing "
+            f"half-written was kept)") in [line.strip() for line in res.stderr.splitlines()]
+    assert not ckpt.exists() and not list(ckpt.parent.glob(".*tmp-*"))
 
 
 def _mount_namespaces() -> bool:

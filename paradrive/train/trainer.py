@@ -122,7 +122,12 @@ def parse_set(items: Sequence[str]) -> dict:
         *parents, leaf = key.split(".")
         for part in parents:
             node = node.setdefault(part, {})
-        node[leaf] = yaml.safe_load(raw)
+        try:
+            node[leaf] = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:   # a tag such as !!python/object is refused, never run
+            problem = getattr(exc, "problem", None) or "unreadable"
+            raise ValueError(f"--set {item!r}: the value is not plain YAML ({problem}); write a "
+                             f"number, string, list or map, e.g. train.lr=3e-4 or data.height=48") from exc
     return out
 
 

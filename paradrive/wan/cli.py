@@ -69,7 +69,7 @@ def _register_encode(app) -> None:
         except ConfigError as exc:
             err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
             raise typer.Exit(EXIT_USAGE) from None
-        except ParaDriveError as exc:
+        except (ParaDriveError, OSError) as exc:   # OSError: a write failed on the way (disk full, ...)
             err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
             raise typer.Exit(EXIT_FAILED) from None
         totals = doc["totals"]
