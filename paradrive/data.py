@@ -610,7 +610,6 @@ class PairIterableDataset(IterableDataset):
         _check_arguments("PairIterableDataset", _ITERABLE_CHECKS, {
             "seed": seed, "shuffle": shuffle, "rank": rank, "world_size": world_size,
             "batch_size": batch_size, "partition": partition})
-        self.dataset = PairDataset(build, **pair_options)
         self._options = {k: v for k, v in pair_options.items() if k != "version"}
         drank, dworld = _dist_rank_world()
         self.rank = drank if rank is None else int(rank)
