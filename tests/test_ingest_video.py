@@ -153,7 +153,7 @@ def test_bad_videos_fail_naming_scene_file_and_fix(tmp_path, exported):
     assert err.path == str(cut) and err.fix
     short = scene_error(uri.replace("?", "?end=0.5&", 1), tmp_path)
     assert "at least" in str(short) and "longer video" in short.fix
-    assert "unknown video option" in str(scene_error(f"video:{video}?speed=3", tmp_path))
+    assert "unknown key 'speed'" in str(scene_error(f"video:{video}?speed=3", tmp_path))
 
 
 def test_a_parked_camera_fails_as_static(tmp_path):

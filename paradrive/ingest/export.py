@@ -592,8 +592,9 @@ def video_uri(path: Path, info: dict, truth: str, *, with_intrinsics: bool) -> s
     from urllib.parse import quote
 
     query = {"fps": f"{info['fps']:g}", "height_m": f"{info['height_m']:g}"}
-    if with_intrinsics:
-        query.update({k: f"{info[k]:.6f}" for k in ("fx", "fy", "cx", "cy")})
+    if with_intrinsics:  # in OpenCV's convention, as a calibration reports them: centres at 0
+        query.update({"fx": f"{info['fx']:.6f}", "fy": f"{info['fy']:.6f}",
+                      "cx": f"{info['cx'] - 0.5:.6f}", "cy": f"{info['cy'] - 0.5:.6f}"})
     query["truth"] = truth
     return f"video:{path}?" + "&".join(f"{k}={quote(v, safe=':/')}" for k, v in query.items())
 

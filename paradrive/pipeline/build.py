@@ -341,12 +341,14 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     ``selection`` is what a caller already decided about splits (``paradrive build`` prints it);
     without one, a training build leaves out the scenes of ``manifest.exclude_splits``.
     """
+    from paradrive.stages.ingest import check_uri
+
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
     config.check(scene_stages + build_stages)  # a value no stage can take fails before any runs
     seen, uris = set(), []
     for uri in scene_uris:
-        parse_uri(uri)  # a malformed URI is a usage error for the whole build
+        check_uri(uri)  # a malformed URI, or values no ingest takes: a usage error for the build
         if uri not in seen:
             seen.add(uri)
             uris.append(uri)
