@@ -106,10 +106,11 @@ def build(
         config = StageRegistry().resolve(profile, overrides)
         stage_list = _split_csv(stages)
         config.check(stage_list)  # unknown stages and values no stage can take fail before any work
-        ledger = _open_ledger(manifests, build_name)
+        ledger = None
         if retry_failed:
             if scene or scenes:
                 fail("--retry-failed takes the scenes from the ledger; leave out --scene/--scenes")
+            ledger = _open_ledger(manifests, build_name)
             uris = ledger.failed_scene_uris()
             if not uris:
                 out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene",
@@ -120,8 +121,9 @@ def build(
             uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
             if not uris:
                 fail(f"--scenes {' '.join(scenes)}: no scenes found")
-        selection = select_scenes(config, uris, split, exclude_split)
+        selection = select_scenes(config, uris, split, exclude_split)  # URIs checked: no ledger yet
         uris = selection.uris
+        ledger = ledger or _open_ledger(manifests, build_name)
         options = {"address": address, "gpu_policy": gpu_policy, "max_in_flight": max_in_flight,
                    "max_retries": max_retries} if executor == "ray" else {}
         runner = make_executor(executor, **options)
@@ -129,6 +131,7 @@ def build(
         remember(root.storage_options)
     except (ConfigError, ParaDriveError, ValueError) as exc:
         fail(str(exc))
+    assert ledger is not None  # opened above, or fail() ended the command
 
     active: dict[tuple[str, str], None] = {}
     try:

@@ -350,6 +350,19 @@ def sample(path: Path, opts: VideoOptions, params: IngestParams, *, scene_id: st
     return Footage(path, wanted, np.asarray(wanted) / rate, width, height, min(fps, rate), rate)
 
 
+def planned_frames(uri: SceneURI, params: IngestParams) -> tuple[int, int, int] | None:
+    """What ingesting ``uri`` would sample, from its file's header: (frames, width, height);
+    None where there is no file to read yet (a plan made before the videos arrive). A URI no
+    ingest could take is a ConfigError."""
+    opts = options_of(uri)
+    try:
+        footage = sample(Path(uri.path), opts, params, scene_id=uri.scene_id)
+    except SceneError:
+        return None
+    frames = len(footage.source_frames)
+    return min(frames, params.max_frames or frames), footage.width, footage.height
+
+
 def _probe(path: Path, *, scene_id: str) -> tuple[int, float, int, int]:
     """Frame count, frame rate and size of a video file from its header."""
     import av

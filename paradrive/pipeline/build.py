@@ -78,7 +78,12 @@ class BuildReport:
 def default_selection(config: ResolvedConfig, uris: list[str],
                       exclude_splits: list[str] | None = None) -> Selection:
     """The scenes a build keeps: a training build leaves out ``exclude_splits`` (default: the
-    manifest stage's ``exclude_splits``); an inference build keeps every scene."""
+    manifest stage's ``exclude_splits``); an inference build keeps every scene. A URI whose own
+    values no ingest could take is refused here, before any work (ConfigError)."""
+    from paradrive.stages.ingest import check_uri
+
+    for uri in dict.fromkeys(uris):
+        check_uri(uri)
     manifest = config.params.get("manifest") or {}
     if manifest.get("kind") == "inference":
         return Selection(uris=list(uris))
