@@ -363,3 +363,37 @@ def test_a_video_scene_without_pycolmap_fails_naming_the_extra_to_install(export
     out = " ".join((done.stdout + done.stderr).split())
     assert "pycolmap is not installed" in out and "pip install 'paradrive[video]'" in out
     assert "Traceback" not in out
+
+
+OUT_OF_MEMORY = """
+import resource, sys
+from pathlib import Path
+from paradrive.errors import SceneError
+from paradrive.ingest.video import each_frame, options_of, sample
+from paradrive.stages.ingest import params_of
+from paradrive.uri import parse_uri
+
+uri = parse_uri(sys.argv[1])
+footage = sample(Path(uri.path), options_of(uri), params_of(), scene_id="uhd")
+mapped = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmSize:")][0]
+# the address space capped a few MB above what is mapped: no 3840x2160 frame fits any more
+resource.setrlimit(resource.RLIMIT_AS, (mapped * 1024 + int(sys.argv[2]) * 2**20, resource.RLIM_INFINITY))
+try:
+    each_frame(footage, lambda k, pixels: None, scene_id="uhd")
+except SceneError as exc:
+    print(exc)
+"""
+
+
+def test_running_out_of_memory_is_reported_as_memory_not_a_corrupt_file(tmp_path):
+    """A valid 4K video decoded under an address-space limit: FFmpeg's failed allocations come
+    back as ENOMEM or as 'invalid data'; both are reported as memory, with the figure and the fix."""
+    y, x = np.mgrid[0:2160, 0:3840]
+    frames = [np.stack([(x + 40 * i) % 256, y % 256, (x + y) % 256], -1).astype(np.uint8) for i in range(3)]
+    encode_video(tmp_path / "uhd.mp4", frames, 10.0, preset="ultrafast")
+    for headroom_mb in (8, 24):
+        done = subprocess.run([sys.executable, "-c", OUT_OF_MEMORY, f"video:{tmp_path / 'uhd.mp4'}",
+                               str(headroom_mb)], capture_output=True, text=True)
+        out = done.stdout.strip()
+        assert "out of memory decoding its 3840x2160 frames (24.9 MB each)" in out, done.stdout + done.stderr
+        assert "address-space limit" in out and "resources.memory_gb" in out and "corrupt" not in out

@@ -39,6 +39,7 @@ needs a few frames' worth of memory, not the clip's.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -383,6 +384,8 @@ def _probe(path: Path, *, scene_id: str) -> tuple[int, float, int, int]:
     except MemoryError as exc:
         raise _out_of_memory(path, scene_id, "opening the video") from exc
     except (av.error.FFmpegError, OSError) as exc:
+        if not _room_for(0, 0):
+            raise _out_of_memory(path, scene_id, "opening the video") from exc
         raise SceneError(f"video cannot be opened ({exc})", scene_id=scene_id, path=path,
                          fix="the file is not a video or is corrupt: re-encode or re-download it"
                          ) from exc
@@ -427,8 +430,12 @@ def each_frame(footage: Footage, sink: Callable[[int, np.ndarray], None], *, sce
         else:
             _each_decoded(footage, picks, sink, size, scene_id=scene_id)
     except MemoryError as exc:
-        raise _out_of_memory(footage.path, scene_id, f"decoding {footage.width}x{footage.height} "
-                                                     f"frames") from exc
+        raise _out_of_memory(footage.path, scene_id, _decoding(footage)) from exc
+
+
+def _decoding(footage: Footage) -> str:
+    return (f"decoding its {footage.width}x{footage.height} frames "
+            f"({footage.width * footage.height * 3 / 1e6:.1f} MB each)")
 
 
 def _each_decoded(footage: Footage, picks: list[int], sink: Callable[[int, np.ndarray], None],
@@ -440,6 +447,8 @@ def _each_decoded(footage: Footage, picks: list[int], sink: Callable[[int, np.nd
         video.each_frame(footage.path, sorted(k_of), lambda i, pixels: sink(k_of[i], pixels),
                          size=size, seek=False)
     except ParaDriveError as exc:
+        if not _room_for(footage.width, footage.height):
+            raise _out_of_memory(footage.path, scene_id, _decoding(footage)) from exc
         raise SceneError(f"video is truncated or corrupt: frames up to {max(k_of)} were expected "
                          f"and do not decode", scene_id=scene_id, path=footage.path,
                          fix="re-encode or re-download the video, or trim the range with end=") from exc
@@ -464,16 +473,36 @@ def _each_file(footage: Footage, picks: list[int], sink: Callable[[int, np.ndarr
         sink(k, pixels)
 
 
+def _room_for(width: int, height: int, frames: int = 4) -> bool:
+    """Whether a few frames' worth of memory can still be had. FFmpeg's decoders report an
+    allocation that failed as "invalid data" as often as not: a decode that fails where this
+    does too ran out of memory, and is not a corrupt file."""
+    try:
+        np.empty(max(frames * width * height * 3, 64 * 2**20), dtype=np.uint8)
+    except MemoryError:
+        return False
+    return True
+
+
 def _out_of_memory(path: Path, scene_id: str, doing: str) -> SceneError:
     """An allocation that failed: how much this process held and what bounds it."""
-    peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    held = _status_gb("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     limit = "no address-space limit" if soft == resource.RLIM_INFINITY else \
-        f"an address-space limit of {soft / 2**30:.1f} GB"
-    return SceneError(f"out of memory {doing} (the process peaked at {peak_gb:.1f} GB, under "
-                      f"{limit})", scene_id=scene_id, path=path,
+        f"an address-space limit of {soft / 2**30:.2f} GB, {_status_gb('VmSize'):.2f} GB mapped"
+    return SceneError(f"out of memory {doing}: the process held {held:.2f} GB at its peak, under "
+                      f"{limit}", scene_id=scene_id, path=path,
                       fix="give the ingest more memory (stages/ingest.yaml resources.memory_gb and "
                           "the machine's limit), or a smaller video or range (end=)")
+
+
+def _status_gb(field: str) -> float:
+    """A memory figure of this process from /proc/self/status (GB), 0 where there is none."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(f"{field}:"):
+                return int(line.split()[1]) / 2**20
+    return 0.0
 
 
 # --------------------------------------------------------------------------- the track
