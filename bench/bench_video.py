@@ -298,8 +298,20 @@ def child_sfm(args: dict) -> dict:
 
 # --------------------------------------------------------------------------- the parts
 
+def clip_uri(clip: Path, height: float) -> str:
+    return f"video:{clip / VIDEO}?calib=calibration.json&height_m={height:g}"
+
+
+def street_video(workdir: Path) -> str:
+    """The demo street's front camera as a plain video (``paradrive export video``): its URI."""
+    from paradrive.ingest.export import export_scene
+    from paradrive.stages.ingest import params_of
+
+    return export_scene(STREET, "video", workdir / "street", params_of())
+
+
 def part_ingest(clip: Path, height: float, ruler: dict, workdir: Path) -> dict:
-    uri = f"video:{clip / VIDEO}?calib=calibration.json&height_m={height:g}"
+    uri = clip_uri(clip, height)
     out = _child("ingest", {"uri": uri, "out": str(workdir / "clip")})
     if "error" in out:
         return out
@@ -334,12 +346,10 @@ def part_sizes(clip: Path, workdir: Path) -> dict:
 
 
 def part_synthetic(workdir: Path) -> dict:
-    from paradrive.ingest.export import export_scene
     from paradrive.ingest.sfm import path_length
-    from paradrive.stages.ingest import params_of
     from paradrive.synthetic import SyntheticStreet
 
-    uri = export_scene(STREET, "video", workdir / "street", params_of())
+    uri = street_video(workdir)
     out = _child("ingest", {"uri": uri, "out": str(workdir / "street-scene")})
     if "error" in out:
         return out
@@ -465,12 +475,8 @@ def main() -> None:
         if "synthetic" in parts:
             result["synthetic"] = part_synthetic(workdir)
         if "heldout" in parts:
-            result["heldout"] = part_heldout(
-                {"clip": f"video:{args.clip / VIDEO}?calib=calibration.json&height_m={args.height_m:g}",
-                 "street": result.get("synthetic", {}).get("uri")
-                 or __import__("paradrive.ingest.export", fromlist=["export_scene"]).export_scene(
-                     STREET, "video", workdir / "street", __import__(
-                         "paradrive.stages.ingest", fromlist=["params_of"]).params_of())}, workdir)
+            result["heldout"] = part_heldout({"clip": clip_uri(args.clip, args.height_m),
+                                              "street": street_video(workdir)}, workdir)
         if "memory" in parts:
             result["memory"] = part_memory(args.clip, workdir)
     result["load_average_after"] = os.getloadavg()

@@ -44,6 +44,7 @@ Pure numpy and deterministic: the same frames give the same height at any thread
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -124,14 +125,20 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
                                min_frames=min_pairs)
         rel = geometry.invert(c2w[i]) @ c2w[j]  # X_i = R X_j + t
         down = -c2w[j, :3, :3].T @ level_with_path(up, c2w[[i, j]])
+        later, earlier = gray[j] - mean, gray[i] - mean
+        u = _fit_step(later, earlier, moving, Kp, rel[:3, :3], rel[:3, 3] / height, down, height,
+                      near=near, far=far, lane=lane, blurs=blurs, iterations=iterations)
+        if u is None:
+            continue
+        # the near and the far half of the road pixels alone, from the whole road's step (so at
+        # the two finest blurs only)
         mid = _median_distance(moving, np.linalg.inv(Kp), down, near, far, lane)
-        fits = [_fit_step(gray[j] - mean, gray[i] - mean, moving, Kp, rel[:3, :3],
-                          rel[:3, 3] / height, down, height, near=a, far=b, lane=lane, blurs=blurs,
-                          iterations=iterations) for a, b in ((near, far), (near, mid), (mid, far))]
-        if fits[0] is not None:
-            size = np.linalg.norm(rel[:3, 3])
-            heights.append([size / np.linalg.norm(u) if u is not None else np.nan for u in fits])
-            used.append((i, j))
+        halves = [_fit_step(later, earlier, moving, Kp, rel[:3, :3], u, down, height, near=a, far=b,
+                            lane=lane, blurs=blurs[-2:], iterations=iterations)
+                  for a, b in ((near, mid), (mid, far))]
+        size = np.linalg.norm(rel[:3, 3])
+        heights.append([size / np.linalg.norm(v) if v is not None else np.nan for v in (u, *halves)])
+        used.append((i, j))
     if len(heights) < min_pairs:
         return None
     values, near_h, far_h = np.array(heights).T
@@ -218,13 +225,22 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return sum(t * padded[k:k + h] for k, t in enumerate(taps))
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_rays(shape: tuple[int, ...], kinv: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel centre of an image of ``shape`` (N, 3 homogeneous) and its ray ``K^-1 x``,
+    made once per image size and camera (the fit asks for them at every step)."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
+    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(shape)], -1).reshape(-1, 3)
+    rays = pix @ np.array(kinv).reshape(3, 3).T
+    pix.flags.writeable = rays.flags.writeable = False
+    return pix, rays
+
+
 def _road_pixels(moving: np.ndarray, Kinv: np.ndarray, down: np.ndarray, height: float,
                  near: float, far: float, lane: float) -> np.ndarray:
     """(N, 3) homogeneous centres of the ``moving`` pixels whose ray meets the road
     ``near``..``far`` heights ahead and within ``lane`` heights to the side."""
-    rows, cols = np.mgrid[0:moving.shape[0], 0:moving.shape[1]]
-    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(moving.shape)], -1).reshape(-1, 3)
-    rays = pix @ Kinv.T
+    pix, rays = _pixel_rays(moving.shape, tuple(np.asarray(Kinv, dtype=np.float64).ravel()))
     towards = rays @ down
     with np.errstate(divide="ignore", invalid="ignore"):
         ground = rays * (height / towards)[:, None]
