@@ -77,8 +77,8 @@ FRAME_SUFFIXES = (".jpg", ".jpeg", ".png")
 INTRINSICS = ("fx", "fy", "cx", "cy")
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")
 # the scale's relative uncertainty where the road's motion cannot be measured and the SfM points
-# alone give the height: they were 3-5 % off on the synthetic street and 9 % on a real freeway
-# clip (docs/scene-layout.md, "Video input")
+# alone give the height: they were 3-5 % off on the synthetic street and up to 6 % on a real
+# freeway clip (docs/scene-layout.md, "A real freeway clip")
 ROAD_POINTS_UNCERTAINTY = 0.1
 # a speed or GPS track is taken at its word: a speedometer or a phone's GPS is good to about 1 %
 TRACK_UNCERTAINTY = 0.01
