@@ -96,9 +96,10 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     also decides the road pixels: ``near``..``far`` heights ahead, within ``lane`` heights to
     either side. Pairs start at ``pairs`` evenly spaced frames; each pairs a frame with the first
     one ``baseline`` heights further along the path. Images wider than ``max_width`` are halved
-    until they are not. ego: (H, W) bool, True where pixels move with the camera (the ego mask);
-    None finds them: pixels whose grey level varies by less than ``static_std`` or than
-    ``still_share`` of the median variation (standard deviations over the frames used, in [0, 1]).
+    until they are not. ego: bool, True where pixels move with the camera (the ego mask), at the
+    frames' size or any other (taken to it by the nearest pixel); None finds them: pixels whose
+    grey level varies by less than ``static_std`` or than ``still_share`` of its median over the
+    lower half of the image (standard deviations over the frames used, in [0, 1]).
     """
     centres = c2w[:, :3, 3]
     along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))]
@@ -107,12 +108,14 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     chosen = [(int(i), int(j)) for i, j in zip(starts, ends) if j < len(c2w)]
     if len(chosen) < min_pairs:
         return None
-    gray, Kp = {}, np.array(K, dtype=np.float64)
+    gray, Kp, shape = {}, np.array(K, dtype=np.float64), (0, 0)
     for k in sorted({k for pair in chosen for k in pair}):
-        gray[k], Kp = _reduce(K, _gray(image(k)), max_width)
+        frame = _gray(image(k))
+        shape = frame.shape
+        gray[k], Kp = _reduce(K, frame, max_width)
     stack = np.stack(list(gray.values()))
     still = (still_pixels(stack, static_std, still_share) if ego is None
-             else _reduce(K, np.asarray(ego, dtype=np.float32), max_width)[0] > 0.0)
+             else _reduce(K, _resized(np.asarray(ego, dtype=np.float32), shape), max_width)[0] > 0.0)
     # the blur would smear what moves with the camera over the road pixels next to it
     moving = ~_dilate(still, int(np.ceil(3 * max(blurs))))
     # what stays put over the road (a reflection in the windscreen, an overlay) cancels out
@@ -192,6 +195,16 @@ def _reduce(K: np.ndarray, img: np.ndarray, max_width: int) -> tuple[np.ndarray,
         img = _halve(img)
         K[:2] *= 0.5
     return img, K
+
+
+def _resized(mask: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``mask`` at another size (``shape``, rows and columns), nearest pixel: an ego mask made on
+    the stored frames, used on the smaller ones SfM saw."""
+    if mask.shape == shape:
+        return mask
+    rows = ((np.arange(shape[0]) + 0.5) * mask.shape[0] / shape[0]).astype(int)
+    cols = ((np.arange(shape[1]) + 0.5) * mask.shape[1] / shape[1]).astype(int)
+    return mask[rows][:, cols]
 
 
 def _halve(img: np.ndarray) -> np.ndarray:

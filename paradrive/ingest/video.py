@@ -655,13 +655,15 @@ def _no_road(exc: SfmError, footage: Footage) -> str:
 
 def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
            image: Callable[[int], np.ndarray], K_image: np.ndarray, opts: VideoOptions,
-           footage: Footage, params: IngestParams, scene_id: str) -> tuple[float, float, dict]:
+           footage: Footage, params: IngestParams, scene_id: str, *,
+           ego: np.ndarray | None = None) -> tuple[float, float, dict]:
     """Metres per model unit, from the camera's height above the road (measured by the road's
     motion, else by the SfM points on it) or from the track where there is one; that height in
     model units; what was measured (``uncertainty``: the scale's relative uncertainty).
+    ``ego``: the pixels that move with the camera (any size), left out of the road's motion.
     SceneError where that uncertainty is above ``ingest.video_max_scale_uncertainty``."""
     start = time.perf_counter()
-    motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height)
+    motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height, ego=ego)
     seconds = time.perf_counter() - start
     camera_height = motion.height if motion is not None else plane.height
     by_height = opts.height_m / camera_height
@@ -734,9 +736,13 @@ def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footag
         pixels = read_image(sfm_in.folder / sfm_in.names[kept[0] + k], scene_id=scene_id)
         return pixels if distortion_is_zero(left) else undistort_image(pixels, small.K(), left)
 
+    # the kept frames stored (full size, undistorted) before the scale: what moves with the camera
+    # (the ego mask: a hood, an overlay) is found on them and left out of the road's motion
+    rels = _write_frames(footage, kept, K, dist, out_dir, params, scene_id=scene_id)
+    ego = None   # None: road motion finds the pixels that barely change itself
     up = level_with_path(plane.normal, rec.c2w[run])
     scale, camera_height, scale_doc = _scale(rec, run, plane, up, image, small.K(), opts, footage,
-                                             params, scene_id)
+                                             params, scene_id, ego=ego)
     rig = metric_rig(rec.c2w[run], up, camera_height, scale)
     travelled = path_length(rig.c2w)
     if travelled < MIN_PATH_M:
@@ -745,7 +751,6 @@ def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footag
                          fix="trim start=/end= to where the vehicle drives")
     camera = Camera(name=CAMERA, width=footage.width, height=footage.height, fx=K.fx, fy=K.fy,
                     cx=K.cx, cy=K.cy, cam2ego=rig.cam2ego)
-    rels = _write_frames(footage, kept, K, dist, out_dir, params, scene_id=scene_id)
     frames = [Frame(index=k, timestamp_us=int(round(footage.times[i] * 1e6)),
                     ego2world=rig.ego2world[k],
                     cameras={CAMERA: FrameCamera(image=rels[k], c2w=rig.c2w[k])})
