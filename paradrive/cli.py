@@ -135,6 +135,7 @@ def build(
         remember(root.storage_options)
     except (ConfigError, ParaDriveError, ValueError) as exc:
         fail(str(exc))
+    assert ledger is not None  # opened above, or fail() ended the command
 
     active: dict[tuple[str, str], None] = {}
     try:
