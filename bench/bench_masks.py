@@ -3,17 +3,16 @@ the moving masks, and the moving masks against the two cars boxed by hand on ele
 (tests/udacity_freeway_cars.json): the share of each car's box pixels masked and of the static
 road masked.
 
-The clip (../shared/realdata/udacity-freeway/, beside the repository) is ingested once as a
-folder of its frames, undistorted with its calibration, at ``--size`` (640 halves them, 1280
-keeps them) and ``--step`` (1 keeps every frame, 2 every second one; SfM needs every frame at
-640x360), unless ``--scene`` names a scene of it already ingested. Its masks are then made again
-in a copy, timed, and scored. The baseline, in the same process: reading the scene's frames
-once, as the masks must.
+The clip (../shared/realdata/udacity-freeway/, beside the repository) is ingested once the
+default way (``video:…mp4?calib=calibration.json&height_m=1.23``: every frame, 1280x720,
+undistorted), unless ``--scene`` names a scene of it already ingested (any size or rate). Its
+masks are then made again in a copy, timed, and scored. The baseline, in the same process:
+reading the scene's frames once, as the masks must.
 
 ``--busy N`` runs N processes that spin on the CPU while the masks are made (a busy machine).
 
-    .venv/bin/python bench/bench_masks.py --size 640 --workdir /tmp/bench-masks
-    .venv/bin/python bench/bench_masks.py --scene /tmp/bench-masks/freeway-640-1 --busy 2
+    .venv/bin/python bench/bench_masks.py --workdir /tmp/bench-masks
+    .venv/bin/python bench/bench_masks.py --scene /tmp/bench-masks/freeway --busy 2
 """
 
 from __future__ import annotations
@@ -28,37 +27,20 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIP = ROOT.parent / "shared" / "realdata" / "udacity-freeway"
 LABELS = ROOT / "tests" / "udacity_freeway_cars.json"
 
 
-def ingest_clip(size: int, step: int, workdir: Path) -> Path:
-    """The clip's frames undistorted (and halved for 640) as a folder, ingested; the scene."""
-    from paradrive.ingest.undistort import undistort_image
-    from paradrive.scene import write_image
+def ingest_clip(workdir: Path) -> Path:
+    """The clip ingested the default way under ``workdir`` (once); the scene."""
     from paradrive.stages.ingest import ingest, params_of
-    from paradrive.video import decode_frames
 
-    cal = json.loads((CLIP / "calibration.json").read_text())
-    scale = cal["width"] // size
-    K = np.array([[cal["fx"], 0, cal["cx"] + 0.5], [0, cal["fy"], cal["cy"] + 0.5], [0, 0, 1]])
-    dist = [cal[k] for k in ("k1", "k2", "p1", "p2", "k3")]
-    scene = workdir / f"freeway-{size}-{step}"
-    if (scene / "scene.json").is_file():
-        return scene
-    folder = workdir / f"frames-{size}-{step}"
-    kept = list(range(0, cal["frames"], step))
-    for k, rgb in zip(kept, decode_frames(CLIP / cal["file"], kept)):
-        flat = undistort_image(rgb, K, dist).astype(np.uint16)
-        if scale == 2:
-            flat = (flat[::2, ::2] + flat[1::2, 1::2]) // 2
-        write_image(folder / f"{k:03d}.png", flat.astype(np.uint8))
-    uri = (f"video:{folder}?fps={cal['fps'] / step}&fx={K[0, 0] / scale}&fy={K[1, 1] / scale}"
-           f"&cx={K[0, 2] / scale}&cy={K[1, 2] / scale}&height_m=1.2")
-    ingest(uri, scene, params_of({"image_ext": "png"}))
+    scene = workdir / "freeway"
+    if not (scene / "scene.json").is_file():
+        ingest(f"video:{CLIP / 'freeway-shadows-1280x720.mp4'}?calib=calibration.json&height_m=1.23",
+               scene, params_of())
     return scene
 
 
@@ -90,8 +72,6 @@ def measure(scene_dir: Path) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", type=Path, help="an ingested scene of the clip (its masks are made again in a copy)")
-    ap.add_argument("--size", type=int, choices=(640, 1280), default=640)
-    ap.add_argument("--step", type=int, choices=(1, 2), default=1)
     ap.add_argument("--workdir", type=Path, default=None, help="where the clip is ingested (kept for --scene)")
     ap.add_argument("--busy", type=int, default=0, help="processes spinning on the CPU meanwhile")
     a = ap.parse_args()
@@ -100,7 +80,7 @@ def main() -> int:
         return 0
     workdir = a.workdir or Path(tempfile.mkdtemp(prefix="bench-masks-"))
     workdir.mkdir(parents=True, exist_ok=True)
-    source = a.scene or ingest_clip(a.size, a.step, workdir)
+    source = a.scene or ingest_clip(workdir)
     with tempfile.TemporaryDirectory() as tmp:
         copy = Path(tmp) / source.name
         shutil.copytree(source, copy, ignore=shutil.ignore_patterns("masks", "lidar"))

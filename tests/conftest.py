@@ -73,6 +73,26 @@ def smoke_build(tmp_path_factory, smoke_scene):
     yield from read_only(root, _build(root, SMOKE_SCENES))
 
 
+# Real recordings, read in place from ../shared/realdata beside the repository (a user's clone
+# lacks it: the tests that need it skip, naming the folder)
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+FREEWAY = REALDATA / "udacity-freeway"
+FREEWAY_VIDEO = FREEWAY / "freeway-shadows-1280x720.mp4"
+# the clip's camera height, measured on its frames (docs/scene-layout.md, "A real freeway clip")
+FREEWAY_HEIGHT_M = 1.23
+FREEWAY_URI = f"video:{FREEWAY_VIDEO}?calib=calibration.json&height_m={FREEWAY_HEIGHT_M}"
+
+
+@pytest.fixture(scope="session")
+def freeway_build(tmp_path_factory):
+    """The real freeway clip (160 frames of 1280x720, its calibration beside it) through every
+    stage with the smoke profile, once per session: its ingest is the default one."""
+    if not FREEWAY_VIDEO.is_file():
+        pytest.skip(f"the real freeway clip is not here ({FREEWAY}): a clone without ../shared/realdata")
+    root = tmp_path_factory.mktemp("freeway")
+    yield from read_only(root, _build(root, [FREEWAY_URI]))
+
+
 def ingest_synthetic(root: Path, frames: int, width: int, height: int) -> Path:
     """``synthetic:demo?seed=7`` ingested with the smoke profile at this size; its scene folder."""
     from paradrive.pipeline import StageRegistry, run_build
@@ -179,3 +199,22 @@ def stage_params(stage: str, overrides: dict | None = None, profile: str | None 
     from paradrive.pipeline import StageRegistry
 
     return StageRegistry().resolve(profile, {stage: dict(overrides or {})}).typed(stage)
+
+
+@pytest.fixture(scope="session")
+def wan_builds(tmp_path_factory, smoke_scene):
+    """Seed 7's smoke scene cut into 5-frame clips (what the Wan smoke config trains on, so a
+    generated video has a clip's frame count): a training build ``train`` and an inference set
+    ``infer`` of the same clips. Its ingest and fit are ``smoke_scene``'s, copied."""
+    from paradrive.pipeline import StageRegistry, run_build
+
+    root = tmp_path_factory.mktemp("wan_builds")
+    shutil.copytree(smoke_scene["data_dir"], root / "data", symlinks=True)
+    clips = {"render": {"clip_frames": 5, "batch_frames": 5}}
+    for build, kind in (("train", "training"), ("infer", "inference")):
+        config = StageRegistry().resolve("smoke", {**clips, "manifest": {"kind": kind}})
+        report = run_build(config, list(SMOKE_SCENES[:1]), root / "data", manifests_dir=root / "manifests",
+                           build=build)
+        assert not report.failures(), [r.error for r in report.failures()]
+    yield from read_only(root, {"train": root / "manifests" / "train", "infer": root / "manifests" / "infer",
+                                "root": root})

@@ -33,7 +33,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.ingest.protowire", "paradrive.ingest.tfrecord", "paradrive.ingest.undistort",
         "paradrive.ingest.waymo_proto", "paradrive.ingest.sfm", "paradrive.ingest.roadmotion",
         "paradrive.ingest.egomask",
-        "paradrive.train.autoencoder", "paradrive.train.flow", "paradrive.train.model",
+        "paradrive.train.autoencoder", "paradrive.train.flow", "paradrive.train.model", "paradrive.train.distributed",
         "paradrive.wan", "paradrive.wan.vae", "paradrive.wan.text", "paradrive.wan.recam",
     ),
     # the shared vocabulary: where files live, the records, what a stage gets and takes, and the
@@ -67,7 +67,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "cli": (
         "paradrive.cli", "paradrive.evaluation", "paradrive.inspection", "paradrive.view",
         "paradrive.train", "paradrive.train.cli", "paradrive.train.trainer",
-        "paradrive.wan.cli", "paradrive.wan.train", "paradrive.wan.convert",
+        "paradrive.wan.cli", "paradrive.wan.train", "paradrive.wan.convert", "paradrive.wan.generate",
     ),
 }
 

@@ -572,7 +572,7 @@ def test_masked_pixels_neither_cost_nor_pull(tiny_scene, tmp_path):
             value.grad = None
         loss, _ = fit._loss(vi, 0)
         loss.backward()
-        return float(loss), {k: v.grad.clone() for k, v in fit.params.items() if v.grad is not None}
+        return float(loss.detach()), {k: v.grad.clone() for k, v in fit.params.items() if v.grad is not None}
 
     masked = fit.loss_masks[vi]
     assert masked is not None and masked[-4:].all() and masked[5:15, 10:25].all()   # both, at the view's size

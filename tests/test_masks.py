@@ -18,9 +18,8 @@ from paradrive.pairs import read_pairs
 from paradrive.scene import read_image
 from paradrive.stages.manifest import build_manifest
 from paradrive.synthetic import SyntheticStreet
-from conftest import stage_params
+from conftest import FREEWAY, stage_params
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 LABELS = Path(__file__).resolve().parent / "udacity_freeway_cars.json"
 
 
@@ -127,30 +126,11 @@ def test_max_dynamic_fraction_leaves_out_pairs_and_index_json_says_which(smoke_b
 
 
 @pytest.fixture(scope="module")
-def freeway_scene(tmp_path_factory) -> Path:
-    """The real freeway clip ingested once for this module: its 160 frames undistorted with its
-    calibration, halved to 640x360 and given as a folder of frames at the video's 25 fps with
-    the intrinsics to match (the ingest keeps every frame: SfM needs them on this clip)."""
-    from paradrive.ingest.undistort import undistort_image
-    from paradrive.scene import write_image
-    from paradrive.stages.ingest import ingest, params_of
-    from paradrive.video import decode_frames
-
-    clip = REALDATA / "udacity-freeway"
-    if not clip.is_dir():
-        pytest.skip(f"the real clip is not here ({clip}): a clone without ../shared/realdata")
-    cal = json.loads((clip / "calibration.json").read_text())
-    K = np.array([[cal["fx"], 0, cal["cx"] + 0.5], [0, cal["fy"], cal["cy"] + 0.5], [0, 0, 1]])
-    dist = [cal[k] for k in ("k1", "k2", "p1", "p2", "k3")]
-    folder = tmp_path_factory.mktemp("freeway") / "frames"
-    for k, rgb in enumerate(decode_frames(clip / cal["file"], list(range(cal["frames"])))):
-        flat = undistort_image(rgb, K, dist).astype(np.uint16)
-        write_image(folder / f"{k:03d}.png", ((flat[::2, ::2] + flat[1::2, 1::2]) // 2).astype(np.uint8))
-    uri = (f"video:{folder}?fps={cal['fps']}&fx={K[0, 0] / 2}&fy={K[1, 1] / 2}&cx={K[0, 2] / 2}"
-           f"&cy={K[1, 2] / 2}&height_m=1.2")
-    root = tmp_path_factory.mktemp("scenes") / "freeway"
-    ingest(uri, root, params_of({"image_ext": "png"}))
-    return root
+def freeway_scene(freeway_build) -> Path:
+    """The real freeway clip's scene in the session's build of it (its default ingest: every
+    frame at 1280x720, undistorted by its calibration)."""
+    (scene_dir,) = (freeway_build["data_dir"] / "scenes").iterdir()
+    return scene_dir
 
 
 @pytest.mark.slow
@@ -160,7 +140,7 @@ def test_the_real_clip_s_cars_are_masked_and_its_road_is_not(freeway_scene):
     figures."""
     from paradrive.ingest.videomasks import labelled_scores
 
-    scores = labelled_scores(freeway_scene, LABELS, REALDATA / "udacity-freeway" / "calibration.json")
+    scores = labelled_scores(freeway_scene, LABELS, FREEWAY / "calibration.json")
     assert len(scores.frames) == 11
     assert scores.coverage >= 0.9 and min(scores.named.values()) >= 0.9, scores.named
     assert scores.road_masked <= 0.05 and scores.worst_road_masked <= 0.05, scores.frames

@@ -60,8 +60,8 @@ from paradrive.contracts.layout import SceneLayout
 from paradrive.errors import SceneError
 from paradrive.ingest.egomask import agreement, ego_mask, grey
 
-__all__ = ["MaskScores", "MotionParams", "moving_masks", "overlay_mask", "road_region", "scene_ego_mask", "score_masks",
-           "write_video_masks"]
+__all__ = ["MaskScores", "MotionParams", "moving_masks", "overlay_mask", "path_along", "road_region",
+           "scene_ego_mask", "score_masks", "write_video_masks"]
 
 OFF = 1e4  # grey level of the world off the image: no window reaching it matches
 EGO_WIDTH = 640       # the ego mask is found at this width (or less) and scaled up
@@ -146,6 +146,11 @@ def scene_ego_mask(frame: Callable[[int], np.ndarray], n: int, *, scene_id: str,
             cv2.resize(overlays.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0)
 
 
+def path_along(c2w: np.ndarray) -> np.ndarray:
+    """(N,) the distance travelled at each of the cameras ``c2w`` (N, 4, 4), from the first."""
+    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=1))]
+
+
 def _far_pairs(along: np.ndarray, most: int) -> list[tuple[int, int]]:
     """Up to ``most`` pairs of frames half the path apart (``along``: the distance travelled
     at each frame), their first frames spread over the first half."""
@@ -225,8 +230,7 @@ class _Geometry:
         self.pix = np.stack([xx + 0.5, yy + 0.5, np.ones_like(xx)], -1)
         self.camera_height = float(np.median(
             [(e[:3, 2] @ (c[:3, 3] - e[:3, 3])) for c, e in zip(c2w, ego2world)]))
-        centres = c2w[:, :3, 3]
-        self.along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))]
+        self.along = path_along(c2w)
 
     def halved(self) -> _Geometry:
         K = self.K.copy()
@@ -385,8 +389,7 @@ def write_video_masks(frame: Callable[[int], np.ndarray], c2w: np.ndarray, ego2w
     start, cpu = time.perf_counter(), time.process_time()
     n = len(c2w)
     layout = SceneLayout(root)
-    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(c2w[:, :3, 3], axis=0), axis=1))]
-    hood, overlays = scene_ego_mask(frame, n, scene_id=scene_id, along=along)
+    hood, overlays = scene_ego_mask(frame, n, scene_id=scene_id, along=path_along(c2w))
     count, labels = cv2.connectedComponents(overlays.astype(np.uint8), connectivity=8)
     covered = np.zeros(count)
     shares = []
@@ -399,9 +402,9 @@ def write_video_masks(frame: Callable[[int], np.ndarray], c2w: np.ndarray, ego2w
     # the car's moving mask covers it in most frames
     sizes = np.bincount(labels.ravel(), minlength=count)
     movers = np.flatnonzero(covered > 0.5 * n * sizes)
-    ego = hood | (overlays & ~np.isin(labels, movers[movers > 0]))
-    write_image(layout.ego_mask(camera), ego.astype(np.uint8)[..., None] * 255)
-    return {"ego_share": round(float(ego.mean()), 5), "overlay_share": round(float((ego & ~hood).mean()), 5),
+    mask = hood | (overlays & ~np.isin(labels, movers[movers > 0]))
+    write_image(layout.ego_mask(camera), mask.astype(np.uint8)[..., None] * 255)
+    return {"ego_share": round(float(mask.mean()), 5), "overlay_share": round(float((mask & ~hood).mean()), 5),
             "moving_share": round(float(np.mean(shares)), 5),
             "seconds": round(time.perf_counter() - start, 3),
             "cpu_seconds": round(time.process_time() - cpu, 3)}
