@@ -96,6 +96,7 @@ def summarize(build_dir: str | Path, index: IndexRecord | None = None) -> dict:
         "exclude_splits": [s.model_dump() for s in index.exclude_splits],
         "excluded_scenes": [s.model_dump() for s in index.excluded_scenes],
         "heldout_filter": index.heldout_filter.model_dump() if index.heldout_filter else None,
+        "dynamic_filter": index.dynamic_filter.model_dump() if index.dynamic_filter else None,
     }
 
 
@@ -371,6 +372,11 @@ def _print_tables(summary: dict, console) -> None:
         f = summary["heldout_filter"]
         console.print(f"held-out PSNR filter: at least {f['min_psnr']:g} dB, "
                       f"{len(f['dropped'])} scene(s) left out", markup=False)
+    if summary.get("dynamic_filter"):
+        f = summary["dynamic_filter"]
+        console.print(f"moving-pixels filter: dynamic_fraction at most {f['max_fraction']:g}, "
+                      f"{f['dropped_rows']} pair(s) of {len(f['dropped_clips'])} clip(s) left out",
+                      markup=False)
     splits = ", ".join(f"{s['name']} (sha256 {s['sha256'][:12]}…, {s['scenes']} scenes)"
                        for s in summary["exclude_splits"]) or "none"
     console.print(f"{summary['kind']} build; excluded splits: {splits}", markup=False)

@@ -32,6 +32,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.synthetic.raycast",
         "paradrive.ingest.protowire", "paradrive.ingest.tfrecord", "paradrive.ingest.undistort",
         "paradrive.ingest.waymo_proto", "paradrive.ingest.sfm", "paradrive.ingest.roadmotion",
+        "paradrive.ingest.egomask",
         "paradrive.train.autoencoder", "paradrive.train.flow", "paradrive.train.model", "paradrive.train.distributed",
         "paradrive.wan", "paradrive.wan.vae", "paradrive.wan.text", "paradrive.wan.recam",
     ),
@@ -51,6 +52,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "paradrive.ingest", "paradrive.ingest.common", "paradrive.ingest.nuscenes_tables",
         "paradrive.ingest.synthetic", "paradrive.ingest.waymo", "paradrive.ingest.nuscenes",
         "paradrive.ingest.drivestudio", "paradrive.ingest.export", "paradrive.ingest.video",
+        "paradrive.ingest.videomasks",
         "paradrive.wan.latents", "paradrive.wan.encode",
     ),
     # the stage modules, and the true novel views the manifest stage renders for an inference set
