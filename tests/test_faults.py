@@ -148,7 +148,8 @@ def running_stages(folder: Path) -> list[str]:
 
 def outputs(folder: Path) -> dict[str, str]:
     """sha256 of every file a build left under ``folder``, byte-stable ones only; the published
-    version's files by their path inside the version (a re-run may publish another number)."""
+    version's files by their path inside the version (a re-run may publish another number), the
+    versions a publish keeps for readers left out."""
     out: dict[str, str] = {}
     version = _published_version(folder / "m" / BUILD)
     for path in sorted(folder.rglob("*")):
@@ -159,6 +160,8 @@ def outputs(folder: Path) -> dict[str, str]:
             continue
         if version and rel.startswith(f"m/{BUILD}/{version}/"):
             rel = f"m/{BUILD}/<published>/" + rel.split("/", 3)[3]
+        elif fnmatch.fnmatchcase(rel, f"m/{BUILD}/v-*/*"):
+            continue   # a version kept for its readers (manifest.keep_versions_for), not the build's
         out[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
     return out
 

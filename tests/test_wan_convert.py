@@ -201,7 +201,7 @@ def test_an_export_that_runs_out_of_room_leaves_nothing_behind(smoke_build, tmp_
                             timeout=300)
     assert result.returncode == 1, result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "could not write the export" in lines[0] and "File too large" in lines[0], lines
+    assert len(lines) == 1 and "could not write the export" in lines[0] and "file size limit" in lines[0], lines
     assert os.listdir(tmp_path) == []   # neither the export nor its temporary folder
     # an earlier export is replaced whole by a later one, never mixed with it
     convert("pixels", str(smoke_build["build_dir"]), str(out), "--num-frames", "1", "--limit", "2")
