@@ -1,4 +1,5 @@
-"""Shared fixtures: smoke-profile builds of synthetic scenes, made once per test session.
+"""Shared fixtures: smoke-profile builds of synthetic scenes, made once per test session (once
+for all xdist workers: :func:`built_once`).
 
 Building a scene end to end takes seconds to tens of seconds on 2 cores, so every test that needs
 a built scene or a manifest shares these. They are read-only: a test that changes anything in one
@@ -8,9 +9,11 @@ file in its folder was added, removed or rewritten, and fails naming the files o
 
 from __future__ import annotations
 
+import fcntl
 import os
+import pickle
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
@@ -54,11 +57,28 @@ def read_only(root: Path, value: T) -> Iterator[T]:
                          f"before changing it): {changed[:10]}")
 
 
+def built_once(tmp_path_factory, name: str, make: Callable[[Path], dict]) -> dict:
+    """``make(root)`` once per test session, whatever the number of xdist workers: the first
+    worker to ask makes it in a folder all of them share, holding a lock file; the others wait on
+    that lock and take what it made (its result, pickled beside it)."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        return make(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent   # the session's folder above the workers'
+    made = shared / f"{name}.pickle"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not made.is_file():
+            result = make(shared / name)
+            made.write_bytes(pickle.dumps(result))
+        return pickle.loads(made.read_bytes())
+
+
 @pytest.fixture(scope="session")
 def smoke_scene(tmp_path_factory):
     """One synthetic scene (seed 7) ingested and fitted with the smoke profile."""
-    root = tmp_path_factory.mktemp("smoke_scene")
-    yield from read_only(root, _build(root, SMOKE_SCENES[:1], stages=["ingest", "fit"]))
+    built = built_once(tmp_path_factory, "smoke_scene",
+                       lambda root: _build(root, SMOKE_SCENES[:1], stages=["ingest", "fit"]))
+    yield from read_only(built["root"], built)
 
 
 @pytest.fixture(scope="session")
@@ -68,9 +88,12 @@ def smoke_build(tmp_path_factory, smoke_scene):
     It starts from a copy of the ``smoke_scene`` data folder, so seed 7's ingest and fit are
     reused (skipped by their fingerprints), not redone, and ``smoke_scene`` stays as it was.
     """
-    root = tmp_path_factory.mktemp("smoke_build")
-    shutil.copytree(smoke_scene["data_dir"], root / "data", symlinks=True)
-    yield from read_only(root, _build(root, SMOKE_SCENES))
+    def make(root: Path) -> dict:
+        shutil.copytree(smoke_scene["data_dir"], root / "data", symlinks=True)
+        return _build(root, SMOKE_SCENES)
+
+    built = built_once(tmp_path_factory, "smoke_build", make)
+    yield from read_only(built["root"], built)
 
 
 # Real recordings, read in place from ../shared/realdata beside the repository (a user's clone
@@ -86,11 +109,12 @@ FREEWAY_URI = f"video:{FREEWAY_VIDEO}?calib=calibration.json&height_m={FREEWAY_H
 @pytest.fixture(scope="session")
 def freeway_build(tmp_path_factory):
     """The real freeway clip (160 frames of 1280x720, its calibration beside it) through every
-    stage with the smoke profile, once per session: its ingest is the default one."""
+    stage with the smoke profile, once per session (the slowest fixture: every xdist worker
+    shares it): its ingest is the default one."""
     if not FREEWAY_VIDEO.is_file():
         pytest.skip(f"the real freeway clip is not here ({FREEWAY}): a clone without ../shared/realdata")
-    root = tmp_path_factory.mktemp("freeway")
-    yield from read_only(root, _build(root, [FREEWAY_URI]))
+    built = built_once(tmp_path_factory, "freeway", lambda root: _build(root, [FREEWAY_URI]))
+    yield from read_only(built["root"], built)
 
 
 def ingest_synthetic(root: Path, frames: int, width: int, height: int) -> Path:
