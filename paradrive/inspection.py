@@ -147,7 +147,7 @@ def verify_build(build_dir: str | Path, jobs: int | None = None) -> dict:
         problems += [p for p in _ordered(_check, media.items(shards), jobs) if p]
     except ParaDriveError as exc:  # a shard whose checksum matches yet does not parse
         problems.append(str(exc))
-    from paradrive.wan.latents import verify_latents  # torch: only when verifying
+    from paradrive.latents import verify_latents  # torch: only when verifying
 
     latents = verify_latents(build_dir)   # the Wan2.1 latent cache, when the build has one
     problems += latents["problems"]
@@ -435,7 +435,7 @@ def register(app) -> None:
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
         else:
-            from paradrive.wan.latents import latents_summary  # torch: not at every command's start
+            from paradrive.latents import latents_summary  # torch: not at every command's start
 
             _print_tables(summary, out)
             out.print(latents_summary(build), markup=False)

@@ -136,9 +136,9 @@ def _native_kernels(x: torch.Tensor):
     else None: the torch operations run."""
     if x.device.type != "cpu" or x.dtype != torch.float32:
         return None
-    from paradrive.gs import _native
+    from paradrive import kernels
 
-    return _native.load()
+    return kernels.load()
 
 
 def ssim_window(window: int = 11, sigma: float = 1.5,

@@ -17,7 +17,7 @@ import yaml
 
 from paradrive.errors import EXIT_USAGE, ConfigError
 from paradrive.pipeline import StageRegistry, parse_overrides
-from paradrive.pipeline.specs import default_stages_dir
+from paradrive.contracts.specs import default_stages_dir
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = "synthetic:p1?seed=3"
@@ -176,7 +176,7 @@ def test_paradrive_stages_shows_what_each_parameter_may_be(monkeypatch):
 
 
 def _train_settings(tree, where=""):
-    from paradrive.pipeline.specs import Param
+    from paradrive.contracts.specs import Param
 
     for key, node in tree.items():
         if isinstance(node, Param):

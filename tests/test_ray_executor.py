@@ -20,7 +20,7 @@ from paradrive.pipeline.executors import LocalExecutor
 from paradrive.pipeline.ledger import Ledger
 from paradrive.pipeline.ray_executor import Capacity, RayExecutor, task_resources
 from paradrive.pipeline.runner import scene_dir_for
-from paradrive.pipeline.specs import Resources
+from paradrive.contracts.specs import Resources
 
 import pipeline_stages
 

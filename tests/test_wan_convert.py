@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from paradrive.data import PairDataset
-from paradrive.wan.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
+from paradrive.train.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
 
 
 def convert(*args: str) -> str:

@@ -19,7 +19,7 @@ pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
 from paradrive.errors import ConfigError  # noqa: E402
-from paradrive.wan import latents as cache  # noqa: E402
+from paradrive import latents as cache  # noqa: E402
 from paradrive.wan.encode import EncodeSettings, encode_build  # noqa: E402
 from paradrive.wan.text import empty_prompt_embedding  # noqa: E402
 from paradrive.wan.vae import (decode_latents, encode_video, latent_frames, load_vae,  # noqa: E402

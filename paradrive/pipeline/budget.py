@@ -34,7 +34,7 @@ from rich.table import Table
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import is_temporary
 from paradrive.pipeline.runner import read_marker
-from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.contracts.specs import ResolvedConfig
 from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
 from paradrive.storage import DataRoot
 from paradrive.streams import (ClipWindow, clip_shortfall, clip_windows, frames_needed,

@@ -32,7 +32,7 @@ from paradrive.pipeline.runner import (
     typed_params, written_outputs,
 )
 from paradrive.pipeline.ledger import LEDGER_FILE
-from paradrive.pipeline.specs import ResolvedConfig, StageSpec
+from paradrive.contracts.specs import ResolvedConfig, StageSpec
 from paradrive.splits import Selection
 from paradrive.contracts.base import BuildContext
 from paradrive.contracts.layout import BuildLayout

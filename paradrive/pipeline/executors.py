@@ -26,7 +26,7 @@ from collections.abc import Callable
 from paradrive.pipeline.locks import LockOptions
 from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.runner import StageResult, run_scene_stage
-from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.contracts.specs import ResolvedConfig
 from paradrive.storage import DataRoot
 
 ResultCallback = Callable[[StageResult], None]

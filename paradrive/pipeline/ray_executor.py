@@ -57,7 +57,7 @@ from paradrive.pipeline.executors import (
 from paradrive.pipeline.locks import LockOptions
 from paradrive.pipeline.progress import ProgressSink, Snapshot
 from paradrive.pipeline.runner import StageResult, run_scene_stage
-from paradrive.pipeline.specs import ResolvedConfig, Resources
+from paradrive.contracts.specs import ResolvedConfig, Resources
 from paradrive.storage import DataRoot
 from paradrive.uri import parse_uri
 

@@ -44,7 +44,7 @@ from paradrive.errors import (ConfigError, ParaDriveError, SceneError, StageNotI
 from paradrive.io import remove_stale_temporaries, sha256_file, write_json
 from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
-from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
+from paradrive.contracts.specs import ResolvedConfig, StageSpec, typed_params
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.layout import MARKER_DIR, DataLayout, SceneLayout
 from paradrive.redact import redact

@@ -44,7 +44,7 @@ INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
 def params_of(values: Mapping[str, Any] | None = None) -> Params:
     """Ingest parameters from a recorded mapping (a scene's ingest marker); the YAML's values
     fill what an older marker lacks, and keys the YAML no longer has are left out."""
-    from paradrive.pipeline.specs import StageRegistry
+    from paradrive.contracts.specs import StageRegistry
 
     known = {k: v for k, v in (values or {}).items() if k in Params.model_fields}
     return Params.of("ingest", {**StageRegistry().resolve(None).params["ingest"], **known})

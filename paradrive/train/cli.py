@@ -77,7 +77,7 @@ def train(
 
     if sample is not None:
         from paradrive.train.trainer import sample_video, torch_threads, write_video
-        from paradrive.wan.train import WanTrainer
+        from paradrive.train.wan import WanTrainer
 
         try:
             if sample_set is not None:
@@ -114,7 +114,7 @@ def _load_config(model: str, config: str | None, overrides: dict, folders: dict[
     from paradrive.train.trainer import load_config
 
     if model == "wan":
-        from paradrive.wan.train import load_wan_config
+        from paradrive.train.wan import load_wan_config
 
         overrides.setdefault("model", {}).update({k: str(v) for k, v in folders.items() if v is not None})
         return load_wan_config(config, overrides)
@@ -129,7 +129,7 @@ def _load_config(model: str, config: str | None, overrides: dict, folders: dict[
 def _open_dataset(model: str, build: Path, cfg: dict):
     """The build's pairs as ``--model``'s trainer reads them."""
     if model == "wan":
-        from paradrive.wan.train import open_wan_dataset
+        from paradrive.train.wan import open_wan_dataset
 
         return open_wan_dataset(build, cfg)
     from paradrive.train.trainer import open_dataset
@@ -141,7 +141,7 @@ def _trainer_class(model: str) -> type:
     from paradrive.train.trainer import Trainer
 
     if model == "wan":
-        from paradrive.wan.train import WanTrainer
+        from paradrive.train.wan import WanTrainer
 
         return WanTrainer
     return Trainer

@@ -3,7 +3,7 @@ cache, outside a build run, by the same code as the ``encode`` stage
 (:func:`paradrive.wan.encode.encode_build`), with the stage's parameters from
 ``stages/encode.yaml``, a profile and ``--set``. ``paradrive convert FORMAT BUILD OUT``: a build
 in the layout of ReCamMaster's, DiffSynth-Studio's or diffusers' trainers
-(:mod:`paradrive.wan.convert`). Both import torch and diffusers only when they run."""
+(:mod:`paradrive.train.convert`). Both import torch and diffusers only when they run."""
 
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def _register_encode(app) -> None:
         from rich.markup import escape
 
         from paradrive.errors import EXIT_FAILED, EXIT_USAGE, ConfigError, ParaDriveError
-        from paradrive.pipeline.specs import StageRegistry, parse_overrides
+        from paradrive.contracts.specs import StageRegistry, parse_overrides
         from paradrive.wan.encode import encode_build
 
         err = Console(stderr=True)
@@ -98,7 +98,7 @@ def _register_convert(app) -> None:
         from rich.markup import escape
 
         from paradrive.errors import ConfigError, ParaDriveError
-        from paradrive.wan.convert import convert_build
+        from paradrive.train.convert import convert_build
 
         try:
             count = convert_build(fmt, build, out, vae=vae, text_encoder=text_encoder,

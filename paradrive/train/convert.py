@@ -46,7 +46,7 @@ from paradrive.data import PairDataset
 from paradrive.io import atomic_path, path_inside, write_json, write_text
 from paradrive.pairs import build_file
 from paradrive.train.trainer import collate, frames_on
-from paradrive.wan.train import relative_camera, to_channels_first
+from paradrive.train.wan import relative_camera, to_channels_first
 
 FORMATS = ("recammaster", "diffsynth", "pixels")
 SOURCE_CAMERA, TARGET_CAMERA = "cam01", "cam02"

@@ -35,7 +35,7 @@ from paradrive.errors import ConfigError
 from paradrive.io import load_tensors
 from paradrive.train.flow import euler_sample, flow_matching_loss
 from paradrive.train.trainer import Trainer, collate, frames_on, load_config
-from paradrive.wan.latents import has_latents
+from paradrive.latents import has_latents
 from paradrive.wan.recam import (ReCamDrivingWan, load_recammaster, load_stage1_weights, load_transformer,
                                  make_tiny_transformer, trainable_parameters)
 
