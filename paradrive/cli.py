@@ -96,7 +96,7 @@ def build(
     the rest landed); 1: nothing succeeded; 2: usage error.
     """
     from paradrive.pipeline import StageRegistry, parse_overrides
-    from paradrive.pipeline.choose import make_executor
+    from paradrive.pipeline.executors import make_executor
 
     build_uris: list[str] | None = None
     try:

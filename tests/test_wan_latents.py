@@ -292,7 +292,7 @@ def test_on_ray_the_encode_stage_is_a_task_asking_for_its_gpu(smoke_build, wan_f
     """A Ray build hands the encode (the stage declares a GPU) to a task with that request, capped
     to the cluster: this one has no GPU, so the task runs on a worker's CPU, with the warning."""
     from paradrive.pipeline import StageRegistry, run_build
-    from paradrive.pipeline.ray_executor import RayExecutor
+    from paradrive.pipeline.executors.ray import RayExecutor
 
     asked = StageRegistry().resolve("smoke", {"encode": {"vae": str(wan_folder), "size": [8, 16],
                                                          "num_frames": 1, "batch": 8}})

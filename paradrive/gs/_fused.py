@@ -1,5 +1,5 @@
 """Torch side of the fused CPU rasterizer: autograd functions whose work runs in the vectorised
-kernels of ``_composite.cpp`` (built at install, loaded by ``_native``), on
+kernels of ``_composite.cpp`` (built at install, loaded by ``paradrive.kernels``), on
 ``devices.cpu_kernel_threads()`` threads (torch's count unless set). ``rasterize`` takes them
 only where ``kernels.load()`` finds the kernels; elsewhere the torch-op stages run.
 
