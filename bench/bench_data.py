@@ -9,7 +9,9 @@ baseline measured in the same run:
 
 * baseline: every frame of the three files of a pair decoded by bare PyAV to ``rgb24`` arrays
   (``frame.to_ndarray(format="rgb24")``, stacked; the floor any loader pays), with one decoder
-  thread (``thread_count=1``, what the adapter uses in DataLoader workers) and with PyAV's own
+  thread (``thread_count=1``, what the adapter uses in DataLoader workers; swscale, which
+  ``to_ndarray`` runs, keeps PyAV's default of all cores), with one decoder and one swscale
+  thread (``one_thread_scaler_too``: the stricter floor on a busy machine) and with PyAV's own
   threading defaults;
 * per_worker: ``PairDataset[i]`` in one process (what each DataLoader worker does), uint8,
   float32 and bfloat16 output, one decoder thread, against the one-thread baseline (goals: uint8
@@ -24,21 +26,28 @@ baseline measured in the same run:
   before the window, not at frame 0: a full decode is 3 x 121);
 * the share of a trainer step spent waiting for data, for an assumed step time
   (``--step-seconds``; the adapter cannot measure the trainer), and the workers needed to keep up;
+* with ``--busy``: a CPU-bound process spinning numpy on every core for the whole run, and only
+  the baselines and the per-worker cases (the adapter in the main process, as a trainer with
+  ``num_workers=0`` or a tool reading pairs runs it): what a machine whose cores are taken by
+  other work leaves the adapter. Torch keeps its default intra-op threads in every case
+  (``--torch-threads`` sets them): the adapter must not depend on its caller pinning them;
 * construction: the rows of a build (the bench's own, or ``--rows-from``) copied under new scene
   ids up to ``--rows`` (72 pairs x 1,600 scenes), then ``PairIterableDataset`` built in a fresh
   interpreter: seconds, peak resident memory, and the dataset pickled as a DataLoader hands it
   to a spawned worker.
 
 Usage: python bench/bench_data.py [--pairs 4] [--frames 121] [--sizes 192x320,480x832]
-       [--rows 115200] [--rows-from BUILD]
+       [--rows 115200] [--rows-from BUILD] [--busy] [--torch-threads N]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import math
+import multiprocessing
 import os
 import platform
 import subprocess
@@ -114,6 +123,34 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
     return build
 
 
+def _spin(stop) -> None:
+    """CPU-bound work in numpy (one thread) until ``stop`` is set: another job on the core."""
+    values = np.random.default_rng(os.getpid()).random(1 << 15)
+    while not stop.is_set():
+        for _ in range(50):
+            np.sqrt(np.sin(values, out=values) ** 2 + 1.0, out=values)
+
+
+@contextlib.contextmanager
+def busy_cores(n: int):
+    """``n`` processes spinning numpy while the block runs (forked: they need nothing but numpy);
+    yields how many run."""
+    ctx = multiprocessing.get_context("fork")
+    stop = ctx.Event()
+    spinners = [ctx.Process(target=_spin, args=(stop,), daemon=True) for _ in range(n)]
+    for p in spinners:
+        p.start()
+    try:
+        yield len(spinners)
+    finally:
+        stop.set()
+        for p in spinners:
+            p.join(timeout=10)
+            if p.is_alive():
+                p.kill()
+                p.join()
+
+
 def timed(samples: int, run) -> dict:
     """Wall and CPU seconds per sample of ``run()`` (CPU: this process and its finished children,
     the DataLoader workers), which handles ``samples`` samples; returns ``run``'s result too."""
@@ -125,10 +162,12 @@ def timed(samples: int, run) -> dict:
     return {"wall": wall / samples, "cpu": cpu / samples, "result": result}
 
 
-def baseline(build: Path, threads: int | None) -> dict:
+def baseline(build: Path, threads: int | None, scaler_threads: int | None = None) -> dict:
     """Every frame of the three files of each pair decoded to RGB arrays by bare PyAV.
 
-    threads: decoder threads (1 = one); None leaves PyAV's defaults."""
+    threads: decoder threads (1 = one); None leaves PyAV's defaults. scaler_threads: swscale's
+    threads in ``to_ndarray`` (None: PyAV's default, all cores)."""
+    convert = {} if scaler_threads is None else {"threads": scaler_threads}
     import av
 
     from paradrive.data import PairDataset
@@ -144,7 +183,7 @@ def baseline(build: Path, threads: int | None) -> dict:
                     stream = c.streams.video[0]
                     if threads is not None:
                         stream.codec_context.thread_count = threads
-                    np.stack([f.to_ndarray(format="rgb24") for f in c.decode(stream)])
+                    np.stack([f.to_ndarray(format="rgb24", **convert) for f in c.decode(stream)])
 
     return timed(len(files), run)
 
@@ -311,14 +350,21 @@ def construction(build: Path) -> dict:
     return out
 
 
-def size_cases(build: Path, short: Path, frames: int, workers: list[int]) -> dict:
-    """Every case measured at one frame size (see the module's docstring)."""
+def size_cases(build: Path, short: Path, frames: int, workers: list[int], busy: bool = False) -> dict:
+    """Every case measured at one frame size (see the module's docstring); ``busy``: only the
+    baselines and the adapter in this process."""
     window = {"num_frames": 25, "frame_offset": frames - 25, "dtype": "uint8"}
-    return {
+    same_process = {
         "baseline_one_thread": lambda: baseline(build, threads=1),
-        "baseline_pyav_default_threads": lambda: baseline(build, threads=None),
+        "baseline_one_thread_scaler_too": lambda: baseline(build, threads=1, scaler_threads=1),
         **{f"per_worker_{name}": functools.partial(in_process, build, dtype=name)
            for name in ("uint8", "float32", "bfloat16")},
+    }
+    if busy:
+        return same_process
+    return {
+        **same_process,
+        "baseline_pyav_default_threads": lambda: baseline(build, threads=None),
         "per_worker_float32_fresh_buffers": lambda: in_process(build, dtype="float32",
                                                                reuse_buffers=False),
         "uint8_decode_threads_0": lambda: in_process(build, dtype="uint8", decode_threads=0),
@@ -330,15 +376,21 @@ def size_cases(build: Path, short: Path, frames: int, workers: list[int]) -> dic
 
 
 def size_report(m: dict, frames: int, step: float) -> dict:
-    """One frame size's figures: samples/s, and ratios to the bare decode with the same threads."""
-    base, base_threaded = m["baseline_one_thread"], m["baseline_pyav_default_threads"]
-    out: dict = {"baseline": {name: {"samples_per_s": round(1 / b["wall"], 3),
-                                     "cpu_seconds_per_sample": round(b["cpu"], 3)}
-                              for name, b in (("one_thread", base), ("pyav_default_threads", base_threaded))}}
-    out["per_worker"] = {name: {**ratio(m[f"per_worker_{name}"], base),
-                                "first_sample_seconds": round(m[f"per_worker_{name}"]["first_sample"], 3)}
-                         for name in ("uint8", "float32", "bfloat16", "float32_fresh_buffers")}
+    """One frame size's figures: samples/s, and ratios to the bare decode with the same threads
+    (the per-worker uint8 case also against the baseline with a one-thread swscale)."""
+    base = m["baseline_one_thread"]
+    out: dict = {"baseline": {name[len("baseline_"):]: {"samples_per_s": round(1 / b["wall"], 3),
+                                                        "cpu_seconds_per_sample": round(b["cpu"], 3)}
+                              for name, b in m.items() if name.startswith("baseline_")}}
+    out["per_worker"] = {name[len("per_worker_"):]: {**ratio(v, base),
+                                                     "first_sample_seconds": round(v["first_sample"], 3)}
+                         for name, v in m.items() if name.startswith("per_worker_")}
+    out["per_worker"]["uint8_against_scaler_one_thread"] = ratio(m["per_worker_uint8"],
+                                                                 m["baseline_one_thread_scaler_too"])
     out["per_worker"]["goals"] = {"uint8": 0.9, "float32": 0.6}
+    if "baseline_pyav_default_threads" not in m:   # --busy: the same-process cases only
+        return out
+    base_threaded = m["baseline_pyav_default_threads"]
     out["decode_threads_0"] = {"uint8": ratio(m["uint8_decode_threads_0"], base_threaded),
                                "baseline": "pyav_default_threads"}
     out["dataloader"] = {name[len("dataloader_"):]: ratio(v, base) for name, v in m.items()
@@ -376,12 +428,18 @@ def main() -> None:
     ap.add_argument("--step-seconds", type=float, default=3.0,
                     help="assumed trainer step time for one sample (a video diffusion model on "
                          "one GPU at 121x480x832; the adapter cannot measure it)")
+    ap.add_argument("--busy", action="store_true",
+                    help="a CPU-bound process on every core during the measurements; the "
+                         "same-process cases only")
+    ap.add_argument("--torch-threads", type=int, default=0,
+                    help="torch intra-op threads (0 = torch's default, as a trainer has them)")
     args = ap.parse_args()
     import torch
 
-    torch.set_num_threads(1)
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
     out: dict = {"pairs": args.pairs, "frames": args.frames, "cpus": os.cpu_count(),
-                 "rounds": args.rounds, "torch_threads": 1,
+                 "rounds": args.rounds, "torch_threads": torch.get_num_threads(), "busy": args.busy,
                  "load_average_before": [round(v, 2) for v in os.getloadavg()],
                  "machine": platform.machine(), "python": platform.python_version(), "sizes": {}}
     workers = [int(x) for x in args.workers.split(",")]
@@ -392,9 +450,12 @@ def main() -> None:
             build = make_build(Path(tmp) / size / "default_gop", args.pairs, args.frames, h, w, gop=None)
             short = make_build(Path(tmp) / size / "gop30", args.pairs, args.frames, h, w, gop=30)
             setup = round(time.perf_counter() - t0, 1)
-            m = best_of(args.rounds, size_cases(build, short, args.frames, workers))
-            out["sizes"][size] = {"setup_seconds": setup, **size_report(m, args.frames, args.step_seconds)}
-        if args.rows:
+            cases = size_cases(build, short, args.frames, workers, busy=args.busy)
+            with busy_cores((os.cpu_count() or 1) if args.busy else 0) as spinners:
+                m = best_of(args.rounds, cases)
+            out["sizes"][size] = {"setup_seconds": setup, "competing_processes": spinners,
+                                  **size_report(m, args.frames, args.step_seconds)}
+        if args.rows and not args.busy:
             small = args.rows_from or build
             large = replicate_build(small, Path(tmp) / "large", args.rows)
             out["construction"] = {"rows_copied_from": str(small), **construction(large)}

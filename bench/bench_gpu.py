@@ -30,10 +30,10 @@ PAPER_GPU_HOURS_PER_SCENE = 8240 / 1600
 RENDERED_FRAMES_PER_SCENE = (3 + 8) * 3 * 121
 
 
-def _ingest(root: Path, frames: int, width: int, height: int) -> Path:
+def _ingest(root: Path, frames: int, width: int, height: int, profile: str | None = None) -> Path:
     from paradrive.pipeline import StageRegistry, run_build
 
-    config = StageRegistry().resolve(None, {"ingest": {
+    config = StageRegistry().resolve(profile, {"ingest": {
         "synthetic_frames": frames, "synthetic_width": width, "synthetic_height": height,
         "cameras": ["front", "front_left", "front_right"]}})
     report = run_build(config, ["synthetic:demo?seed=7"], root / "data", stages=["ingest"],
@@ -44,16 +44,16 @@ def _ingest(root: Path, frames: int, width: int, height: int) -> Path:
     return scene_dir
 
 
-def _fit_rate(scene_dir: Path, device: str, backend: str, checkpoints: list[int]) -> dict:
+def _fit_rate(scene_dir: Path, device: str, backend: str, checkpoints: list[int], profile: str | None = None) -> dict:
     import shutil
 
     from paradrive.stages.fit import fit_scene
     from paradrive.pipeline import StageRegistry
 
     shutil.rmtree(scene_dir / "gs", ignore_errors=True)
-    params = {**StageRegistry().resolve(None).params["fit"], "checkpoints": checkpoints,
-              "device": device, "backend": backend, "eval_views": 1, "keep_state": False}
-    doc = fit_scene(scene_dir, params)
+    params = StageRegistry().resolve(profile, {"fit": {"checkpoints": checkpoints, "device": device, "backend": backend,
+                                                    "eval_views": 1, "keep_state": False}}).typed("fit")
+    doc = fit_scene(scene_dir, params).model_dump()
     marks = doc["checkpoints"]
     rates = []
     for a, b in zip([{"iteration": 0, "seconds": 0.0}] + marks, marks):
@@ -99,16 +99,17 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--width", type=int, default=960)
     ap.add_argument("--height", type=int, default=640)
+    ap.add_argument("--profile", default=None, help="stage profile of the ingest and fit (default: the paper's)")
     args = ap.parse_args()
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         print(json.dumps({"bench": "gpu", "skipped": "torch sees no CUDA GPU on this machine"}))
         return
     with tempfile.TemporaryDirectory() as tmp:
-        scene_dir = _ingest(Path(tmp), args.frames, args.width, args.height)
+        scene_dir = _ingest(Path(tmp), args.frames, args.width, args.height, args.profile)
         marks = sorted({min(500, args.iterations), args.iterations})
-        fast = _fit_rate(scene_dir, args.device, "auto", marks)
+        fast = _fit_rate(scene_dir, args.device, "auto", marks, args.profile)
         fps = _render_rate(scene_dir, args.device, args.frames)
-        base = _fit_rate(scene_dir, args.device, "torch", [args.baseline_iterations])
+        base = _fit_rate(scene_dir, args.device, "torch", [args.baseline_iterations], args.profile)
     late = fast["phases"][-1]["iterations_per_second"]
     fit_hours = 30000 / late / 3600
     render_hours = RENDERED_FRAMES_PER_SCENE / fps / 3600

@@ -109,7 +109,6 @@ def build_template(work: Path) -> Path:
 def clone_scene(cfg, template: Path, data: Path, uri: str) -> Path:
     """The template scene under ``uri``'s id: hard links, re-tagged records, markers anew."""
     from paradrive.contracts.layout import MARKER_DIR, SceneLayout
-    from paradrive.io import write_json
     from paradrive.pipeline.runner import (marker_path, output_entry, read_marker,
                                            stage_fingerprint)
     from paradrive.uri import parse_uri
@@ -128,12 +127,11 @@ def clone_scene(cfg, template: Path, data: Path, uri: str) -> Path:
         if marker is None:
             continue
         fp, upstream = stage_fingerprint(cfg, stage, uri, dst)
-        marker.update(scene_id=sid, scene_uri=uri, fingerprint=fp,
-                      inputs={k: v["fingerprint"] for k, v in upstream.items()})
-        for rel in changed:
-            if rel in marker.get("outputs", {}):
-                marker["outputs"][rel] = output_entry(dst / rel)
-        write_json(marker_path(dst, stage), marker)
+        outputs = dict(marker.outputs or {})
+        outputs.update((rel, output_entry(dst / rel)) for rel in changed if rel in outputs)
+        marker.model_copy(update={"scene_id": sid, "scene_uri": uri, "fingerprint": fp,
+                                  "inputs": {k: v.fingerprint for k, v in upstream.items()},
+                                  "outputs": outputs}).save(marker_path(dst, stage))
     return dst
 
 
@@ -164,7 +162,7 @@ def fill_ledger(cfg, manifests: Path, uris: list[str], template: Path) -> float:
     from paradrive.uri import parse_uri
 
     scene_stages, build_stages = split_stages(cfg, None)
-    seconds = {s: (read_marker(template, s) or {}).get("seconds", 0.0) for s in scene_stages}
+    seconds = {s: getattr(read_marker(template, s), "seconds", None) or 0.0 for s in scene_stages}
     t0 = time.perf_counter()
     ledger = Ledger.for_build(manifests, BUILD)
     ledger.register(uris, scene_stages, build_stages)

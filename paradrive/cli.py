@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
+import signal
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import typer
@@ -15,7 +18,8 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, Text
 from rich.table import Table
 
 from paradrive import __version__
-from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, ConfigError, ParaDriveError, missing_extra
+from paradrive.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_TERMINATED, EXIT_USAGE, ConfigError,
+                              ParaDriveError, Terminated, missing_extra)
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S
 from paradrive.redact import remember
 from paradrive.storage import data_root
@@ -54,13 +58,11 @@ def _split_csv(value: str | None) -> list[str] | None:
 
 
 def collect_scene_uris(scene: list[str], scenes: list[str]) -> list[str]:
-    """URIs from --scene (one URI each) and --scenes (a list file, a folder of logs, or URIs)."""
-    uris = list(scene)
-    if scenes:
-        from paradrive.pipeline.scenes import expand_scene_inputs
+    """URIs from --scene (one URI each) and --scenes (a list file, a folder of logs, or URIs),
+    each log once and each with a scene id of its own (:mod:`paradrive.pipeline.scenes`)."""
+    from paradrive.pipeline.scenes import scene_uris
 
-        uris.extend(expand_scene_inputs(scenes))
-    return uris
+    return scene_uris(scene, scenes)
 
 
 @app.command()
@@ -97,6 +99,7 @@ def build(
     """
     from paradrive.pipeline import StageRegistry, parse_overrides
     from paradrive.pipeline.executors import make_executor
+    from paradrive.pipeline.scenes import check_present
 
     build_uris: list[str] | None = None
     try:
@@ -106,10 +109,10 @@ def build(
         config = StageRegistry().resolve(profile, overrides)
         stage_list = _split_csv(stages)
         config.check(stage_list)  # unknown stages and values no stage can take fail before any work
-        ledger = _open_ledger(manifests, build_name)
         if retry_failed:
             if scene or scenes:
                 fail("--retry-failed takes the scenes from the ledger; leave out --scene/--scenes")
+            ledger = _open_ledger(manifests, build_name)
             uris = ledger.failed_scene_uris()
             if not uris:
                 out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene",
@@ -120,8 +123,11 @@ def build(
             uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
             if not uris:
                 fail(f"--scenes {' '.join(scenes)}: no scenes found")
+        check_present(uris)   # inputs that are not there: one line, before the ledger or a lock
         selection = select_scenes(config, uris, split, exclude_split)
         uris = selection.uris
+        if not retry_failed:
+            ledger = _open_ledger(manifests, build_name)
         options = {"address": address, "gpu_policy": gpu_policy, "max_in_flight": max_in_flight,
                    "max_retries": max_retries} if executor == "ray" else {}
         runner = make_executor(executor, **options)
@@ -132,29 +138,53 @@ def build(
 
     active: dict[tuple[str, str], None] = {}
     try:
-        report = _run_with_progress(config, uris, root, stage_list, runner, manifests, build_name,
-                                    force, ledger, build_uris=build_uris,
-                                    replace=not retry_failed, lock_timeout=lock_timeout,
-                                    selection=selection, active=active,
-                                    verify_outputs=verify_outputs)
+        with _terminate_as_interrupt():
+            report = _run_with_progress(config, uris, root, stage_list, runner, manifests,
+                                        build_name, force, ledger, build_uris=build_uris,
+                                        replace=not retry_failed, lock_timeout=lock_timeout,
+                                        selection=selection, active=active,
+                                        verify_outputs=verify_outputs)
     except (ConfigError, ParaDriveError) as exc:
         ledger.end_run(EXIT_USAGE)
         fail(str(exc))
-    except KeyboardInterrupt:
-        ledger.end_run(EXIT_INTERRUPTED)
-        console.print(interrupted_message(active), markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(EXIT_INTERRUPTED) from None
+    except KeyboardInterrupt as exc:   # Ctrl-C, or SIGTERM (Terminated)
+        code = EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+        ledger.end_run(code)
+        console.print(interrupted_message(active, "terminated (SIGTERM)" if code == EXIT_TERMINATED
+                                          else "interrupted"),
+                      markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code) from None
     ledger.end_run(report.exit_code)
     _print_report(report, ledger)
     _print_footprint(root, report)
     raise typer.Exit(report.exit_code)
 
 
-def interrupted_message(active: dict[tuple[str, str], None]) -> str:
-    """What Ctrl-C stopped, and how to go on: ``interrupted: stopped fit of scene-a; ...``."""
+def interrupted_message(active: dict[tuple[str, str], None], how: str = "interrupted") -> str:
+    """What Ctrl-C (or SIGTERM) stopped, and how to go on: ``interrupted: stopped fit of
+    scene-a; ...``."""
     stopped = ", ".join(f"{stage} of {scene}" for scene, stage in active) or "the build between stages"
-    return (f"interrupted: stopped {stopped}; finished stages are kept: run the same command "
+    return (f"{how}: stopped {stopped}; finished stages are kept: run the same command "
             f"again to resume (a fit goes on from its last saved state)")
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """While the build runs, SIGTERM unwinds it as Ctrl-C does (:class:`Terminated`); the
+    handler before is put back after. Off the main thread nothing changes (signals are the
+    main thread's)."""
+    def terminated(signum, frame):
+        raise Terminated()
+
+    try:
+        before = signal.signal(signal.SIGTERM, terminated)
+    except ValueError:   # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def _print_footprint(root, report) -> None:
@@ -348,14 +378,38 @@ def export_cmd(
     carries the front camera only."""
     from paradrive.errors import SceneError
     from paradrive.ingest.export import export_scene
+    from paradrive.io import check_output
     from paradrive.pipeline import StageRegistry, parse_overrides
 
-    params = StageRegistry().resolve(profile, parse_overrides(set_)).typed("ingest")
+    try:
+        params = StageRegistry().resolve(profile, parse_overrides(set_)).typed("ingest")
+        check_output(out, "export: OUT", folder=True)   # a file, a device, a place not writable: before any work
+    except ConfigError as exc:
+        fail(str(exc))
+    before = set(out.rglob("*")) if out.is_dir() else None
     try:
         print(export_scene(scene, fmt, out, params, with_intrinsics=with_intrinsics))
     except (ValueError, SceneError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2)
+    except OSError as exc:   # the write failed on the way (disk full, file size limit, ...)
+        _remove_new(out, before)
+        fail(str(exc), EXIT_FAILED)
+
+
+def _remove_new(out: Path, before: set[Path] | None) -> None:
+    """What a failed export wrote under ``out``: all of it when ``out`` was not there before
+    (``before`` None), else the entries not in ``before``, so no part of a log is left."""
+    import shutil
+
+    if before is None:
+        shutil.rmtree(out, ignore_errors=True)
+        return
+    for path in sorted(set(out.rglob("*")) - before, key=lambda p: len(p.parts), reverse=True):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
 
 
 @app.command("view")
@@ -369,12 +423,13 @@ def view_cmd(
     """Write a scene (cameras, LiDAR, actors, the fit's Gaussians, renders and clips) or a build's
     pairs (source, condition and target videos, both cameras, scores) as a Rerun recording."""
     from paradrive import view
+    from paradrive.io import check_output
 
     try:
         kind, folder = view.resolve_target(target, data)
         if pair and kind != "build":
             raise ConfigError(f"--pair picks pairs of a build; {folder} is a scene folder")
-        out_file = save or view.default_output(folder)
+        out_file = check_output(save or view.default_output(folder), "--save")
         report = view.view_build(folder, out_file, pair_ids=pair) if kind == "build" else view.view_scene(folder, out_file)
         out.print(view.describe(report), markup=False, highlight=False, soft_wrap=True)
         for line in report.left_out:
@@ -383,7 +438,7 @@ def view_cmd(
             view.open_viewer(report.path)
     except ConfigError as exc:
         fail(str(exc))
-    except ParaDriveError as exc:
+    except (ParaDriveError, OSError) as exc:   # OSError: the write failed at the end (disk full, ...)
         fail(str(exc), EXIT_FAILED)
 
 
@@ -393,7 +448,7 @@ COMMAND_MODULES = [
     ("paradrive.pipeline.status", "status"),
     ("paradrive.pipeline.budget", "plan"),
     ("paradrive.train.cli", "train"),
-    ("paradrive.wan.cli", "encode"),   # and convert
+    ("paradrive.wan.cli", "encode"),   # and convert, generate
 ]
 
 

@@ -24,7 +24,10 @@ decodes a whole video it does not need. swscale converts each frame to planar RG
 through one conversion context per video and with the decoder's thread count, and each plane
 goes straight into the channels-first output: copied for uint8, converted and normalised in place
 for a float type while the plane is still in cache (no interleaved array, no second pass over the
-sample).
+sample). That per-frame work is numpy's, never a torch op: torch would split each plane over its
+intra-op threads, and where other work takes every core each such call waits for threads that
+get no core (37 times slower), so the adapter keeps its speed in any process, whatever
+``torch.get_num_threads()`` its caller left, and never changes it.
 
 Opening a build reads only the pair ids and URIs of its shards (the ids are kept as Arrow, the
 URIs checked once each); a row's other columns and its poses are read with its row group when a
@@ -33,12 +36,13 @@ sample needs them, so a 115K-row build opens in about a second and costs a worke
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import weakref
 from pathlib import Path
 from typing import Any
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -49,12 +53,14 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, check_relative, sha256_file
-from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, iter_shard, read_index,
-                             shard_paths)
+from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, current_version,
+                             iter_shard, read_index, shard_paths)
 from paradrive.video import each_frame
 from paradrive.latents import LatentReader
 
-__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "output_geometry", "recammaster_camera", "to_unit_range"]
+__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "epoch_order", "frame_array", "output_geometry",
+           "per_rank", "plane_sink",
+           "recammaster_camera", "to_unit_range"]
 
 # Columns of a row; they and the per-frame poses are read one row group at a time, when a
 # sample needs them. Opening a build reads only the ids and URIs, to check them.
@@ -94,6 +100,56 @@ def _unit_range_into(out: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
     subtraction is in place. Both steps are exact at 0 and 255 (a multiply by 1 / 127.5 with a
     fused add would give 255 -> 1.0000001)."""
     return torch.div(frames, 127.5, out=out).sub_(1.0)
+
+
+@functools.cache
+def _plane_writer(dtype: torch.dtype) -> Callable[[np.ndarray, np.ndarray], None]:
+    """``write(channel, plane)``: a uint8 (H, W) colour plane into one channel of a frame buffer,
+    given as a numpy view (16-bit floats as int16, see :func:`frame_array`).
+
+    In numpy, which never splits one call over threads: a torch op on a frame this size spreads
+    it over the intra-op threads, and on a machine whose cores are all busy every such call
+    waits for threads that get no core (three 121-frame samples at 320x192: 21.6 s with torch's
+    two threads, 0.58 s with one). Each float type gives exactly :func:`to_unit_range` of the
+    uint8 plane: float32 by the same two correctly rounded steps (x / 127.5, then - 1), the
+    16-bit types (which numpy computes slowly or lacks) by a table of those 256 values.
+    """
+    if dtype == torch.uint8:
+        return np.copyto
+    if dtype == torch.float32:
+        def unit_range(channel: np.ndarray, plane: np.ndarray) -> None:
+            np.divide(plane, np.float32(127.5), out=channel)
+            np.subtract(channel, np.float32(1.0), out=channel)
+        return unit_range
+    table = frame_array(to_unit_range(torch.arange(256, dtype=torch.uint8, device="cpu"), dtype))
+
+    def look_up(channel: np.ndarray, plane: np.ndarray) -> None:
+        # a byte is always an index of the table: "wrap" never wraps, and unlike the default
+        # ("raise") it writes straight into ``channel`` instead of through a buffer
+        np.take(table, plane, out=channel, mode="wrap")
+    return look_up
+
+
+def frame_array(frames: torch.Tensor) -> np.ndarray:
+    """A numpy view of CPU ``frames`` (float16 and bfloat16, which numpy lacks or computes
+    slowly, as int16 bits) for :func:`plane_sink` to write into."""
+    return (frames.view(torch.int16) if frames.element_size() == 2 else frames).numpy()
+
+
+def plane_sink(channels: Callable[[int], np.ndarray], geo: dict,
+               dtype: torch.dtype) -> Callable[[int, tuple[np.ndarray, ...]], None]:
+    """A sink for ``each_frame(..., planar=True)``: frame ``idx``'s (R, G, B) planes, cut to
+    ``geo``'s crop (:func:`output_geometry`), written as ``dtype`` into ``channels(idx)``, the
+    frame's three (H, W) channels in a :func:`frame_array` view. No torch op runs per frame
+    (see :func:`_plane_writer`)."""
+    write = _plane_writer(dtype)
+    oh, ow = geo["size"]
+    y0, x0 = geo["crop"]
+
+    def sink(idx: int, planes: tuple[np.ndarray, ...]) -> None:
+        for channel, plane in zip(channels(idx), planes):
+            write(channel, plane[y0:y0 + oh, x0:x0 + ow])
+    return sink
 
 
 class FramePool:
@@ -151,6 +207,79 @@ def to_unit_range(frames: torch.Tensor, dtype: torch.dtype = torch.float32) -> t
     if frames.dtype != torch.uint8:
         raise TypeError(f"to_unit_range takes uint8 frames, got {frames.dtype}")
     return _unit_range_into(torch.empty(frames.shape, dtype=dtype, device=frames.device), frames)
+
+
+def _is_integer(value: object, least: int) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and bool(value >= least)
+
+
+def _is_size(value: object) -> bool:
+    return (value is None or isinstance(value, (tuple, list)) and len(value) == 2
+            and all(_is_integer(v, 1) for v in value))
+
+
+# name -> (accepted(value), what is accepted): every argument of PairDataset
+_PAIR_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "num_frames": (lambda v: v is None or _is_integer(v, 1),
+                   "an integer >= 1, or None (every frame of the clip from frame_offset)"),
+    "frame_stride": (lambda v: _is_integer(v, 1), "an integer >= 1 (take every n-th frame)"),
+    "frame_offset": (lambda v: _is_integer(v, 0), "an integer >= 0 (the window's first frame in the clip)"),
+    "output_size": (_is_size, "(height, width), two integers >= 1, or None (as stored)"),
+    "resize": (lambda v: v in ("crop", "stretch"), "'crop' or 'stretch'"),
+    "pose_format": (lambda v: v in (None, "recammaster"), "None or 'recammaster'"),
+    "prompt": (lambda v: isinstance(v, str), "a string ('' as in the paper)"),
+    "verify_checksums": (lambda v: isinstance(v, bool), "True or False"),
+    "decode_threads": (lambda v: _is_integer(v, 0), "an integer >= 0 (1: one decoder thread; 0: FFmpeg picks)"),
+    "dtype": (lambda v: (_FRAME_DTYPES.get(v) if isinstance(v, str) else v) in _FRAME_DTYPES.values(),
+              f"one of {', '.join(_FRAME_DTYPES)} (or the torch dtype)"),
+    "reuse_buffers": (lambda v: isinstance(v, bool), "True or False"),
+    "latents": (lambda v: isinstance(v, bool), "True or False"),
+}
+
+_FIXED_AT_ENCODE = ("the latent cache fixed the frames and their size when it was encoded "
+                    "(paradrive encode --set encode.num_frames=N --set encode.size=[H,W])")
+# with latents=True: name -> (accepted(value), why not otherwise)
+_LATENT_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "num_frames": (lambda v: v is None, _FIXED_AT_ENCODE),
+    "frame_stride": (lambda v: v == 1, _FIXED_AT_ENCODE),
+    "frame_offset": (lambda v: v == 0, _FIXED_AT_ENCODE),
+    "output_size": (lambda v: v is None, _FIXED_AT_ENCODE),
+    "prompt": (lambda v: v == "", "the latent cache holds the text embedding of the empty prompt "
+                                  "alone (the paper trains with ''); read frames (latents=False), whose "
+                                  "samples carry the prompt, to embed another one"),
+    "dtype": (lambda v: v not in ("uint8", torch.uint8), "latents are floating point: use float32, "
+                                                          "bfloat16 or float16"),
+}
+
+
+def _check_arguments(owner: str, checks: dict[str, tuple[Callable[[Any], bool], str]], given: dict) -> None:
+    """Arguments checked before any file is read: a ValueError of one line naming the first wrong
+    one, its value as given and what is accepted."""
+    for name, (accepted, text) in checks.items():
+        if not accepted(given[name]):
+            raise ValueError(f"{owner}({name}={given[name]!r}): must be {text}")
+
+
+def _check_pair_arguments(arguments: dict) -> None:
+    """PairDataset's arguments (see :func:`_check_arguments`), and with ``latents=True`` none that
+    a latent sample cannot honour."""
+    _check_arguments("PairDataset", _PAIR_CHECKS, arguments)
+    if arguments["latents"]:
+        for name, (accepted, why) in _LATENT_CHECKS.items():
+            if not accepted(arguments[name]):
+                raise ValueError(f"PairDataset(latents=True, {name}={arguments[name]!r}): {why}; "
+                                 f"leave {name} out")
+
+
+# name -> (accepted(value), what is accepted): PairIterableDataset's own arguments
+_ITERABLE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "seed": (lambda v: _is_integer(v, 0), "an integer >= 0"),
+    "shuffle": (lambda v: isinstance(v, bool), "True or False"),
+    "world_size": (lambda v: v is None or _is_integer(v, 1), "an integer >= 1, or None (torch.distributed's, else 1)"),
+    "rank": (lambda v: v is None or _is_integer(v, 0), "an integer >= 0, or None (torch.distributed's, else 0)"),
+    "batch_size": (lambda v: _is_integer(v, 1), "an integer >= 1 (the DataLoader's batch_size)"),
+    "partition": (lambda v: v in ("pad", "drop"), "'pad' or 'drop'"),
+}
 
 
 def _frame_dtype(dtype: torch.dtype | str) -> torch.dtype:
@@ -220,7 +349,9 @@ class PairDataset(Dataset):
         output_size: (height, width) of the output frames (None = as stored).
         resize: ``crop`` (uniform scale + centre crop, default) or ``stretch``.
         pose_format: None, or ``recammaster`` to add ``camera`` (see ``recammaster_camera``).
-        prompt: the text every sample carries ('' as in the paper).
+        prompt: the text every sample carries ('' as in the paper). With ``latents=True`` only
+            '' is accepted: the cache holds the empty prompt's text embedding alone, so another
+            prompt would be carried beside an embedding that is not its own.
         verify_checksums: check each video's sha256 against the manifest the first time this
             process reads it (a mismatch raises, naming the file).
         decode_threads: decoder threads per video (1 = one, suits DataLoader workers; n > 1 or
@@ -235,7 +366,14 @@ class PairDataset(Dataset):
         latents: samples from the build's Wan2.1 latent cache (``paradrive encode``) instead of
             videos: ``target_latents``, ``source_latents``, ``condition_latents`` (C, T', h, w) in
             ``dtype``, ``camera``, ``rel_pose``, ``text_embedding`` (:class:`paradrive.latents.LatentReader`);
-            the frame options do not apply (the cache fixed frames and size).
+            the frame options (num_frames, frame_stride, frame_offset, output_size) are refused,
+            since the cache fixed frames and size when it was encoded, and so is a prompt.
+        version: the version folder to read (``v-<nnnnnn>``, while a publish keeps it); None
+            reads the one ``index.json`` names at open. Either way the dataset reads that one
+            version to the end, whatever is published meanwhile (:attr:`version` says which).
+
+    Every argument is checked before the build is opened: a wrong one raises ValueError with one
+    line naming it, its value and what it accepts.
 
     ``frames_decoded`` counts the frames the decoder produced in this process (those before a
     window included), so a caller can see what seeking saved.
@@ -246,16 +384,17 @@ class PairDataset(Dataset):
                  resize: str = "crop", pose_format: str | None = None, prompt: str = "",
                  verify_checksums: bool = False, decode_threads: int = 1,
                  dtype: torch.dtype | str = torch.float32, reuse_buffers: bool = True,
-                 latents: bool = False):
+                 latents: bool = False, version: str | None = None):
+        _check_pair_arguments({
+            "num_frames": num_frames, "frame_stride": frame_stride, "frame_offset": frame_offset,
+            "output_size": output_size, "resize": resize, "pose_format": pose_format, "prompt": prompt,
+            "verify_checksums": verify_checksums, "decode_threads": decode_threads, "dtype": dtype,
+            "reuse_buffers": reuse_buffers, "latents": latents})
         self.build = Path(build)
-        self.index = read_index(self.build)
-        if frame_stride < 1 or frame_offset < 0 or (num_frames is not None and num_frames < 1):
-            raise ValueError("frame_stride must be >= 1, frame_offset >= 0 and num_frames >= 1")
-        if pose_format not in (None, "recammaster"):
-            raise ValueError(f"pose_format must be None or 'recammaster', got {pose_format!r}")
-        output_geometry(16, 16, output_size, resize)  # checks resize early
+        self.index = read_index(self.build, version)   # resolved once: every read stays in it
         self.num_frames, self.frame_stride, self.frame_offset = num_frames, frame_stride, frame_offset
-        self.output_size, self.resize = output_size, resize
+        self.output_size = None if output_size is None else (int(output_size[0]), int(output_size[1]))
+        self.resize = resize
         self.pose_format, self.prompt, self.verify_checksums = pose_format, prompt, verify_checksums
         self.decode_threads = decode_threads
         self.dtype = _frame_dtype(dtype)
@@ -301,6 +440,11 @@ class PairDataset(Dataset):
     # ------------------------------------------------------------ rows
     def __len__(self) -> int:
         return int(self._starts[-1])
+
+    @property
+    def version(self) -> str | None:
+        """The version folder this dataset reads (None: a build published before versions)."""
+        return self.index.version
 
     @property
     def pair_ids(self) -> list[str]:
@@ -366,23 +510,12 @@ class PairDataset(Dataset):
                                      f"manifest ({sha[:12]}…); the file is corrupt, re-run the "
                                      f"manifest stage or restore it")
             self._verified.add(uri)
-        oh, ow = geo["size"]
-        y0, x0 = geo["crop"]
-        out = self.buffers.take((len(frames), 3, oh, ow), self.dtype)
+        out = self.buffers.take((len(frames), 3, *geo["size"]), self.dtype)
+        array = frame_array(out)
         position = {f: k for k, f in enumerate(frames)}
-        floating = self.dtype.is_floating_point
-
-        def fill(idx: int, planes: tuple[np.ndarray, ...]) -> None:
-            for channel, plane in zip(out[position[idx]], planes):
-                pixels = torch.from_numpy(plane[y0:y0 + oh, x0:x0 + ow])
-                if floating:
-                    _unit_range_into(channel, pixels)
-                else:
-                    channel.copy_(pixels)
-
         stats: dict = {}
-        each_frame(path, frames, fill, size=geo["resize"], threads=self.decode_threads, stats=stats,
-                   planar=True)
+        each_frame(path, frames, plane_sink(lambda idx: array[position[idx]], geo, self.dtype),
+                   size=geo["resize"], threads=self.decode_threads, stats=stats, planar=True)
         self.frames_decoded += stats.get("decoded", 0)
         return out
 
@@ -416,6 +549,22 @@ class PairDataset(Dataset):
 
 # --------------------------------------------------------------------------- iterable
 
+def epoch_order(num_pairs: int, seed: int, epoch: int, world_size: int = 1, shuffle: bool = True,
+                partition: str = "pad") -> np.ndarray:
+    """The pair indices of one epoch over every rank, (``per_rank(...) * world_size``,): a
+    permutation drawn from ``(seed, epoch)`` (pair_id order with ``shuffle=False``) padded by its
+    first elements or cut to a multiple of ``world_size``; rank r reads elements r, r + world_size, ...
+    (``[r::world_size]``). The one order of :class:`PairIterableDataset` and the trainers."""
+    order = (np.random.default_rng([int(seed), int(epoch)]).permutation(num_pairs) if shuffle
+             else np.arange(num_pairs))
+    return np.resize(order, per_rank(num_pairs, world_size, partition) * world_size)
+
+
+def per_rank(num_pairs: int, world_size: int, partition: str = "pad") -> int:
+    """Samples each rank reads per epoch: ``ceil(n / w)`` (``pad``) or ``n // w`` (``drop``)."""
+    return math.ceil(num_pairs / world_size) if partition == "pad" else num_pairs // world_size
+
+
 def _dist_rank_world() -> tuple[int, int]:
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         return torch.distributed.get_rank(), torch.distributed.get_world_size()
@@ -435,12 +584,20 @@ class PairIterableDataset(IterableDataset):
     worker w takes batches w, w + num_workers, ...: a DataLoader collecting from its workers in
     turn then delivers the rank's sequence in order, so "samples consumed" is an exact position.
 
-    Resume. ``state_dict(samples_consumed)`` records the epoch and the samples of this rank's
-    epoch sequence already used; after ``load_state_dict`` the next iterator of that epoch starts
+    Resume. ``state_dict(samples_consumed)`` records the epoch, the samples of this rank's
+    epoch sequence already used and the build version read; after ``load_state_dict`` (which
+    opens that version again, while a publish keeps it) the next iterator of that epoch starts
     right after them. With ``num_workers=0`` the dataset counts by itself; with workers (whose
     copies of the dataset the main process cannot see) the trainer counts the samples its loader
     delivered since the iterator started (batches x batch_size) and passes that number.
     ``set_epoch(e)`` before each epoch (as with DistributedSampler).
+
+    A republished build. The dataset reads the version it opened to the end, however often the
+    build is published meanwhile (a publish keeps it for ``manifest.keep_versions_for``). To
+    pick up a new version, call ``set_epoch(e, refresh=True)``: at that epoch boundary, and only
+    there, it opens the version ``index.json`` names now (every rank must then see the same
+    one: refresh on all ranks at the same boundary). DataLoader workers get the new version
+    with their next iterator, unless ``persistent_workers=True`` keeps their old copy.
 
     Args (beyond PairDataset's, which pass through): seed, shuffle, rank, world_size (default
     from torch.distributed when initialised, else 0 and 1), batch_size, partition.
@@ -450,16 +607,17 @@ class PairIterableDataset(IterableDataset):
                  rank: int | None = None, world_size: int | None = None, batch_size: int = 1,
                  partition: str = "pad", **pair_options):
         super().__init__()
-        self.dataset = PairDataset(build, **pair_options)
+        _check_arguments("PairIterableDataset", _ITERABLE_CHECKS, {
+            "seed": seed, "shuffle": shuffle, "rank": rank, "world_size": world_size,
+            "batch_size": batch_size, "partition": partition})
+        self._options = {k: v for k, v in pair_options.items() if k != "version"}
         drank, dworld = _dist_rank_world()
         self.rank = drank if rank is None else int(rank)
         self.world_size = dworld if world_size is None else int(world_size)
         if not 0 <= self.rank < self.world_size:
-            raise ValueError(f"rank {self.rank} outside world_size {self.world_size}")
-        if partition not in ("pad", "drop"):
-            raise ValueError(f"partition must be 'pad' or 'drop', got {partition!r}")
-        if batch_size < 1:
-            raise ValueError("batch_size must be >= 1")
+            raise ValueError(f"PairIterableDataset(rank={self.rank}): must be below world_size "
+                             f"({self.world_size}): ranks are 0 .. world_size - 1")
+        self.dataset = PairDataset(build, **pair_options)
         if partition == "drop" and len(self.dataset) < self.world_size:
             raise ValueError(f"partition='drop' with {len(self.dataset)} pairs and "
                              f"{self.world_size} ranks leaves nothing; use partition='pad'")
@@ -469,22 +627,45 @@ class PairIterableDataset(IterableDataset):
         self._yielded = 0                              # counted here when iterated in-process
 
     # ------------------------------------------------------------ order
-    def set_epoch(self, epoch: int) -> None:
+    def set_epoch(self, epoch: int, *, refresh: bool = False) -> bool:
+        """Start epoch ``epoch``; with ``refresh``, first open the build's current version if a
+        publish replaced the one read so far. Returns whether the version changed."""
         self.epoch = int(epoch)
         self._yielded = 0
+        return self.refresh() if refresh else False
+
+    @property
+    def version(self) -> str | None:
+        """The build version being read."""
+        return self.dataset.version
+
+    def refresh(self) -> bool:
+        """Open the version ``index.json`` names now, if it is another; only between epochs (a
+        resume point pending for this epoch keeps the version it was saved with)."""
+        if self._resume is not None and self._resume[0] == self.epoch:
+            return False
+        now = current_version(self.dataset.build)
+        if now is None or now == self.dataset.version:
+            return False
+        self._open(now)
+        return True
+
+    def _open(self, version: str) -> None:
+        dataset = PairDataset(self.dataset.build, version=version, **self._options)
+        if self.partition == "drop" and len(dataset) < self.world_size:
+            raise ValueError(f"version {version} of {dataset.build} has {len(dataset)} pairs for "
+                             f"{self.world_size} ranks: partition='drop' leaves nothing; use "
+                             f"partition='pad'")
+        self.dataset = dataset
 
     def __len__(self) -> int:
         """Samples each rank yields per epoch."""
-        n, w = len(self.dataset), self.world_size
-        return math.ceil(n / w) if self.partition == "pad" else n // w
+        return per_rank(len(self.dataset), self.world_size, self.partition)
 
     def epoch_order(self, epoch: int | None = None) -> np.ndarray:
         """The whole epoch's sequence of pair indices (after padding or dropping)."""
         epoch = self.epoch if epoch is None else int(epoch)
-        n = len(self.dataset)
-        order = (np.random.default_rng([int(self.seed), epoch]).permutation(n) if self.shuffle
-                 else np.arange(n))
-        return np.resize(order, len(self) * self.world_size)
+        return epoch_order(len(self.dataset), self.seed, epoch, self.world_size, self.shuffle, self.partition)
 
     def rank_order(self, epoch: int | None = None) -> np.ndarray:
         """This rank's sequence of pair indices for the epoch."""
@@ -522,9 +703,18 @@ class PairIterableDataset(IterableDataset):
         used = self._yielded if samples_consumed is None else int(samples_consumed)
         return {"epoch": self.epoch, "samples_consumed": self._start() + used,
                 "seed": self.seed, "shuffle": self.shuffle, "num_pairs": len(self.dataset),
-                "rank": self.rank, "world_size": self.world_size, "partition": self.partition}
+                "rank": self.rank, "world_size": self.world_size, "partition": self.partition,
+                "version": self.dataset.version}
 
     def load_state_dict(self, state: dict) -> None:
+        saved = state.get("version")
+        if saved is not None and saved != self.dataset.version:
+            try:   # the epoch goes on where it stopped: in the version it was reading
+                self._open(saved)
+            except ParaDriveError as exc:
+                raise ValueError(f"cannot resume epoch {state.get('epoch')} mid-way: {exc}; or "
+                                 f"start epoch {int(state.get('epoch', 0)) + 1} without the "
+                                 f"saved state") from exc
         for key in ("seed", "shuffle", "num_pairs", "world_size", "partition"):
             mine = len(self.dataset) if key == "num_pairs" else getattr(self, key)
             if key in state and state[key] != mine:

@@ -390,7 +390,7 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
                          fix="fit with fit.holdout_every=N (every Nth frame) or "
                              "fit.holdout_cameras=[CAMERA], or evaluate a 'synthetic:' scene")
     ingested = scene_ingest_params(scene_dir, ingest_params)
-    street = street_from_uri(parse_uri(truth_uri), params_of(ingested)) if truth_uri else None
+    street = street_from_uri(parse_uri(truth_uri), params_of(ingested, ingest_params)) if truth_uri else None
     moving = moving_actors(scene, ingested)
     renders = RendersRecord.load(layout.renders_json, sid) if layout.renders_json.is_file() else None
     conds = render_params.condition_checkpoints

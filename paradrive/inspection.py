@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from paradrive.contracts.records import IndexRecord
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, atomic_path, sha256_file
 from paradrive.pairs import build_file, iter_shard, read_index, read_pairs, shard_paths
@@ -41,11 +42,12 @@ def _mean(values) -> float | None:
     return round(float(np.mean(vals)), 4) if vals else None
 
 
-def summarize(build_dir: str | Path) -> dict:
-    """Counts and quality figures of a build, as plain JSON-able data."""
+def summarize(build_dir: str | Path, index: IndexRecord | None = None) -> dict:
+    """Counts and quality figures of a build (of the version ``index`` names; default: the
+    current one), as plain JSON-able data."""
     build_dir = Path(build_dir)
-    index = read_index(build_dir)
-    cols = read_pairs(build_dir, _SUMMARY_COLUMNS).to_pydict()
+    index = index or read_index(build_dir)
+    cols = read_pairs(build_dir, _SUMMARY_COLUMNS, index).to_pydict()
     n = len(cols["pair_id"])
 
     def count(key, fmt=str):
@@ -124,7 +126,8 @@ def default_jobs() -> int:
     return min(8, os.cpu_count() or 2)
 
 
-def verify_build(build_dir: str | Path, jobs: int | None = None) -> dict:
+def verify_build(build_dir: str | Path, jobs: int | None = None,
+                 index: IndexRecord | None = None) -> dict:
     """Re-hash every shard (against index.json) and every referenced video (against the rows).
 
     Returns {"ok", "checked_files", "problems": ["missing: <path> …" | "corrupt: <path> …" |
@@ -132,10 +135,11 @@ def verify_build(build_dir: str | Path, jobs: int | None = None) -> dict:
 
     It streams: rows are read a batch at a time and at most a few files per job are in flight,
     so memory stays flat however many pairs the build has. ``jobs`` files are hashed at once
-    (default :func:`default_jobs`); problems come in row order whatever ``jobs`` is.
+    (default :func:`default_jobs`); problems come in row order whatever ``jobs`` is. ``index``:
+    the version to check (default: the one ``index.json`` names now).
     """
     build_dir = Path(build_dir)
-    index = read_index(build_dir)
+    index = index or read_index(build_dir)
     jobs = jobs or default_jobs()
     shards = [(path, s.bytes, s.sha256, "shard")
               for path, s in zip(shard_paths(build_dir, index), index.shards)]
@@ -258,18 +262,18 @@ def sheet_labels(row: dict, kind: str) -> list[tuple[str, str, str]]:
 
 
 def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, frames: int = 3,
-                  thumb_width: int = 208) -> Path:
+                  thumb_width: int = 208, index: IndexRecord | None = None) -> Path:
     """A PNG with ``pairs`` pairs: source / condition / target thumbnails at ``frames`` frames."""
     from PIL import Image, ImageDraw
 
     from paradrive.video import decode_frames
 
     build_dir, out = Path(build_dir), Path(out)
+    index = index or read_index(build_dir)
     cols = read_pairs(build_dir, ["pair_id", "scene_id", "clip", "offset_m", "condition_iteration",
                                   "source_iteration", "num_frames", "width", "height",
                                   "source_uri", "condition_uri", "target_uri", "condition_psnr",
-                                  "condition_ssim", "frame_indices"]).to_pylist()
-    index = read_index(build_dir)
+                                  "condition_ssim", "frame_indices"], index).to_pylist()
     chosen = _pick_pairs(cols, pairs)
     if not chosen:
         raise ParaDriveError(f"{build_dir}: the build has no pairs to draw")
@@ -375,11 +379,11 @@ def _print_tables(summary: dict, console) -> None:
                       + escape(f"{s['scene_id']} (split {s['split']}: {s['line']})"))
 
 
-def _verify(build: Path, err, jobs: int | None = None) -> dict:
+def _verify(build: Path, err, jobs: int | None = None, index: IndexRecord | None = None) -> dict:
     """Verify ``build``, printing each problem and the verdict on ``err``."""
     from rich.markup import escape
 
-    result = verify_build(build, jobs)
+    result = verify_build(build, jobs, index)
     for p in result["problems"]:
         err.print(f"[red]{escape(p)}[/]", soft_wrap=True)
     if result["ok"]:
@@ -409,10 +413,11 @@ def register(app) -> None:
 
         out, err = Console(), Console(stderr=True)
         try:
-            result = _verify(build, err, jobs) if verify else None
+            index = read_index(build)   # one version for everything below, however long it takes
+            result = _verify(build, err, jobs, index) if verify else None
             code = 0 if result is None or result["ok"] else 1
             try:
-                summary = summarize(build)
+                summary = summarize(build, index)
             except ParaDriveError:
                 if code:  # a shard that cannot be read: already reported as corrupt
                     raise typer.Exit(code) from None
@@ -424,7 +429,7 @@ def register(app) -> None:
             summary["verify"] = result
         if sheet is not None:
             try:
-                summary["sheet"] = str(contact_sheet(build, sheet, pairs=pairs))
+                summary["sheet"] = str(contact_sheet(build, sheet, pairs=pairs, index=index))
                 traj = sheet.with_name(f"{sheet.stem}_trajectories.png")
                 summary["trajectories"] = str(trajectories_picture(build, traj, data_dir=data))
                 rig = sheet.with_name(f"{sheet.stem}_rig.png")

@@ -16,7 +16,8 @@ import posixpath
 from typing import Any
 from collections.abc import Callable, Iterator
 
-from paradrive.errors import DiskFullError, ParaDriveError
+from paradrive.errors import (ConfigError, DiskFullError, FileSizeLimitError, ParaDriveError, file_size_limit,
+                              size_limit_fix)
 
 
 class PathEscapeError(ParaDriveError):
@@ -49,6 +50,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     Works for files and directories (an existing directory at ``path`` is replaced).
     """
     path = Path(path)
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        # renaming over it would replace a device such as /dev/full (or a pipe) with a file
+        raise ParaDriveError(f"{path} is not a file or folder (a device, pipe or socket); refusing "
+                             f"to replace it: name a file to write")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_name(path)
     try:
@@ -61,15 +66,75 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         else:
             os.replace(tmp, path)
     except BaseException as exc:
+        code = _no_room_code(exc, tmp)
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
-        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-            raise DiskFullError(errno.ENOSPC, f"disk full while writing {path}; free space on "
-                          f"{path.parent} and re-run (nothing half-written was kept)") from exc
+        if code is not None:
+            raise no_room_error(code, path) from exc
         raise
+
+
+NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def _no_room_code(exc: BaseException, tmp: Path) -> int | None:
+    """ENOSPC, EDQUOT or EFBIG when ``exc`` is a write that found no room in ``tmp`` (a file or a
+    folder of them): its errno, or for a library's short write that gives none (Pillow's
+    "N requested and M written") a file of ``tmp`` at this process's size limit, or a full disk."""
+    if not isinstance(exc, OSError) or isinstance(exc, DiskFullError):
+        return None
+    if exc.errno is not None:
+        return exc.errno if exc.errno in NO_ROOM else None
+    limit = file_size_limit()
+    files = [tmp] if tmp.is_file() else [p for p in tmp.rglob("*") if p.is_file()] if tmp.is_dir() else []
+    if limit is not None and any(f.stat().st_size >= limit for f in files):
+        return errno.EFBIG
+    with contextlib.suppress(OSError):
+        if shutil.disk_usage(tmp.parent).free == 0:
+            return errno.ENOSPC
+    return None
+
+
+def no_room_error(code: int, path: Path) -> DiskFullError:
+    """The error of a write of ``path`` that found no room (``code``: ENOSPC, EDQUOT or EFBIG),
+    naming the file and the fix; nothing half-written is kept by the writers that raise it."""
+    if code == errno.EFBIG:
+        return FileSizeLimitError(code, f"{size_limit_fix(path.parent)} (while writing {path}; "
+                                        f"nothing half-written was kept)")
+    what = "disk quota exceeded" if code == errno.EDQUOT else "disk full"
+    return DiskFullError(code, f"{what} while writing {path}; free space on {path.parent} and re-run "
+                               f"(nothing half-written was kept)")
+
+
+def check_output(path: str | os.PathLike, what: str, *, folder: bool = False) -> Path:
+    """``path`` when an output can be written there, checked before any work: a ConfigError
+    naming ``what`` (``--save``), the path and the fix when it is a folder where a file goes (or a
+    file where a folder goes), a device such as /dev/full, or under a folder this user cannot
+    write or a path that cannot hold folders. A probe file is made and removed where the first
+    missing folder would go; nothing else is created."""
+    path = Path(path)
+    kind = "folder" if folder else "file"
+    if path.exists() and not (path.is_dir() if folder else path.is_file()):
+        found = "a folder" if path.is_dir() else "a file" if path.is_file() else "a device, pipe or socket"
+        raise ConfigError(f"{what} {path}: is {found}, not a {kind}; name a {kind} to write "
+                          f"(e.g. {path / 'out' if path.is_dir() else path.parent / 'out'})")
+    existing = path if path.exists() else path.parent
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{what} {path}: {existing} is a file, not a folder; name a path under "
+                          f"a folder")
+    probe = temporary_name(existing / "probe")
+    try:
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot write in {existing} ({exc.strerror}); name a "
+                          f"{kind} where this user can write") from exc
+    return path
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -35,10 +35,14 @@ republished with other rows is never read with stale latents.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import os
-from collections.abc import Sequence
+import socket
+import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import atomic_path, path_inside, sha256_file
 from paradrive.pairs import read_index
 from paradrive.contracts.records import IndexRecord
@@ -108,6 +112,58 @@ def _file(build_dir: str | Path, rel: object, what: str) -> Path:
 
 # --------------------------------------------------------------------------- writing
 
+WRITER_LOCK = "writer.lock"
+
+
+class CacheLocked(ConfigError):
+    """Another encode writes this build's latent cache now."""
+
+
+@contextlib.contextmanager
+def writer_lock(build_dir: str | Path, what: str) -> Iterator[None]:
+    """Hold ``<build>/latents/writer.lock`` while writing the cache: one writer at a time.
+
+    Two encodes of one build (other settings, or the same twice) would each remove the other's
+    shards as stale and publish an index naming files that are gone. The lock is an ``flock``,
+    which the kernel drops when its holder dies (even by SIGKILL), so a re-run after a kill takes
+    it at once; the holder's host, pid, start time and ``what`` (its settings) are written in it.
+    A second encode does not wait: it raises :class:`CacheLocked` naming the holder.
+    """
+    folder = latents_dir(build_dir)
+    path = folder / WRITER_LOCK
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:   # a read-only build folder (a published copy, a read-only mount)
+        raise ConfigError(f"{folder}: the latent cache cannot be written there ({exc.strerror}); make "
+                          f"the build folder writable, or encode a writable copy of it") from exc
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise CacheLocked(f"{folder} is being written by another encode ({_holder(path)}); wait for "
+                              f"it to finish (or stop it), then run this encode again") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps({"host": socket.gethostname(), "pid": os.getpid(),
+                                  "since": time.strftime("%Y-%m-%d %H:%M:%S"), "what": what}).encode(), 0)
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def _holder(path: Path) -> str:
+    """Who holds the writer lock at ``path``, as its record says."""
+    try:
+        doc = json.loads(path.read_text())
+        return f"host {doc['host']}, pid {doc['pid']}, since {doc['since']}, {doc['what']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "its record is not written yet"
+
+
 def write_shard(path: Path, pair_ids: Sequence[str], latents: torch.Tensor, pair_videos: torch.Tensor,
                 rel_pose: torch.Tensor, camera: torch.Tensor) -> dict:
     """One shard (see the module docstring), landed by rename; returns its {bytes, sha256}."""
@@ -134,6 +190,20 @@ def write_text_embedding(path: Path, embedding: torch.Tensor) -> dict:
 
 
 # --------------------------------------------------------------------------- reading
+
+def _widened(latents: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``latents`` as ``dtype``. The default pairing, bfloat16 stored and float32 asked for, is
+    widened in numpy, bit for bit as torch does it but in one thread: a torch conversion this
+    size spreads over the intra-op threads, which wait for a core on a busy machine, as the
+    adapter's frames would (``paradrive.data``). Any other change of type is torch's."""
+    if latents.dtype == dtype:
+        return latents
+    if dtype == torch.float32 and latents.dtype == torch.bfloat16:
+        # a bfloat16 is the top half of the float32 it stands for
+        bits = np.left_shift(latents.view(torch.int16).numpy().view(np.uint16), 16, dtype=np.uint32)
+        return torch.from_numpy(bits.view(np.float32))
+    return latents.to(dtype)
+
 
 @dataclass
 class _Shard:
@@ -210,7 +280,7 @@ class LatentReader:
                                  f"pair {i} is {row['pair_id']}; {_ENCODE_FIX} again")
         videos = handle.get_slice("pair_videos")[local:local + 1][0].tolist()
         stacked = handle.get_slice("latents")
-        sample: dict[str, Any] = {f"{role}_latents": stacked[v:v + 1][0].to(self.dtype)
+        sample: dict[str, Any] = {f"{role}_latents": _widened(stacked[v:v + 1][0], self.dtype)
                                   for role, v in zip(LATENT_ROLES, videos) if v >= 0}
         rel = handle.get_slice("rel_pose")[local:local + 1][0]
         pose = torch.eye(4, dtype=torch.float32, device="cpu").repeat(rel.shape[0], 1, 1)

@@ -14,9 +14,10 @@ publishes as one piece. The column reference is ``manifests/SCHEMA.md``.
 
 Publishing: shards and media are written into a new version folder under a temporary name,
 which is renamed to ``v-<n+1>`` and then ``index.json`` is replaced by rename: readers see the
-old build or the new one, never a mix. The versions ``index.json`` no longer names are removed
-after the switch. Files this stage does not own (the runner's ``ledger.sqlite``, ``logs/``) are
-never touched.
+old build or the new one, never a mix. A reader that opened a version reads that version to the
+end: a publish keeps the version it replaces and every version replaced less than
+``manifest.keep_versions_for`` ago, and removes older ones (:func:`kept_versions`). Files this
+stage does not own (the runner's ``ledger.sqlite``, ``logs/``) are never touched.
 """
 
 from __future__ import annotations
@@ -43,9 +44,9 @@ from paradrive.io import (PathEscapeError, is_temporary, path_inside, sha256_fil
                           temporary_name, write_json)
 from paradrive.pairs import (COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri,
                              read_index)
-from paradrive.contracts.layout import (BUILD_MARKER, SHARD_PATTERN, VERSION_PREFIX, BuildLayout,
-                                        SceneLayout, is_runner_file, is_version, version_name,
-                                        version_number)
+from paradrive.contracts.layout import (BUILD_MARKER, INDEX_JSON, SHARD_PATTERN, VERSION_PREFIX,
+                                        BuildLayout, SceneLayout, is_runner_file, is_version,
+                                        version_name, version_number)
 from paradrive.contracts.records import ClipRecord, ClipsRecord, IndexRecord
 from paradrive.streams import stream_transform
 
@@ -456,18 +457,75 @@ def _current_version(layout: BuildLayout) -> str | None:
     return version if isinstance(version, str) and is_version(version) else None
 
 
-def _land(layout: BuildLayout, staging: Path, index: dict) -> str:
+def _land(layout: BuildLayout, staging: Path, index: dict, keep_for: float) -> str:
     """Rename the staged version into place and switch ``index.json`` to it: the one step that
-    publishes. Versions other than the new one are removed after the switch."""
-    numbers = [version_number(p.name) for p in layout.root.iterdir() if is_version(p.name)]
+    publishes. The version keeps its own copy of the index, so a reader can open it by name
+    for as long as it stays. Then the versions no reader may hold any more go
+    (:func:`expire_versions`)."""
+    numbers = [version_number(name) for name in layout.versions()]
     version = version_name(max(numbers, default=0) + 1)
+    record = IndexRecord.model_validate({**index, "version": version})
+    record.save(staging / INDEX_JSON)
+    previous = _current_version(layout)
+    first = not layout.index_json.exists()   # then no version here was ever published
     os.replace(staging, layout.version(version))
     stop_point("publish:before-switch")
-    IndexRecord.model_validate({**index, "version": version}).save(layout.index_json)
-    for old in layout.root.iterdir():
-        if is_version(old.name) and old.name != version:
-            shutil.rmtree(old, ignore_errors=True)
+    record.save(layout.index_json)
+    stop_point("publish:after-switch")
+    expire_versions(layout, keep_for, current=version, previous=previous, first=first)
     return version
+
+
+def published_at(layout: BuildLayout, version: str) -> float:
+    """When ``version`` was published: the time its own index was written (the folder's, for a
+    version published before versions kept one)."""
+    folder = layout.version(version)
+    try:
+        return layout.version_index(version).stat().st_mtime
+    except FileNotFoundError:
+        return folder.stat().st_mtime
+
+
+def kept_versions(layout: BuildLayout, keep_for: float, *, current: str | None,
+                  previous: str | None, first: bool = False, now: float | None = None) -> list[str]:
+    """The version folders a publish keeps, oldest first: the ``current`` one, the ``previous``
+    one it replaced, and every earlier one replaced less than ``keep_for`` seconds ago (a
+    version is replaced when the one after it is published). A version published after the
+    previous one that never became current (a publish killed before its switch) no reader can
+    hold: it goes, and so does every other one at a ``first`` publish (no index was there
+    before it). Without a current version nothing is judged and every folder stays."""
+    versions = layout.versions()
+    if current is None:
+        return versions
+    if first:
+        return [current]
+    number = {v: version_number(v) for v in versions}
+    floor = number.get(previous or "", number[current])
+    held = [v for v in versions if number[v] <= floor or v == current]
+    now = time.time() if now is None else now
+    kept = []
+    for older, newer in zip(held, held[1:]):
+        if older == previous or now - published_at(layout, newer) < keep_for:
+            kept.append(older)
+    return kept + held[-1:]
+
+
+def expire_versions(layout: BuildLayout, keep_for: float, *, current: str,
+                    previous: str | None, first: bool = False) -> list[str]:
+    """Remove the version folders :func:`kept_versions` lets go; returns their names. Each is
+    renamed to a temporary name first, so a half-removed folder is never taken for a version
+    (and a killed removal is finished by the next publish)."""
+    kept = set(kept_versions(layout, keep_for, current=current, previous=previous, first=first))
+    gone = [v for v in layout.versions() if v not in kept]
+    for name in gone:
+        folder = layout.version(name)
+        doomed = temporary_name(folder)
+        try:
+            os.replace(folder, doomed)
+        except FileNotFoundError:   # another publish of this build removed it first
+            continue
+        shutil.rmtree(doomed, ignore_errors=True)
+    return gone
 
 
 def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
@@ -516,12 +574,13 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
         "scenes": scenes, "skipped_scenes": skipped,
         **(selection or {"exclude_splits": [], "excluded_scenes": []}),
         **({"heldout_filter": heldout_filter} if heldout_filter is not None else {})}
-    version = _land(layout, staging, index)
+    version = _land(layout, staging, index, params.keep_versions_seconds)
     if log is not None:
         log.info("manifest: %d rows in %d shards, %d media files (%s) in %s", table.num_rows,
                  len(entries), len(media), placed, version)
     return read_index(layout.root)
 
 
-__all__ = ["MediaFile", "claim_build_folder", "publish", "read_clips", "scene_rows", "place_file",
+__all__ = ["MediaFile", "claim_build_folder", "expire_versions", "kept_versions", "published_at",
+           "publish", "read_clips", "scene_rows", "place_file",
            "rows_to_table", "split_rows", "staging_version", "video_quality"]

@@ -4,8 +4,10 @@
 
 Written by the manifest stage (:mod:`paradrive.manifest`), read by the dataset adapter, inspect,
 eval and the inference scorer. Readers read ``index.json`` once and open only the version it
-names, so a build republished meanwhile is never seen half old, half new. Every URI a row or the
-index holds is checked to stay inside that version folder before it is opened.
+names, so a build republished meanwhile is never seen half old, half new; a publish keeps the
+versions readers may still hold (``manifest.keep_versions_for``), so they read them to the end.
+Every URI a row or the index holds is checked to stay inside that version folder before it is
+opened.
 """
 
 from __future__ import annotations
@@ -146,16 +148,49 @@ def build_file(build_dir: str | Path, uri: object, what: str, index: IndexRecord
 
 # --------------------------------------------------------------------------- reading
 
-def read_index(build_dir: str | Path) -> IndexRecord:
-    """The build's ``index.json``; a clear error when the folder holds no published build."""
+def read_index(build_dir: str | Path, version: str | None = None) -> IndexRecord:
+    """The build's ``index.json`` (the version it names now), or with ``version`` the index of
+    that version while a publish keeps it; a clear error when there is none."""
     build_dir = Path(build_dir)
     path = build_dir / INDEX_JSON
     if not build_dir.is_dir():
         raise ParaDriveError(f"build folder {build_dir} does not exist; pass the folder "
                              f"<manifests>/<build> that `paradrive build` wrote")
+    if version is not None:
+        return _version_index(build_dir, version)
     if not path.is_file():
         raise ParaDriveError(f"{path} is missing: the build was never published here; run "
                              f"`paradrive build` (a build being published keeps its last index)")
+    return _parse_index(path)
+
+
+def _version_index(build_dir: Path, version: str) -> IndexRecord:
+    try:
+        path = BuildLayout(build_dir).version_index(version)
+    except ConfigError as exc:
+        raise ParaDriveError(str(exc)) from exc
+    if not path.is_file():
+        raise ParaDriveError(f"build {build_dir}: version {version} is no longer kept (a publish "
+                             f"keeps the version it replaces and those replaced less than "
+                             f"manifest.keep_versions_for ago); open the build's current version "
+                             f"({current_version(build_dir)}) at the next epoch")
+    index = _parse_index(path)
+    if index.version != version:
+        raise ParaDriveError(f"{path} names version {index.version!r}, not {version}; re-run the "
+                             f"manifest stage (paradrive build --stages manifest --force)")
+    return index
+
+
+def current_version(build_dir: str | Path) -> str | None:
+    """The version ``index.json`` names now (None when it is missing or unreadable): what a
+    trainer compares with the version it reads, at an epoch boundary, to pick up a republish."""
+    try:
+        return read_index(build_dir).version
+    except ParaDriveError:
+        return None
+
+
+def _parse_index(path: Path) -> IndexRecord:
     try:
         index = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
@@ -210,10 +245,15 @@ def _corrupt_shard(path: Path, exc: BaseException) -> ParaDriveError:
                           f"publish it again")
 
 
-def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None) -> pa.Table:
-    """Every row of a build (the shards its index lists, in order) as one Arrow table."""
+def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None,
+               index: IndexRecord | None = None) -> pa.Table:
+    """Every row of a build (the shards its index lists, in order) as one Arrow table.
+
+    ``index``: the one the caller read (and resolves media through); without it, ``index.json``
+    is read here. A caller that reads the index and the rows apart must pass it, or a republish
+    between the two reads gives it rows of one version and media of another."""
     build_dir = Path(build_dir)
-    paths = shard_paths(build_dir)
+    paths = shard_paths(build_dir, index)
     tables = []
     for p in paths:
         if not p.is_file():

@@ -116,7 +116,7 @@ def scene_paths(build_dir: str | Path, scene_id: str | None = None,
     build_dir = Path(build_dir)
     index = read_index(build_dir)
     table = read_pairs(build_dir, ["scene_id", "clip", "offset_m", "condition_iteration", "rel_pose",
-                                   "target_c2w", "intrinsics", "width", "height"])
+                                   "target_c2w", "intrinsics", "width", "height"], index)
     sids = table.column("scene_id").to_pylist()
     scene_id = scene_id or sids[0]
     rows = table.filter(np.array([s == scene_id for s in sids])).to_pylist()

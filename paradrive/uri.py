@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,21 +62,44 @@ def safe_name(text: str) -> str:
 
 def scene_id_for(uri: SceneURI) -> str:
     """The scene id: ``synthetic-demo-s7``, ``waymo-<segment>``, ``nuscenes-scene-0061``,
-    ``drivestudio-023``, ``video-<file stem>``."""
+    ``drivestudio-023``, ``video-<file stem>``. A name with characters beyond ASCII keeps what
+    a file name can hold of it and gains a short hash of the whole name (``video-東京.mp4`` ->
+    ``video-<hash>``), so two such names never meet in one id."""
+    return _named(uri.kind, scene_name(uri))
+
+
+def scene_name(uri: SceneURI) -> str:
+    """What names the scene in its id, before it is made file-safe: the fragment when there is
+    one, else the file's stem (a Waymo segment without its ``segment-`` prefix and suffixes)."""
     if uri.kind == "synthetic":
         seed = uri.query.get("seed", "7")
         extra = "".join(f"-{k}{v}" for k, v in sorted(uri.query.items()) if k != "seed")
-        return safe_name(f"synthetic-{uri.path}-s{seed}{extra}")
+        return f"{uri.path}-s{seed}{extra}"
     if uri.kind == "waymo":
-        stem = Path(uri.path).name
-        if uri.scene:
-            stem = uri.scene
+        stem = uri.scene or Path(uri.path).name
         stem = re.sub(r"\.tfrecord$", "", stem)
         stem = re.sub(r"^segment-", "", stem)
-        stem = re.sub(r"_with_camera_labels$", "", stem)
-        return safe_name(f"waymo-{stem}")
+        return re.sub(r"_with_camera_labels$", "", stem)
     if uri.kind == "video":  # drive.mp4 -> video-drive; a folder of frames by its name
-        return safe_name(f"video-{uri.scene or Path(uri.path).stem}")
-    if uri.kind == "nuscenes":
-        return safe_name(f"nuscenes-{uri.scene or Path(uri.path).name}")
-    return safe_name(f"{uri.kind}-{uri.scene or Path(uri.path).name}")
+        return uri.scene or Path(uri.path).stem
+    return uri.scene or Path(uri.path).name
+
+
+def short_hash(text: str) -> str:
+    """Eight hex digits of the sha256 of ``text``: what tells two scene names apart."""
+    return hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:8]
+
+
+def _named(kind: str, name: str) -> str:
+    scene_id = safe_name(f"{kind}-{name}")
+    return scene_id if name.isascii() else f"{scene_id}-{short_hash(name)}"
+
+
+def with_name(text: str, name: str) -> str:
+    """The scene URI ``text`` with its fragment (the scene's name) set to ``name``; its kind,
+    path and query stay as written."""
+    uri = parse_uri(text)
+    _, _, rest = uri.text.partition(":")
+    queries = "".join(part for part in re.findall(r"[?#][^?#]*", rest[len(uri.path):])
+                      if part.startswith("?"))
+    return f"{uri.kind}:{uri.path}{queries}#{name}"

@@ -53,7 +53,7 @@ from paradrive.contracts.layout import INDEX_JSON, SceneLayout, frame_file
 from paradrive.contracts.records import ClipsRecord, FitRecord, IndexRecord, RendersRecord
 from paradrive.errors import ConfigError, ParaDriveError, SceneError
 from paradrive.gs.model import SH_C0
-from paradrive.io import atomic_path, path_inside
+from paradrive.io import path_inside, write_bytes
 from paradrive.pairs import build_file, read_index, read_pairs
 from paradrive.scene import Frame, Scene, load_scene, read_image
 from paradrive.uri import parse_uri
@@ -111,16 +111,22 @@ def require_rerun() -> Any:
 
 @contextlib.contextmanager
 def _recording(out: Path, recording_id: str) -> Iterator[Any]:
-    """A recording stream writing ``out``: under a temporary name, renamed once complete."""
+    """A recording stream whose bytes land at ``out`` once complete, by rename.
+
+    The recording is kept in memory and written here (the demo scene's is 47 MB): Rerun's own
+    file sink, once a write of it fails (a full disk, the file size limit), leaves its flush and
+    its disconnect waiting for ever, so the command would hang instead of saying what happened.
+    """
     rr = require_rerun()
-    with atomic_path(out) as tmp:
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-        rr.set_log_time_enabled(False, recording=rec)   # no wall-clock timeline: only the data's
-        rec.save(tmp)
-        try:
-            yield rec
-        finally:
-            rec.disconnect()   # the file sink writes in the background: done once disconnected
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    rr.set_log_time_enabled(False, recording=rec)   # no wall-clock timeline: only the data's
+    memory = rec.memory_recording()
+    try:
+        yield rec
+        data = memory.drain_as_bytes()
+    finally:
+        rec.disconnect()
+    write_bytes(out, data)
 
 
 def _part(name: str) -> str:
@@ -612,7 +618,7 @@ def view_build(build_dir: str | Path, out: str | Path, *, pair_ids: Sequence[str
     """Write the recording of a published build's pairs (``pair_ids``, or its first ones) to ``out``."""
     build_dir = Path(build_dir)
     index = read_index(build_dir)
-    rows = read_pairs(build_dir, BUILD_COLUMNS).to_pylist()
+    rows = read_pairs(build_dir, BUILD_COLUMNS, index).to_pylist()
     if not rows:
         raise ParaDriveError(f"{build_dir / INDEX_JSON}: the build has no pairs to show; build "
                              f"scenes into it first (paradrive build)")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -96,6 +97,26 @@ def test_a_render_checkpoint_the_fit_does_not_write_is_refused_naming_both(tmp_p
     assert line == ("error: render.source_checkpoint = 200 is not among fit.checkpoints = "
                     "[25, 50, 100, 300] (values from: command line, profile smoke); add 200 to "
                     "fit.checkpoints or change render.source_checkpoint")
+
+
+def test_a_repeated_offset_is_refused_before_ingest_not_by_render_after_the_fit(tmp_path):
+    line = _refused(_build(tmp_path, "--profile", "smoke", "--set", "render.offsets_m=[1,1]"),
+                    tmp_path)
+    assert line == ("error: render.offsets_m: repeats the offset +1m; list each offset once "
+                    "(got [1, 1]) (from --set)")
+
+
+@pytest.mark.parametrize(("key", "values", "words"), [
+    ("offsets_m", [2, -1, 2.0], "the offset +2m"),
+    ("longitudinal_offsets_m", [0.5, 0.50], "the offset +0.5m"),
+    ("condition_checkpoints", [25, 50, 25], "the checkpoint 25"),
+    ("clips", ["front", "rear", "front"], "the clip front"),
+    ("cameras", ["front", "front"], "the camera front"),
+])
+def test_every_repeat_render_would_meet_is_refused_with_the_configuration(key, values, words):
+    config = StageRegistry().resolve("smoke", {"render": {key: values}})
+    with pytest.raises(ConfigError, match=rf"^render\.{key}: repeats {re.escape(words)}; list each "):
+        config.check()
 
 
 def test_a_value_the_rules_let_through_but_the_stage_cannot_take_names_its_source():

@@ -216,6 +216,62 @@ def test_without_reuse_every_sample_is_new_memory_and_a_pickled_pool_starts_empt
     assert pickle.loads(pickle.dumps(pooled.buffers)).held_bytes() == 0
 
 
+@pytest.fixture(scope="module")
+def wide_build(tmp_path_factory):
+    """One pair of 3 frames of 256x192: a colour plane (49,152 pixels) is more than torch's
+    grain size, the element count past which one torch op is split over its intra-op threads."""
+    data = tmp_path_factory.mktemp("wide")
+    scene = write_clip_scene(data / "data", "synthetic-wide", clips=("front",), offsets=(2.0,),
+                             conditions=(100,), num_frames=3, width=256, height=192)
+    build_manifest(data / "b", [scenes_entry(scene)], stage_params("manifest", {}))
+    return data / "b"
+
+
+# torch splits an op over its intra-op threads only past this many elements (at::internal::GRAIN_SIZE)
+TORCH_GRAIN_SIZE = 32768
+# what torch.from_numpy and Tensor.numpy() record: none of them computes or copies
+NON_COMPUTING_OPS = {"aten::view", "aten::to", "aten::detach", "detach", "aten::lift_fresh",
+                     "aten::resolve_conj", "aten::resolve_neg", "aten::alias", "aten::as_strided"}
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "float32", "bfloat16", "float16"])
+def test_reading_a_sample_runs_no_torch_op_that_threads_could_split(wide_build, dtype):
+    """On a machine whose cores are busy, every torch op split over intra-op threads waits for
+    threads that get no core: the frame path must run none, whatever the caller's thread count."""
+    from torch.profiler import ProfilerActivity, profile
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        ds = PairDataset(wide_build, dtype=dtype)
+        ds[0]
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            sample = ds[0]
+        threads = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+    assert sample["target"].shape == (3, 3, 192, 256)
+    splittable = {(e.name, n) for e in prof.events()
+                  for n in [max((int(np.prod(s)) for s in e.input_shapes if s), default=0)]
+                  if n > TORCH_GRAIN_SIZE and e.name not in NON_COMPUTING_OPS}
+    assert not splittable
+    assert threads == 2   # the caller's setting is left as it was
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.float16])
+def test_every_byte_value_normalises_exactly_as_to_unit_range(dtype):
+    from paradrive.data import frame_array, output_geometry, plane_sink
+
+    values = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    out = torch.empty((1, 3, 16, 16), dtype=dtype, device="cpu")
+    array = frame_array(out)
+    plane_sink(lambda idx: array[idx], output_geometry(16, 16, None), dtype)(0, (values,) * 3)
+    expected = to_unit_range(torch.from_numpy(values), dtype)
+    assert all(torch.equal(out[0, c].view(torch.int16 if out.element_size() == 2 else torch.int32),
+                           expected.view(torch.int16 if out.element_size() == 2 else torch.int32))
+               for c in range(3))
+
+
 def test_an_unknown_dtype_is_refused_with_the_choices(build):
     with pytest.raises(ValueError, match="uint8, float32, float16, bfloat16"):
         PairDataset(build, dtype="int16")
@@ -507,3 +563,54 @@ def test_a_bad_uri_names_the_first_row_that_holds_it(build, tmp_path):
     with pytest.raises(PathEscapeError, match=rf"{re.escape(str(shard))}: row {re.escape(pair_id)} "
                                               rf"column condition_uri: path '\.\./\.\./outside\.mp4'"):
         PairDataset(large)
+
+
+# --------------------------------------------------------------------------- arguments
+
+@pytest.mark.parametrize("arguments, named", [
+    ({"output_size": (0, 0)}, "PairDataset(output_size=(0, 0)): must be (height, width), two integers >= 1"),
+    ({"output_size": (-8, 16)}, "PairDataset(output_size=(-8, 16)): must be (height, width)"),
+    ({"output_size": (32, 32, 3)}, "PairDataset(output_size=(32, 32, 3)): must be (height, width)"),
+    ({"output_size": 32}, "PairDataset(output_size=32): must be (height, width)"),
+    ({"output_size": (32.5, 32)}, "PairDataset(output_size=(32.5, 32)): must be (height, width)"),
+    ({"num_frames": 0}, "PairDataset(num_frames=0): must be an integer >= 1, or None"),
+    ({"num_frames": True}, "PairDataset(num_frames=True): must be an integer >= 1"),
+    ({"frame_stride": 0}, "PairDataset(frame_stride=0): must be an integer >= 1"),
+    ({"frame_offset": -1}, "PairDataset(frame_offset=-1): must be an integer >= 0"),
+    ({"resize": "fit"}, "PairDataset(resize='fit'): must be 'crop' or 'stretch'"),
+    ({"pose_format": "plucker"}, "PairDataset(pose_format='plucker'): must be None or 'recammaster'"),
+    ({"prompt": None}, "PairDataset(prompt=None): must be a string"),
+    ({"decode_threads": -1}, "PairDataset(decode_threads=-1): must be an integer >= 0"),
+    ({"dtype": "int16"}, "PairDataset(dtype='int16'): must be one of uint8, float32, float16, bfloat16"),
+    ({"verify_checksums": "yes"}, "PairDataset(verify_checksums='yes'): must be True or False"),
+    ({"reuse_buffers": 1}, "PairDataset(reuse_buffers=1): must be True or False"),
+    ({"latents": "auto"}, "PairDataset(latents='auto'): must be True or False"),
+    ({"latents": True, "num_frames": 5}, "PairDataset(latents=True, num_frames=5): the latent cache fixed"),
+    ({"latents": True, "output_size": (24, 40)}, "PairDataset(latents=True, output_size=(24, 40)): the latent"),
+    ({"latents": True, "dtype": "uint8"}, "PairDataset(latents=True, dtype='uint8'): latents are floating"),
+    ({"seed": -1}, "PairIterableDataset(seed=-1): must be an integer >= 0"),
+    ({"batch_size": 0}, "PairIterableDataset(batch_size=0): must be an integer >= 1"),
+    ({"world_size": 0}, "PairIterableDataset(world_size=0): must be an integer >= 1"),
+    ({"rank": 2, "world_size": 2}, "PairIterableDataset(rank=2): must be below world_size (2)"),
+    ({"partition": "even"}, "PairIterableDataset(partition='even'): must be 'pad' or 'drop'"),
+    ({"shuffle": None}, "PairIterableDataset(shuffle=None): must be True or False"),
+])
+def test_a_wrong_argument_is_refused_in_one_line_naming_it_before_the_build_is_opened(tmp_path, arguments, named):
+    # tmp_path holds no build: the arguments are refused before anything is read
+    cls = PairIterableDataset if named.startswith("PairIterableDataset") else PairDataset
+    with pytest.raises(ValueError) as refused:
+        cls(tmp_path / "no-build", **arguments)
+    message = str(refused.value)
+    assert message.startswith(named) and "\n" not in message
+
+
+def test_numpy_integers_and_a_list_size_are_accepted(build):
+    sample = PairDataset(build, dtype="uint8", num_frames=np.int64(2), output_size=[np.int32(16), 32])[0]
+    assert sample["target"].shape == (2, 3, 16, 32)
+
+
+def test_with_latents_a_prompt_is_refused_since_the_cache_holds_the_empty_prompt_alone(tmp_path):
+    with pytest.raises(ValueError) as refused:
+        PairDataset(tmp_path / "no-build", latents=True, prompt="a street at night")
+    assert str(refused.value).startswith("PairDataset(latents=True, prompt='a street at night'): the "
+                                         "latent cache holds the text embedding of the empty prompt alone")

@@ -1,6 +1,7 @@
 """A build's exit code is the README's: 0 every scene landed, 1 no scene landed, 2 a usage or
-configuration error, 3 some scenes landed and some failed, 130 interrupted (Ctrl-C), with a line
-that says what was stopped and that a plain re-run resumes."""
+configuration error, 3 some scenes landed and some failed, 130 interrupted (Ctrl-C) and 143
+terminated (SIGTERM), each with a line that says what was stopped and that a plain re-run
+resumes."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL
+from paradrive.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_TERMINATED
 from paradrive.pipeline.build import BuildReport
 from paradrive.pipeline.runner import StageResult
 
@@ -49,21 +50,26 @@ def test_scenes_that_all_failed_after_their_ingest_exit_1(tmp_path):
 
 
 def _small_disk() -> None:
-    """In the child: files stop growing past 500 kB, as on a full disk (EFBIG, not a signal)."""
+    """In the child: files stop growing past 500 kB (EFBIG, not a signal)."""
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     resource.setrlimit(resource.RLIMIT_FSIZE, (500_000, 500_000))
 
 
 @pytest.mark.slow
-def test_every_scene_failing_on_a_full_disk_exits_1_naming_the_folder_and_the_fix(tmp_path):
+def test_every_scene_failing_at_the_file_size_limit_exits_1_naming_the_folder_and_the_fix(tmp_path):
+    # no bytecode: a .pyc written under the limit would be cut short and break its module's imports
     res = subprocess.run(_command(tmp_path, "--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit"),
-                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=600,
-                         preexec_fn=_small_disk)
+                         cwd=REPO, env={**_env(), "PYTHONDONTWRITEBYTECODE": "1"}, capture_output=True,
+                         text=True, timeout=600, preexec_fn=_small_disk)
     assert res.returncode == EXIT_FAILED, res.stdout + res.stderr
     scene = tmp_path / "data" / "scenes" / "synthetic-p1-s3"
-    assert (f"failed fit      synthetic-p1-s3 — scene synthetic-p1-s3: fit failed: OSError: [Errno 27] "
-            f"File too large; no room to write in {scene}: free space there (or pass another --data) "
-            f"and re-run") in [line.strip() for line in res.stderr.splitlines()]
+    # EFBIG is the file size limit (ulimit -f), not free space
+    ckpt = scene / "gs" / "ckpt_000025.ply"
+    assert (f"failed fit      synthetic-p1-s3 — scene synthetic-p1-s3: fit failed: FileSizeLimitError: "
+            f"[Errno 27] file size limit (ulimit -f: 500,000 bytes) reached writing in {ckpt.parent}, not "
+            f"a full disk: raise it (ulimit -f unlimited) and re-run (while writing {ckpt}; nothing "
+            f"half-written was kept)") in [line.strip() for line in res.stderr.splitlines()]
+    assert not ckpt.exists() and not list(ckpt.parent.glob(".*tmp-*"))
 
 
 def _mount_namespaces() -> bool:
@@ -111,37 +117,54 @@ def _running(ledger: Path) -> list[tuple[str, str]]:
         return db.execute("SELECT scene_id, stage FROM tasks WHERE state = 'running'").fetchall()
 
 
-@pytest.mark.slow
-def test_ctrl_c_says_what_it_stopped_and_a_plain_rerun_finishes(tmp_path):
-    args = ("--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit")
-    # the build stops itself inside the fit, after its first checkpoint, however loaded the
-    # machine: Ctrl-C then lands in the fit for certain. It starts with Ctrl-C's own handler:
-    # a suite launched in the background by a non-interactive shell ignores SIGINT, and a
-    # process inherits that (Python then installs no KeyboardInterrupt handler)
+def _stopped_in_the_fit_then(tmp_path: Path, signum: int) -> subprocess.CompletedProcess:
+    """A build of one scene that stopped itself inside its fit, after its first checkpoint
+    (however loaded the machine: the signal then lands in the fit for certain), then sent
+    ``signum``. It starts with Ctrl-C's own handler: a suite launched in the background by a
+    non-interactive shell ignores SIGINT, and a process inherits that (Python then installs no
+    KeyboardInterrupt handler)."""
     env = {**_env(), "PARADRIVE_STOP_AT": "fit:checkpoint-25"}
     code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
             "sys.argv = ['paradrive', *sys.argv[1:]]; from paradrive.cli import main; main()")
-    command = [sys.executable, "-c", code, *_command(tmp_path, *args)[3:]]
+    command = [sys.executable, "-c", code, *_command(tmp_path, *FIT_ARGS)[3:]]
     proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         _, status = os.waitpid(proc.pid, os.WUNTRACED)
         assert os.WIFSTOPPED(status), "the build ended before the fit's first checkpoint"
-        ledger = tmp_path / "m" / "K" / "ledger.sqlite"
-        assert ("synthetic-p1-s3", "fit") in _running(ledger)
-        proc.send_signal(signal.SIGINT)
+        assert ("synthetic-p1-s3", "fit") in _running(tmp_path / "m" / "K" / "ledger.sqlite")
+        proc.send_signal(signum)
         proc.send_signal(signal.SIGCONT)
         out, err = proc.communicate(timeout=300)
     finally:
         proc.kill()
         proc.wait()
-    assert proc.returncode == EXIT_INTERRUPTED, out + err
-    assert ("interrupted: stopped fit of synthetic-p1-s3; finished stages are kept: run the same "
-            "command again to resume (a fit goes on from its last saved state)") in err.splitlines()
-    with sqlite3.connect(f"file:{ledger}?mode=ro", uri=True) as db:
-        (code,) = db.execute("SELECT exit_code FROM runs ORDER BY run_id DESC LIMIT 1").fetchone()
-    assert code == EXIT_INTERRUPTED
+    return subprocess.CompletedProcess(command, proc.returncode, out, err)
 
-    again = _run(tmp_path, *args)
+
+FIT_ARGS = ("--scene", "synthetic:p1?seed=3", "--stages", "ingest,fit")
+
+
+def _said_and_resumes(tmp_path: Path, stopped: subprocess.CompletedProcess, code: int, how: str) -> None:
+    assert stopped.returncode == code, stopped.stdout + stopped.stderr
+    assert (f"{how}: stopped fit of synthetic-p1-s3; finished stages are kept: run the same "
+            "command again to resume (a fit goes on from its last saved state)") in stopped.stderr.splitlines()
+    with sqlite3.connect(f"file:{tmp_path / 'm' / 'K' / 'ledger.sqlite'}?mode=ro", uri=True) as db:
+        (recorded,) = db.execute("SELECT exit_code FROM runs ORDER BY run_id DESC LIMIT 1").fetchone()
+    assert recorded == code
+    assert not [p for p in tmp_path.rglob("*") if ".tmp-" in p.name]   # nothing half-written
+    again = _run(tmp_path, *FIT_ARGS)
     assert again.returncode == EXIT_OK, again.stdout + again.stderr
     assert "skipped ingest" in again.stderr and "done fit" in again.stderr
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_what_it_stopped_and_a_plain_rerun_finishes(tmp_path):
+    _said_and_resumes(tmp_path, _stopped_in_the_fit_then(tmp_path, signal.SIGINT), EXIT_INTERRUPTED,
+                      "interrupted")
+
+
+@pytest.mark.slow
+def test_sigterm_says_what_it_stopped_exits_143_and_a_plain_rerun_finishes(tmp_path):
+    _said_and_resumes(tmp_path, _stopped_in_the_fit_then(tmp_path, signal.SIGTERM), EXIT_TERMINATED,
+                      "terminated (SIGTERM)")

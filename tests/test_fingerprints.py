@@ -73,6 +73,20 @@ def test_changing_render_offsets_rerenders_and_reclips_but_does_not_refit(build)
     assert sorted({r["offset_m"] for r in rows}) == [-2.0, 2.0]
 
 
+def test_a_build_stage_parameter_outside_the_fingerprint_changes_nothing(build, stage_dir):
+    """The build stages are fingerprinted as the scene stages are (``spec.fingerprinted``): a
+    parameter declared ``fingerprint: false`` (how long versions stay) republishes nothing."""
+    manifest = stage_dir / "manifest.yaml"
+    manifest.write_text(manifest.read_text() + '  keep_for: {default: 1d, doc: "how long old '
+                        'versions stay", fingerprint: false}\n')
+    build()
+    published = json.loads((build.build_dir / "index.json").read_text())["config_fingerprint"]
+    result = build({"manifest": {"keep_for": "2d"}})
+    assert result[("build:fp", "manifest")] == "skipped"
+    assert json.loads((build.build_dir / "index.json").read_text())["config_fingerprint"] == published
+    assert build({"manifest": {"shard_rows": 7}})[("build:fp", "manifest")] == "done"
+
+
 def test_changing_an_ingest_param_redoes_everything(build):
     build()
     result = build({"ingest": {"synthetic_frames": 6}})
@@ -121,12 +135,12 @@ def test_a_truncated_output_is_redone_though_its_name_is_there(build):
 def test_markers_list_the_files_their_stage_wrote_with_sizes(build):
     build()
     scene = scene_dir_for(build.data, IDS[0])
-    ingest = read_marker(scene, "ingest")["outputs"]
+    ingest = read_marker(scene, "ingest").outputs
     assert sorted(ingest) == ["images/000000.txt", "images/000001.txt", "images/000002.txt",
                               "images/000003.txt", "scene.json"]
-    assert ingest["scene.json"]["bytes"] == (scene / "scene.json").stat().st_size
+    assert ingest["scene.json"].bytes == (scene / "scene.json").stat().st_size
     # render declares only renders.json; the files it wrote beside it are recorded too
-    assert sorted(read_marker(scene, "render")["outputs"]) == [
+    assert sorted(read_marker(scene, "render").outputs) == [
         "renders/+1m.txt", "renders/-1m.txt", "renders/renders.json"]
 
 
@@ -134,10 +148,11 @@ def test_an_old_marker_without_outputs_counts_while_its_declared_outputs_exist(b
     build()
     scene = scene_dir_for(build.data, IDS[0])
     for stage in STAGES:
-        marker = read_marker(scene, stage)
-        for key in ("outputs", "run", "upstream_runs"):
+        path = scene / ".paradrive" / f"{stage}.json"
+        marker = json.loads(path.read_text())   # as an older version wrote it
+        for key in ("outputs", "run", "upstream_runs", "schema_version"):
             marker.pop(key)
-        (scene / ".paradrive" / f"{stage}.json").write_text(json.dumps(marker))
+        path.write_text(json.dumps(marker))
     (build.build_dir / ".paradrive" / "manifest.json").unlink()  # builds had none either
     result = build()
     assert {k for k, s in result.items() if s == "done"} == {("build:fp", "manifest")}  # once
@@ -150,9 +165,9 @@ def test_marker_records_params_inputs_and_version(build):
     build()
     marker = read_marker(scene_dir_for(build.data, IDS[0]), "render")
     fit = read_marker(scene_dir_for(build.data, IDS[0]), "fit")
-    assert marker["params"] == {"offsets_m": [1.0, -1.0]}
-    assert marker["inputs"] == {"fit": fit["fingerprint"]}
-    assert marker["version"] == paradrive.__version__
+    assert marker.params == {"offsets_m": [1.0, -1.0]}
+    assert marker.inputs == {"fit": fit.fingerprint}
+    assert marker.version == paradrive.__version__
 
 
 def test_a_new_software_version_redoes_everything(build, monkeypatch):

@@ -72,11 +72,11 @@ def test_a_damaged_output_of_a_finished_scene_is_restored_by_a_plain_rerun(stage
     rel, how = DAMAGE[stage]
     base = root / "manifests" / "heal" if stage == "manifest" else scene_dir_for(root / "data", SID)
     if stage != "manifest":
-        assert rel in read_marker(base, stage)["outputs"]  # the marker lists it
+        assert rel in read_marker(base, stage).outputs  # the marker lists it
     path = published(base, rel) if stage == "manifest" else base / rel
     whole = sha(path)
     if stage == "clip":  # the clip stage hashed its videos while encoding; the marker keeps that
-        assert read_marker(base, stage)["outputs"][rel]["sha256"] == whole
+        assert read_marker(base, stage).outputs[rel].sha256 == whole
     if how == "delete":
         path.unlink()
     else:
@@ -181,7 +181,7 @@ def test_verify_outputs_reads_every_stages_hashes_and_redoes_a_same_size_damage(
     root = copy_tree(finished)
     path = scene_dir_for(root / "data", SID) / "gs/ckpt_000002.ply"
     whole = sha(path)
-    assert read_marker(path.parent.parent, "fit")["outputs"]["gs/ckpt_000002.ply"]["sha256"] == whole
+    assert read_marker(path.parent.parent, "fit").outputs["gs/ckpt_000002.ply"].sha256 == whole
     flip_a_byte(path)
     report, states = build(root / "data", root / "manifests")
     assert states["fit"] == "skipped"  # sizes only: a plain run does not read the fit's files

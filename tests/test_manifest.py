@@ -272,7 +272,7 @@ def test_republishing_keeps_foreign_files_and_drops_stale_shards(tmp_path, two_s
     (build / "logs" / "run.log").write_text("log")
     build_manifest(build, entries[:1], stage_params("manifest", {"shard_rows": 100}))
     second = version_dir(build, read_index(build))
-    assert second.name == "v-000002" and not first.exists()   # the old version goes after the switch
+    assert second.name == "v-000002" and first.is_dir()   # the old one stays for its readers
     assert sorted(p.name for p in second.glob("pairs-*.parquet")) == ["pairs-00000.parquet"]
     assert (build / "ledger.sqlite").read_bytes() == b"ledger"
     assert (build / "logs" / "run.log").read_text() == "log"
@@ -337,7 +337,9 @@ def test_schema_md_duckdb_example_runs_on_a_build(built, monkeypatch):
     duckdb = pytest.importorskip("duckdb")
     monkeypatch.chdir(built.parent)
     (sql,) = _schema_examples("sql")
-    sql = sql.replace("manifests/default/", f"{built.name}/")
+    # the example names the version index.json names (older ones a publish keeps sit beside it)
+    assert "manifests/default/v-000003/" in sql
+    sql = sql.replace("manifests/default/v-000003/", f"{built.name}/{read_index(built).version}/")
     rows = duckdb.sql(sql).fetchall()
     assert rows and sum(r[-1] for r in rows) == 144
 

@@ -76,9 +76,12 @@ def test_drivestudio_processed_folders(tmp_path):
     assert expand_scene_inputs([str(tmp_path / "031")]) == [f"drivestudio:{tmp_path / '031'}"]
 
 
-def test_uris_pass_through_and_duplicates_are_dropped():
-    assert expand_scene_inputs(["synthetic:a", "waymo:/x/s.tfrecord", "synthetic:a"]) == [
+def test_uris_pass_through_and_one_given_twice_is_refused():
+    assert expand_scene_inputs(["synthetic:a", "waymo:/x/s.tfrecord"]) == [
         "synthetic:a", "waymo:/x/s.tfrecord"]
+    with pytest.raises(ConfigError, match="--scenes synthetic:a and --scenes synthetic:a are the "
+                                          "same log"):
+        expand_scene_inputs(["synthetic:a", "waymo:/x/s.tfrecord", "synthetic:a"])
 
 
 def test_nothing_found_says_what_was_expected(tmp_path):

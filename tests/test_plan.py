@@ -51,7 +51,7 @@ def test_a_finished_scene_is_projected_at_what_it_took(smoke_scene, tmp_path):
     assert plan.shapes == {"ingested": 1}
     for stage in ("ingest", "fit"):
         assert plan.rates[f"compute:{stage}"].source.startswith("measured")
-        assert abs(plan.seconds[stage] - read_marker(scene_dir, stage)["seconds"]) < 1e-6
+        assert abs(plan.seconds[stage] - read_marker(scene_dir, stage).seconds) < 1e-6
     footprint = scene_footprint(data, "synthetic-demo-s7")
     for folder in ("images", "lidar", "gs"):
         assert abs(plan.bytes[folder] - footprint[folder]) < 1.0, folder
@@ -64,7 +64,7 @@ def test_a_rendered_scene_is_projected_at_its_render_time(smoke_build, tmp_path)
     data, scene_dir = _scene_alone(smoke_build["data_dir"], tmp_path)
     plan = plan_build(StageRegistry().resolve("smoke"), ["synthetic:demo?seed=7"], data)
     assert plan.rates["compute:render"].source.startswith("measured")
-    assert abs(plan.seconds["render"] - read_marker(scene_dir, "render")["seconds"]) < 1e-6
+    assert abs(plan.seconds["render"] - read_marker(scene_dir, "render").seconds) < 1e-6
 
 
 def test_retention_switches_lower_only_what_is_kept():
@@ -87,9 +87,11 @@ def test_a_synthetic_scene_is_sized_by_its_uri_and_a_short_one_gives_no_pairs():
     assert short.bytes["images"] < long.bytes["images"]
 
 
-def test_cli_plan_prints_the_projection_and_json():
+def test_cli_plan_prints_the_projection_and_json(tmp_path):
     runner = CliRunner()
-    args = ["plan", "--scene", WAYMO[0], "--data", "/nonexistent-data-root"]
+    segment = tmp_path / "segment-1_with_camera_labels.tfrecord"
+    segment.write_bytes(b"")   # planned by its URI: the file is only looked for
+    args = ["plan", "--scene", f"waymo:{segment}", "--data", "/nonexistent-data-root"]
     result = runner.invoke(app, [*args, "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)

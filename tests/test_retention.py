@@ -65,10 +65,10 @@ def test_switching_retention_on_lets_go_without_running_any_stage(let_go):
     assert after["clips"] == before["clips"] and after["gs"] == before["gs"]
     assert not frames(scene_dir) and (scene_dir / "renders" / "renders.json").is_file()
     marker = read_marker(scene_dir, "render")
-    assert marker["dropped"]["after"] == {"clip": read_marker(scene_dir, "clip")["run"]}
-    assert all(rel.startswith("renders/front/") for rel in marker["dropped"]["files"])
-    assert "renders/renders.json" in marker["outputs"]
-    assert read_marker(scene_dir, "ingest")["dropped"]["after"] == {"fit": read_marker(scene_dir, "fit")["run"]}
+    assert marker.dropped.after == {"clip": read_marker(scene_dir, "clip").run}
+    assert all(rel.startswith("renders/front/") for rel in marker.dropped.files)
+    assert "renders/renders.json" in marker.outputs
+    assert read_marker(scene_dir, "ingest").dropped.after == {"fit": read_marker(scene_dir, "fit").run}
 
 
 def test_rerun_with_retention_on_runs_nothing_and_touches_no_file(let_go):
@@ -87,7 +87,7 @@ def test_fresh_build_with_retention_lets_go_after_clip(built, copy_tree):
     report = build(data, LET_GO)
     assert statuses(report) == {"ingest": "skipped", "fit": "skipped", "render": "done", "clip": "done"}
     assert not frames(scene_dir)
-    assert read_marker(scene_dir, "render")["dropped"]["files"]
+    assert read_marker(scene_dir, "render").dropped.files
 
 
 def test_changed_clip_parameter_renders_the_frames_again(let_go):
@@ -97,10 +97,10 @@ def test_changed_clip_parameter_renders_the_frames_again(let_go):
     report = build(data, {**LET_GO, "clip": {"crf": 23}})
     assert statuses(report) == {"ingest": "skipped", "fit": "skipped", "render": "done", "clip": "done"}
     again = read_marker(scene_dir, "render")
-    assert again["run"] != first["run"] and again["fingerprint"] == first["fingerprint"]
+    assert again.run != first.run and again.fingerprint == first.fingerprint
     # the same frames, rendered again, then let go once the new clips were encoded
-    assert again["dropped"]["files"] == first["dropped"]["files"]
-    assert again["dropped"]["after"] == {"clip": read_marker(scene_dir, "clip")["run"]}
+    assert again.dropped.files == first.dropped.files
+    assert again.dropped.after == {"clip": read_marker(scene_dir, "clip").run}
     assert not frames(scene_dir)
     clips = json.loads((scene_dir / "clips" / "clips.json").read_text())
     assert all((scene_dir / s["file"]).is_file() for c in clips["clips"] for s in c["streams"].values())
@@ -122,7 +122,7 @@ def test_keeping_again_keeps_what_is_rendered_from_then_on(let_go):
     assert statuses(report) == {s: "skipped" for s in STAGES}
     report = build(data, {"clip": {"crf": 23}})
     assert statuses(report)["render"] == "done" and frames(scene_dir)
-    assert "dropped" not in read_marker(scene_dir, "render")
+    assert read_marker(scene_dir, "render").dropped is None
 
 
 # --------------------------------------------------------------------------- the stand-in stages

@@ -58,11 +58,11 @@ def test_copies_are_scenes_of_their_own(scaled):
     assert index.totals.scenes == SCENES and index.totals.rows == 72 * SCENES
     for scene in index.scenes:
         marker = read_marker(Path(scene.scene_dir), "ingest")
-        assert marker["scene_id"] == scene.scene_id and marker["scene_uri"] == scene.scene_uri
+        assert marker.scene_id == scene.scene_id and marker.scene_uri == scene.scene_uri
     template = work / "template" / "scenes" / "synthetic-demo-s7"  # the copies' records are their own
-    assert read_marker(template, "ingest")["scene_id"] == "synthetic-demo-s7"
+    assert read_marker(template, "ingest").scene_id == "synthetic-demo-s7"
     assert '"synthetic-demo-s7"' in (template / "clips" / "clips.json").read_text()
-    fingerprints = {read_marker(Path(s.scene_dir), "clip")["fingerprint"] for s in index.scenes}
+    fingerprints = {read_marker(Path(s.scene_dir), "clip").fingerprint for s in index.scenes}
     assert len(fingerprints) == SCENES  # each copy's chain starts from its own URI
     assert verify_build(build)["ok"]
     ledger = Ledger.open_existing(work / "manifests", scaled["bench"].BUILD)

@@ -107,7 +107,7 @@ def test_a_trainer_checkpoint_loads_without_pickle(tmp_path):
     trainer = Trainer(_tiny_train_config(), 1, tmp_path / "run", Pairs())
     trainer.save()
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
-    assert ckpt["config"] == trainer.config and ckpt["generator"].dtype == torch.uint8
+    assert ckpt["config"] == trainer.config and ckpt["torch_rng"].dtype == torch.uint8
     assert Trainer(_tiny_train_config(), 1, tmp_path / "run", Pairs()).step == 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -197,6 +198,62 @@ def test_euler_sampler_follows_a_straight_flow_to_the_data_in_n_steps():
     out = euler_sample(velocity, noise, steps=5)
     assert torch.allclose(out, x1, atol=1e-5)
     assert calls == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8])
+
+
+def diffsynth_grid(shift: float, steps: int = 1000) -> tuple[np.ndarray, np.ndarray]:
+    """DiffSynth-Studio's training schedule for Wan, written out from its published formula
+    (FlowMatchScheduler(shift, sigma_min=0, extra_one_step=True).set_timesteps(1000, training=True)):
+    sigmas = linspace(1, 0, steps + 1)[:-1], shifted to shift*s / (1 + (shift - 1)*s),
+    timesteps = 1000 * sigmas, weight = bell - min(bell) scaled to sum to `steps`, with
+    bell = exp(-2 ((timestep - steps/2) / steps)^2)."""
+    sigmas = np.linspace(1.0, 0.0, steps + 1)[:-1]
+    sigmas = shift * sigmas / (1 + (shift - 1) * sigmas)
+    timesteps = sigmas * 1000
+    bell = np.exp(-2 * ((timesteps - steps / 2) / steps) ** 2)
+    weights = (bell - bell.min()) * (steps / (bell - bell.min()).sum())
+    return timesteps, weights
+
+
+@pytest.mark.parametrize("shift", [1.0, 5.0])
+def test_recammaster_weighting_is_diffsynths_grid_and_bell_weight(shift):
+    from paradrive.train.flow import draw, recammaster_grid
+
+    timesteps, weights = diffsynth_grid(shift)
+    t, w = recammaster_grid(shift)
+    np.testing.assert_allclose(1000 * (1 - t.numpy()), timesteps, rtol=0, atol=1e-9)   # our t is 1 - sigma
+    np.testing.assert_allclose(w.numpy(), weights, rtol=1e-12, atol=1e-12)
+    assert w.mean().item() == pytest.approx(1.0) and float(w.min()) == 0.0
+    # drawn times are grid points, each with its own weight, spread over the whole grid
+    _, times, drawn = draw((4000, 1), torch.Generator().manual_seed(0), shift=shift, weighting="recammaster")
+    sigma = 1 - times.double().numpy()
+    k = np.abs(1000 * sigma[:, None] - timesteps[None, :]).argmin(axis=1)   # as DiffSynth's training_weight finds it
+    np.testing.assert_allclose(1000 * sigma, timesteps[k], atol=1e-3)
+    np.testing.assert_allclose(drawn.numpy(), weights[k], rtol=1e-6)
+    assert len(np.unique(k)) > 900
+    if shift == 5.0:   # the shift moves times toward the noise end: most sigmas above one half
+        assert (sigma > 0.5).mean() > 0.75
+
+
+def test_per_sample_draws_do_not_depend_on_the_batch_they_are_in():
+    from paradrive.train.flow import draw
+
+    gens = lambda: [torch.Generator().manual_seed(s) for s in (11, 12, 13)]   # noqa: E731
+    whole = draw((3, 2, 4), gens(), weighting="recammaster", shift=5.0)
+    parts = [draw((1, 2, 4), [g], weighting="recammaster", shift=5.0) for g in gens()]
+    for got, pieces in zip(whole, zip(*parts)):
+        assert torch.equal(got, torch.cat(pieces))
+
+
+def test_weighted_loss_is_the_mean_of_each_samples_weighted_error():
+    x1 = torch.randn(3, 2, 4)
+    gens = [torch.Generator().manual_seed(s) for s in (1, 2, 3)]
+    loss = flow_matching_loss(lambda x_t, t: torch.zeros_like(x_t), x1, gens, weighting="recammaster", shift=5.0)
+    from paradrive.train.flow import draw
+
+    x0, _, w = draw(x1.shape, [torch.Generator().manual_seed(s) for s in (1, 2, 3)], weighting="recammaster",
+                    shift=5.0)
+    expected = ((x1 - x0) ** 2).mean(dim=(1, 2)) * w
+    torch.testing.assert_close(loss, expected.mean())
 
 
 # -- training --------------------------------------------------------------------------------------

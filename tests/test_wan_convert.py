@@ -5,16 +5,23 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import re
+import resource
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+import pytest
 import torch
 
 from paradrive.data import PairDataset
 from paradrive.train.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
 
 
-def convert(*args: str) -> str:
+def convert(*args: str, code: int = 0) -> str:
     import typer
     from typer.testing import CliRunner
 
@@ -23,8 +30,15 @@ def convert(*args: str) -> str:
     app = typer.Typer()   # the commands as paradrive.cli registers them, without the others
     register(app)
     result = CliRunner().invoke(app, ["convert", *args])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == code, result.output
     return result.output
+
+
+def wan_prompt(text: str) -> str:
+    """What the Wan prompter of DiffSynth-Studio and ReCamMaster hands its tokenizer
+    (clean='whitespace': whitespace runs to one space, stripped); a non-string fails there."""
+    assert isinstance(text, str), f"the tokenizer gets {text!r}, not a string"
+    return re.sub(r"\s+", " ", text).strip()
 
 
 def parse_recammaster(text: str) -> np.ndarray:
@@ -57,10 +71,10 @@ def test_recammaster_layout_holds_videos_cameras_and_cached_tensors(smoke_build,
     assert "2 pairs" in convert("recammaster", str(build), str(out), "--vae", str(wan_folder),
                                 "--text-encoder", str(wan_folder), "--limit", "2")
     ds = PairDataset(build, dtype="uint8", pose_format="recammaster")
-    with open(out / "metadata.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    assert [r["file_name"] for r in rows] == [f"{p}/videos/cam02.mp4" for p in ds.pair_ids[:2]]
-    assert {r["text"] for r in rows} == {""}
+    metadata = pd.read_csv(out / "metadata.csv")            # as ReCamMaster's data_process reads it
+    assert metadata["file_name"].to_list() == [f"{p}/videos/cam02.mp4" for p in ds.pair_ids[:2]]
+    assert {wan_prompt(t) for t in metadata["text"].to_list()} == {""}   # the empty prompt, as a string
+    assert all((out / "train" / f).is_file() for f in metadata["file_name"])
 
     i = 1
     pair = out / "train" / ds.pair_ids[i]
@@ -78,7 +92,14 @@ def test_recammaster_layout_holds_videos_cameras_and_cached_tensors(smoke_build,
     np.testing.assert_allclose(camera, sample["camera"].numpy(), atol=1e-5)
     np.testing.assert_allclose(target, row["target_c2w"][::4], atol=1e-9)
 
+    # ReCamMaster's loader: the cached target, then the condition camera's file found by its number
+    targets = [str(out / "train" / f) + ".tensors.pth" for f in metadata["file_name"]]
+    assert all(Path(t).is_file() for t in targets)
+    tgt = targets[i]
+    assert int(re.search(r"cam(\d+)", tgt).group(1)) == 2
+    condition = torch.load(re.sub(r"cam(\d+)", "cam01", tgt), weights_only=True, map_location="cpu")
     cached = torch.load(pair / "videos" / "cam02.mp4.tensors.pth", weights_only=True)
+    assert condition["latents"].shape == cached["latents"].shape
     assert set(cached) == {"latents", "prompt_emb", "image_emb"} and cached["image_emb"] == {}
     video = (sample["target"].float() / 127.5 - 1).permute(1, 0, 2, 3)[None]
     direct = encode_video(load_vae(wan_folder), video)[0]
@@ -99,14 +120,18 @@ def test_diffsynth_metadata_names_the_videos_an_empty_prompt_and_the_camera(smok
     build, out = smoke_build["build_dir"], tmp_path / "ds"
     convert("diffsynth", str(build), str(out))
     ds = PairDataset(build, dtype="uint8")
+    # DiffSynth-Studio's reader: pandas, then one dict per row
+    frame = pd.read_csv(out / "metadata.csv")
+    read = [frame.iloc[i].to_dict() for i in range(len(frame))]
+    assert {wan_prompt(r["prompt"]) for r in read} == {""}
     with open(out / "metadata.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     listed = json.loads((out / "metadata.json").read_text())
-    assert len(rows) == len(listed) == len(ds)
+    assert len(rows) == len(listed) == len(ds) == len(read)
     assert list(rows[0]) == ["video", "prompt", "source_video", "condition_video", "offset_m", "camera"]
     for i, (r, j) in enumerate(zip(rows, listed)):
         row = ds.row(i)
-        assert r["prompt"] == "" and j["prompt"] == ""
+        assert wan_prompt(j["prompt"]) == "" and read[i]["video"] == r["video"]
         for column, role in (("video", "target"), ("source_video", "source"), ("condition_video", "condition")):
             assert r[column] == j[column]
             assert (out / r[column]).read_bytes() == _media(ds, row, role).read_bytes()
@@ -132,3 +157,53 @@ def test_pixel_files_give_diffusers_video_batches(smoke_build, tmp_path):
     # the same frames as the adapter's samples, collated the same way
     direct = collate_pixels([ds[0], ds[1]])
     assert torch.equal(direct["target"], batch["target"]) and torch.equal(direct["source"], batch["source"])
+
+
+def test_recammaster_without_a_vae_is_refused_before_any_work(smoke_build, tmp_path):
+    out = convert("recammaster", str(smoke_build["build_dir"]), str(tmp_path / "recam"), code=2)
+    assert "needs --vae" in out and "cam01" in out and not (tmp_path / "recam").exists()
+
+
+def test_the_vae_runs_on_the_device_asked_for(smoke_build, wan_folder, tmp_path):
+    out = convert("recammaster", str(smoke_build["build_dir"]), str(tmp_path / "recam"), "--vae", str(wan_folder),
+                  "--text-encoder", str(wan_folder), "--limit", "1", "--device", "cpu")
+    assert "1 pairs" in out
+    bad = convert("recammaster", str(smoke_build["build_dir"]), str(tmp_path / "r2"), "--vae", str(wan_folder),
+                  "--text-encoder", str(wan_folder), "--device", "tpu", code=2)
+    assert "encode.device" in bad and not (tmp_path / "r2").exists()
+
+
+@pytest.mark.parametrize("where", ["file", "under a file", "/dev/full", "a folder of other files"])
+def test_an_output_that_cannot_be_a_folder_is_refused_in_one_line(where, smoke_build, tmp_path):
+    (tmp_path / "file").write_text("keep me")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("keep me too")
+    out = {"file": tmp_path / "file", "under a file": tmp_path / "file" / "out", "/dev/full": Path("/dev/full"),
+           "a folder of other files": tmp_path / "other"}[where]
+    text = convert("diffsynth", str(smoke_build["build_dir"]), str(out), code=2)
+    assert text.startswith("error:") and len(text.strip().splitlines()) == 1 and "Traceback" not in text
+    assert (tmp_path / "file").read_text() == "keep me"
+    assert (tmp_path / "other" / "notes.txt").read_text() == "keep me too"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "other"]   # nothing else written
+
+
+def test_an_export_that_runs_out_of_room_leaves_nothing_behind(smoke_build, tmp_path):
+    """A real write failure: the process's file-size limit (EFBIG, as a full disk fails a write)."""
+    out = tmp_path / "px"
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, resource.RLIM_INFINITY))
+
+    # no bytecode writes under the limit: a cut-off .pyc would break later imports
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+    result = subprocess.run([sys.executable, "-m", "paradrive.cli", "convert", "pixels", str(smoke_build["build_dir"]),
+                             str(out), "--limit", "4"], preexec_fn=limit, env=env, capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 1, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "could not write the export" in lines[0] and "File too large" in lines[0], lines
+    assert os.listdir(tmp_path) == []   # neither the export nor its temporary folder
+    # an earlier export is replaced whole by a later one, never mixed with it
+    convert("pixels", str(smoke_build["build_dir"]), str(out), "--num-frames", "1", "--limit", "2")
+    convert("pixels", str(smoke_build["build_dir"]), str(out), "--num-frames", "1", "--limit", "1")
+    assert len(list(out.glob("*.safetensors"))) + len(list(out.glob("*/**/*.safetensors"))) == 1

@@ -119,6 +119,15 @@ def test_adapter_latents_equal_a_direct_encode_of_the_same_frames(encoded, wan_f
     assert halves["target_latents"].dtype == torch.bfloat16
 
 
+def test_bfloat16_latents_widen_to_float32_exactly_as_torch_converts_them():
+    """The adapter widens stored latents in numpy (one thread, see paradrive.data): every
+    bfloat16 pattern, NaNs and infinities included, gives torch's float32 bit for bit."""
+    every = torch.arange(-2 ** 15, 2 ** 15, dtype=torch.int32, device="cpu").to(torch.int16).view(torch.bfloat16)
+    widened = cache._widened(every.reshape(16, 64, 64), torch.float32).reshape(-1)
+    assert widened.dtype == torch.float32
+    assert torch.equal(widened.view(torch.int32), every.to(torch.float32).view(torch.int32))
+
+
 def test_collated_latents_are_batches_of_videos(encoded):
     from paradrive.data import PairDataset
 

@@ -77,8 +77,9 @@ def test_a_fresh_stage2_model_computes_what_its_stage1_weights_did():
         torch.testing.assert_close(run(stage2, x), run(stage1, x))
 
 
-def _expected(m: ReCamDrivingWan, stage: int) -> set[str]:
-    """The paper's sets, spelled out module by module for the tiny two-block model."""
+def _expected(m: ReCamDrivingWan, stage: int, ffn: bool = False) -> set[str]:
+    """The paper's sets, spelled out module by module for the tiny two-block model (``ffn``: stage
+    2 with every block's FFN too, beyond the paper)."""
     blocks = range(len(m.transformer.blocks))
     if stage == 1:
         names = {"frame_embed"}
@@ -92,21 +93,23 @@ def _expected(m: ReCamDrivingWan, stage: int) -> set[str]:
     for i in blocks:
         names |= {n for n, _ in m.named_parameters()
                   if n.startswith((f"recam.{i}.render_attn.", f"recam.{i}.cross_attn.",
-                                   f"recam.{i}.render_norm.", f"recam.{i}.cross_norm.",
-                                   f"transformer.blocks.{i}.ffn."))}
+                                   f"recam.{i}.render_norm.", f"recam.{i}.cross_norm."))
+                  or (ffn and n.startswith(f"transformer.blocks.{i}.ffn."))}
     return names
 
 
-@pytest.mark.parametrize("stage", [1, 2])
-def test_each_stage_trains_exactly_the_papers_parameters_and_nothing_else(stage):
+@pytest.mark.parametrize("stage, ffn", [(1, False), (2, False), (2, True)])
+def test_each_stage_trains_exactly_the_papers_parameters_and_nothing_else(stage, ffn):
     m, x = model(stage), inputs()
-    expected = _expected(m, stage)
-    assert stage_parameter_names(m, stage) == expected
+    expected = _expected(m, stage, ffn)
+    assert stage_parameter_names(m, stage, ffn) == expected
     if stage == 2:   # nothing of stage 1 nor of the rest of the transformer
         assert not any(".attn1." in n or "cam_encoder" in n or "projector" in n or n == "frame_embed"
                        for n in expected)
-        assert len(expected) == 2 * (2 * 10 + 2 * 2 + 4)   # per block: 2 attentions, 2 norms, the FFN
-    params = trainable_parameters(m, stage)
+        # per block: 2 attentions (10 tensors each), 2 norms (2 each); with ffn its 4 tensors too
+        assert len(expected) == 2 * (2 * 10 + 2 * 2 + (4 if ffn else 0))
+        assert any(".ffn." in n for n in expected) == ffn
+    params = trainable_parameters(m, stage, ffn)
     before = {n: p.detach().clone() for n, p in m.named_parameters()}
     optimizer = torch.optim.AdamW(params, lr=1e-2)
     for _ in range(2):   # after one step the zero-initialised outputs let every gradient through

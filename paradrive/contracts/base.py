@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, PrivateAttr, ValidationError
 
 from paradrive.errors import ConfigError
 from paradrive.contracts.layout import BuildLayout, SceneLayout
+from paradrive.contracts.records import StageMarker
 
 
 class StageParams(BaseModel):
@@ -36,7 +37,8 @@ class StageParams(BaseModel):
         except ValidationError as exc:
             err = exc.errors()[0]
             where = ".".join(str(x) for x in err["loc"])
-            raise ConfigError(f"{stage}.{where}: {err['msg']} (got {err.get('input')!r})") from exc
+            why = err["msg"].removeprefix("Value error, ")   # a validator's own sentence
+            raise ConfigError(f"{stage}.{where}: {why} (got {err.get('input')!r})") from exc
         params._source = dict(values)
         return params
 
@@ -65,8 +67,11 @@ class StageContext(Generic[P]):
     params: P
     log: logging.Logger
     progress: Callable[..., None] = _no_progress
-    upstream: dict[str, dict] = field(default_factory=dict)  # markers of the stages it needs
+    upstream: dict[str, StageMarker] = field(default_factory=dict)  # markers of the stages it needs
     hashes: dict[str, str] = field(default_factory=dict)  # sha256 of outputs the stage computed
+    # every stage's parameters in this build: what fills a gap where an earlier stage's marker,
+    # written by an older version, lacks a parameter (never a way around this stage's own)
+    build_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def scene_dir(self) -> Path:

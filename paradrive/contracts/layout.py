@@ -15,7 +15,8 @@ A scene lives at ``<data>/scenes/<scene_id>/``::
 
 and the data root also holds ``logs/<scene_id>.log`` and ``locks/<scene_id>.lock``. A build
 lives at ``<manifests>/<build>/``: ``index.json`` naming its version folder ``v-<nnnnnn>/``
-(``pairs-<nnnnn>.parquet``, ``media/``), ``ledger.sqlite``, ``.paradrive/build.json`` (the
+(``pairs-<nnnnn>.parquet``, ``media/``, ``index.json``: its own copy of the index), the earlier
+versions a publish keeps for readers, ``ledger.sqlite``, ``.paradrive/build.json`` (the
 builder's marker). No other module spells these names.
 """
 
@@ -247,6 +248,18 @@ class BuildLayout:
             raise ConfigError(f"{self.index_json}: version {name!r} is not a version folder "
                               f"name (v-<6 digits>); re-run the manifest stage")
         return self.root / name
+
+    def version_index(self, name: str) -> Path:
+        """The copy of ``index.json`` a version folder keeps: what it held when it was
+        published, so a reader can open that version by name while it is kept."""
+        return self.version(name) / INDEX_JSON
+
+    def versions(self) -> list[str]:
+        """The version folders present, oldest first."""
+        if not self.root.is_dir():
+            return []
+        return sorted((p.name for p in self.root.iterdir() if is_version(p.name)),
+                      key=version_number)
 
     @property
     def ledger(self) -> Path:

@@ -6,6 +6,8 @@ exactly the parameters of ``stages/<name>.yaml``, with no defaults: the values l
 
 from __future__ import annotations
 
+import re
+
 from pydantic import field_validator
 
 from paradrive.contracts.base import StageParams
@@ -115,3 +117,30 @@ class ManifestParams(StageParams):
     kind: str
     exclude_splits: list[str]
     min_heldout_psnr: float | None
+    keep_versions_for: str
+
+    @field_validator("keep_versions_for")
+    @classmethod
+    def _a_duration(cls, value: str) -> str:
+        duration_seconds(value)
+        return value
+
+    @property
+    def keep_versions_seconds(self) -> float:
+        """``keep_versions_for`` in seconds."""
+        return duration_seconds(self.keep_versions_for)
+
+
+DURATION_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 604800.0}
+_DURATION = re.compile(r"(\d+(?:\.\d+)?)([smhdw])")
+
+
+def duration_seconds(text: str) -> float:
+    """``"90s"``, ``"30m"``, ``"12h"``, ``"1d"``, ``"2w"`` (a number and one unit) in seconds;
+    anything else is a ValueError saying what is taken."""
+    match = _DURATION.fullmatch(text.strip()) if isinstance(text, str) else None
+    if match is None:
+        raise ValueError(f"{text!r} is not a duration: write a number and one unit of "
+                         f"{', '.join(DURATION_UNITS)} (seconds, minutes, hours, days, weeks), "
+                         f"e.g. '1d', '12h' or '0s'")
+    return float(match.group(1)) * DURATION_UNITS[match.group(2)]

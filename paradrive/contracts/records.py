@@ -422,3 +422,76 @@ class IndexRecord(BaseModel):
     def summary(self) -> dict[str, Any]:
         return {"rows": self.totals.rows, "shards": self.totals.shards,
                 "scenes": self.totals.scenes, "skipped": [s.scene_id for s in self.skipped_scenes]}
+
+
+# --------------------------------------------------------------------------- .paradrive/<stage>.json
+
+class OutputFile(Part):
+    """How a marker records one output: its size and sha256, and the modification time (ns)
+    and inode it had when it was hashed (a file let go keeps only its size and sha256; a
+    marker written before hashes or stats were recorded lacks them)."""
+
+    bytes: int
+    sha256: str | None = None
+    mtime_ns: int | None = None
+    inode: int | None = None
+
+
+class DroppedOutputs(Part):
+    """Outputs a retention switch let go (``files``) and the run of each stage that used them
+    (``after``)."""
+
+    files: dict[str, OutputFile]
+    after: dict[str, str | None]
+
+
+class StageMarker(Record):
+    """A completed stage's marker, ``.paradrive/<stage>.json`` in a scene folder (a scene
+    stage: what it ran with, what it read, what it wrote) or in a build folder (a build stage:
+    ``build``, ``scene_runs``, ``outputs``). The one way the code reads or writes one.
+
+    Fields a kind of marker has not are left out of the file, so a marker reads as it always
+    did; one written before ``schema_version`` existed is version 1, one written before
+    ``outputs`` were recorded has none (None), and keys an older version wrote that this one
+    does not know are ignored."""
+
+    model_config = ConfigDict(extra="ignore")
+    WHAT: ClassVar[str] = "stage marker"
+    SCHEMA_VERSION: ClassVar[int | None] = 1
+    FIX: ClassVar[str] = "re-run the build (a plain re-run redoes a stage whose marker is unreadable)"
+
+    schema_version: int = 1
+    stage: str
+    scene_id: str | None = None
+    build: str | None = None
+    scene_uri: str | None = None
+    fingerprint: str
+    params: dict[str, Any] | None = None
+    inputs: dict[str, str] | None = None
+    version: str | None = None
+    seconds: float | None = None
+    finished_at: str | None = None
+    summary: dict[str, Any] | None = None
+    run: str | None = None
+    upstream_runs: dict[str, str | None] | None = None
+    scene_runs: dict[str, Any] | None = None
+    outputs: dict[str, OutputFile] | None = None
+    dropped: DroppedOutputs | None = None
+
+    @model_serializer(mode="wrap")
+    def _what_it_has(self, handler: Any) -> dict[str, Any]:
+        return {k: v for k, v in handler(self).items() if v is not None}
+
+    @classmethod
+    def read(cls, path: str | Path) -> StageMarker | None:
+        """The marker at ``path``; None when there is none, or it cannot be read as one (the
+        stage then counts as not done, and a re-run does it again)."""
+        try:
+            doc = json.loads(Path(path).read_text())
+            if isinstance(doc, dict):
+                doc.setdefault("schema_version", 1)   # written before markers had a version
+            marker = cls.model_validate(doc)
+        except (FileNotFoundError, NotADirectoryError, json.JSONDecodeError, UnicodeDecodeError,
+                ValidationError):
+            return None
+        return marker if marker.schema_version == cls.SCHEMA_VERSION else None

@@ -21,6 +21,8 @@ What a value may be is declared beside its default: ``min`` / ``max`` (inclusive
 ``below`` (exclusive), ``choices``, ``pattern`` (a regular expression the whole string
 matches), ``nonempty`` (a list, string or mapping), ``items`` (the same rules for each element of
 a list or each value of a mapping) and ``nullable`` (null is taken although the default is not).
+``fingerprint: false`` leaves a parameter out of the stage's fingerprint (one that decides how
+long files stay, like ``manifest.keep_versions_for``, not what the stage writes).
 A float is never NaN or infinite. The defaults are checked when the stage file is read, every
 profile and ``--set`` value when it is applied, so a build refuses a value that cannot work
 before any stage runs, naming the parameter, the value, what is allowed and where it came from.
@@ -125,6 +127,9 @@ class Param(Bounds):
     # value types taken when the default's own type is not the only one, e.g. [str, list]
     types: list[Literal["str", "int", "float", "bool", "list", "dict"]] | None = None
     nullable: bool = False   # null is taken although the default is not null
+    # false: the value decides how long files stay or how a stage goes about its work, never
+    # what it writes, so it is left out of the stage's fingerprint
+    fingerprint: bool = True
 
 
 class StageSpec(BaseModel):
@@ -174,9 +179,11 @@ class StageSpec(BaseModel):
         return {k: p.default for k, p in self.params.items()}
 
     def fingerprinted(self, params: dict[str, Any]) -> dict[str, Any]:
-        """The parameters that decide what the stage writes: all but the retention switches,
-        which only decide how long the files stay."""
-        return {k: v for k, v in params.items() if k not in self.retention}
+        """The parameters that decide what the stage writes: all but the retention switches
+        and the parameters declared ``fingerprint: false``, which only decide how long the
+        files stay."""
+        return {k: v for k, v in params.items() if k not in self.retention
+                and (k not in self.params or self.params[k].fingerprint)}
 
     def released(self, params: dict[str, Any]) -> list[str]:
         """The outputs (globs) whose retention switch is off in ``params``."""
@@ -418,6 +425,20 @@ class StageRegistry:
 
 
 _REGISTRIES: dict[tuple, StageRegistry] = {}
+
+
+def cached_registry(stages_dir: str | Path | None = None) -> StageRegistry:
+    """The stage definitions of ``stages_dir`` (default: :func:`default_stages_dir`), read once
+    while the folder's stage files keep their sizes and modification times (a stat of each,
+    never a read, tells)."""
+    folder = Path(stages_dir) if stages_dir else default_stages_dir()
+    key = (str(folder), tuple((p.name, st.st_size, st.st_mtime_ns)
+                              for p in sorted(folder.glob("*.yaml")) for st in [p.stat()]))
+    if key not in _REGISTRIES:
+        if len(_REGISTRIES) >= 8:  # tests resolve many stage folders in one process
+            _REGISTRIES.clear()
+        _REGISTRIES[key] = StageRegistry(folder)
+    return _REGISTRIES[key]
 _LAST_REGISTRY: list[tuple[ResolvedConfig, StageRegistry]] = []
 
 
@@ -437,15 +458,9 @@ class ResolvedConfig(BaseModel):
         size and modification time, so an edited stage file is read again."""
         if _LAST_REGISTRY and _LAST_REGISTRY[0][0] is self:
             return _LAST_REGISTRY[0][1]
-        folder = Path(self.stages_dir)
-        key = (str(folder), tuple((p.name, st.st_size, st.st_mtime_ns)
-                                  for p in sorted(folder.glob("*.yaml")) for st in [p.stat()]))
-        if key not in _REGISTRIES:
-            if len(_REGISTRIES) >= 8:  # tests resolve many stage folders in one process
-                _REGISTRIES.clear()
-            _REGISTRIES[key] = StageRegistry(folder)
-        _LAST_REGISTRY[:] = [(self, _REGISTRIES[key])]
-        return _REGISTRIES[key]
+        registry = cached_registry(self.stages_dir)
+        _LAST_REGISTRY[:] = [(self, registry)]
+        return registry
 
     def selected(self, stages: list[str] | None = None) -> list[str]:
         """The stages a build runs, in order: ``stages``, or every stage switched on

@@ -268,7 +268,7 @@ def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
     shape = Shape(len(doc["frames"]), cams, "ingested",
                   sfm_frames=len(doc["frames"]) if doc.get("dataset") == "video" else 0)
     marker = read_marker(layout.root, "fit")
-    if marker and layout.fit_json.is_file() and fit_params in (None, marker.get("params")):
+    if marker and layout.fit_json.is_file() and fit_params in (None, marker.params):
         shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
     return shape
 
@@ -311,19 +311,19 @@ def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, fl
     layout = SceneLayout(scene_dir)
     if markers["ingest"] is None or not layout.scene_json.is_file():
         return []
-    params = {s: {**config.params[s], **((m or {}).get("params") or {})} for s, m in markers.items()}
+    params = {s: {**config.params[s], **((m.params if m else None) or {})} for s, m in markers.items()}
     u = units(params, _ingested_shape(layout, None))
     fitted = layout.fit_json.is_file() and FitRecord.load(layout.fit_json).device.startswith("cuda")
     gpu = "gpu" if fitted else "cpu"
     specs = config.registry().specs
     out = []
     for stage, marker in markers.items():
-        if marker is None or "outputs" not in marker:
+        if marker is None or marker.outputs is None:
             continue
         device = gpu if specs[stage].resources.gpu > 0 else "cpu"
-        out.append((f"compute:{stage}", device, float(marker.get("seconds", 0.0)), u[f"compute:{stage}"]))
-        files = {**marker["outputs"], **marker.get("dropped", {}).get("files", {})}
-        sizes = by_folder({rel: int(info["bytes"]) for rel, info in files.items()})
+        out.append((f"compute:{stage}", device, float(marker.seconds or 0.0), u[f"compute:{stage}"]))
+        files = {**marker.outputs, **(marker.dropped.files if marker.dropped else {})}
+        sizes = by_folder({rel: info.bytes for rel, info in files.items()})
         out += [(f"bytes:{name}", "", float(sizes[name]), u[f"bytes:{name}"])
                 for name in STAGE_OWNS[stage] if sizes[name] and u[f"bytes:{name}"]]
     return out
@@ -424,17 +424,18 @@ def register(app: typer.Typer) -> None:
         """Project pairs, media and intermediate bytes and CPU / GPU hours of a build, before it runs."""
         from paradrive.pipeline import StageRegistry, parse_overrides
         from paradrive.pipeline.build import default_selection
-        from paradrive.pipeline.scenes import expand_scene_inputs
+        from paradrive.pipeline.scenes import check_present, scene_uris
 
         try:
             config = StageRegistry().resolve(profile, parse_overrides(set_))
-            given = list(scene) + (expand_scene_inputs(scenes) if scenes else [])
+            given = scene_uris(scene, scenes)
+            check_present(given)   # a plan of logs that are not there projects nothing real
             uris = default_selection(config, given).uris
             if not uris:
                 raise ConfigError("no scenes to plan: give --scene or --scenes")
             plan = plan_build(config, uris, data if data.is_dir() else None)
         except (ConfigError, ParaDriveError, ValueError) as exc:
-            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}")
+            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
             raise typer.Exit(2) from exc
         if as_json:
             print(json.dumps(plan.as_json(), indent=2))

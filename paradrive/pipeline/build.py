@@ -2,7 +2,8 @@
 
 Exit codes of a build (also the CLI's): 0 every scene finished every asked stage; 3 partial (some
 scenes failed, the others landed); 1 no scene landed (a scene whose ingest landed but whose fit
-failed did not); 2 a usage or configuration error, found before any stage ran; 130 interrupted.
+failed did not); 2 a usage or configuration error, found before any stage ran; 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM).
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ from collections.abc import Callable, Iterator
 from paradrive import splits
 from paradrive.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE,
                               ConfigError, ParaDriveError, StageNotImplemented)
-from paradrive.io import write_json
 from paradrive.pipeline.executors import Executor, LocalExecutor, RunOptions, SceneTask
-from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, LockOptions, scene_lock
+from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, HeldLock, LockOptions, scene_lock
 from paradrive.pipeline.progress import ProgressSink
+from paradrive.pipeline.scenes import SceneInput, check_present, distinct_scenes
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
     load_entry, local_sha256, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint,
@@ -36,6 +37,7 @@ from paradrive.contracts.specs import ResolvedConfig, StageSpec
 from paradrive.splits import Selection
 from paradrive.contracts.base import BuildContext
 from paradrive.contracts.layout import BuildLayout
+from paradrive.contracts.records import StageMarker
 from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
@@ -132,8 +134,8 @@ def run_build_stage(config: ResolvedConfig, stage: str, scene_uris: list[str],
         elif len(markers) == len(found):
             scenes.append({"scene_id": sid, "scene_uri": uri, "scene_dir": str(sdir),
                            "scene_location": root.scene_location(sid)})
-            inputs[sid] = ",".join(m["fingerprint"] for m in markers)
-            runs[sid] = {need: m.get("run") for need, m in zip(spec.needs, markers)}
+            inputs[sid] = ",".join(m.fingerprint for m in markers)
+            runs[sid] = {need: m.run for need, m in zip(spec.needs, markers)}
             if mirror:
                 mirrors.append(mirror)
         else:
@@ -173,13 +175,12 @@ def _run_on_build(config: ResolvedConfig, stage: str, spec: StageSpec, root: Dat
     except (FileNotFoundError, json.JSONDecodeError) as exc:
         return StageResult(label, stage, "failed", error=f"build {build}: {stage} needs a published "
                                                          f"build, {build_dir}/index.json: {exc}")
-    runs = {need: marker["fingerprint"] for need, marker in markers.items() if marker}
+    runs = {need: marker.fingerprint for need, marker in markers.items() if marker}
     shards = ",".join(str(s.get("sha256")) for s in index.get("shards", []))
     params = dict(config.params[stage])
     fp = fingerprint(stage, spec.fingerprinted(params), {**runs, "pairs": shards})
     marker = read_marker(build_dir, stage)
-    if not force and marker is not None and marker.get("fingerprint") == fp \
-            and _intact(marker, runs, build_dir):
+    if not force and marker is not None and marker.fingerprint == fp and _intact(marker, runs, build_dir):
         return StageResult(label, stage, "skipped", fingerprint=fp)
     log = logging.getLogger(f"paradrive.build.{build}")
     try:
@@ -192,8 +193,8 @@ def _run_on_build(config: ResolvedConfig, stage: str, spec: StageSpec, root: Dat
         declared = expand_outputs(spec.outputs, params)
         outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
                    if matches(rel, declared)}
-        write_json(marker_path(build_dir, stage), {"stage": stage, "build": build, "fingerprint": fp,
-                                                   "scene_runs": runs, "outputs": outputs})
+        StageMarker(stage=stage, build=build, fingerprint=fp, scene_runs=runs,
+                    outputs=outputs).save(marker_path(build_dir, stage))
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp, summary=summary)
     except Exception as exc:  # the stage's failure is its result; the run is still closed
         return _failed(exc, label, stage, build, time.time() - t0, log)
@@ -222,14 +223,15 @@ def _made_otherwise(config: ResolvedConfig, needs: list[str], uri: str, sdir: Pa
         if stage in seen:
             continue
         seen.add(stage)
-        marker = read_marker(sdir, stage) or {}
+        marker = read_marker(sdir, stage)
+        made = marker.fingerprint if marker else None
         try:
             expected = stage_fingerprint(config, stage, uri, sdir)[0]
         except ConfigError as exc:
             return f"scene {sdir.name}: {exc}"
-        if marker.get("fingerprint") != expected:
+        if made != expected:
             return (f"scene {sdir.name}: its {stage} outputs were made with other parameters "
-                    f"(marker fingerprint {marker.get('fingerprint')}, this build's {expected}), "
+                    f"(marker fingerprint {made}, this build's {expected}), "
                     f"e.g. by another build on this data root; run this build without --stages "
                     f"to make them again")
         todo.extend(registry.specs[stage].needs)
@@ -244,7 +246,8 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
                            error=f"build {build}: no scene finished {', '.join(spec.needs)}; "
                                  f"nothing to write")
     params = dict(config.params[stage])
-    fp = fingerprint(stage, params if record is None else {**params, "selection": record}, inputs)
+    hashed = spec.fingerprinted(params)   # as every other stage's: one rule for what counts
+    fp = fingerprint(stage, hashed if record is None else {**hashed, "selection": record}, inputs)
     index = BuildLayout(build_dir).index_json
     if not force and _published(index, fp) and _intact(read_marker(build_dir, stage), runs, build_dir):
         return StageResult(label, stage, "skipped", fingerprint=fp)
@@ -258,14 +261,15 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
         ctx = BuildContext(stage=stage, build=build, layout=BuildLayout(build_dir),
                            data_dir=root.local, scenes=scenes, params=typed_params(spec, params),
                            log=log, fingerprint=fp, selection=record)
-        with _scene_locks(root, scenes, build, log, inputs, spec.needs):
+        with _scene_locks(root, scenes, build, log, inputs, spec.needs) as held:
             summary = summary_of(func(ctx))
-        declared = expand_outputs(spec.outputs, config.params[stage])
-        outputs = {rel: info for rel, info in written_outputs(build_dir, before, declared).items()
+            for lock in held:   # a lease another build took: what was read may be mixed
+                lock.check()
+        # what this run wrote: the versions a publish keeps for their readers are no output of it
+        outputs = {rel: info for rel, info in written_outputs(build_dir, before, []).items()
                    if not matches(rel, NOT_OWNED)}
-        write_json(marker_path(build_dir, stage),
-                   {"stage": stage, "build": build, "fingerprint": fp, "scene_runs": runs,
-                    "outputs": outputs})
+        StageMarker(stage=stage, build=build, fingerprint=fp, scene_runs=runs,
+                    outputs=outputs).save(marker_path(build_dir, stage))
         return StageResult(label, stage, "done", seconds=time.time() - t0, fingerprint=fp,
                            summary=summary)
     except Exception as exc:  # the stage's failure is its result; the run is still closed
@@ -278,19 +282,20 @@ def _run_build_stage(config, stage, spec, root, scenes, inputs, runs, mirrors, b
 
 @contextlib.contextmanager
 def _scene_locks(root: DataRoot, scenes: list[dict], build: str, log: logging.Logger,
-                 inputs: dict[str, str], needs: list[str]) -> Iterator[None]:
+                 inputs: dict[str, str], needs: list[str]) -> Iterator[list[HeldLock]]:
     """Every scene's lock while a build stage reads its outputs, so no other build rewrites
     them meanwhile; the needed markers must still be the ones the stage was planned on."""
     _allow_open_files(len(scenes))
+    held: list[HeldLock] = []
     with contextlib.ExitStack() as stack:
         for entry in sorted(scenes, key=lambda e: e["scene_id"]):  # one order: no deadlock
             sid = entry["scene_id"]
-            stack.enter_context(scene_lock(root, sid, LockOptions(build), log))
-            now = [read_marker(Path(entry["scene_dir"]), need) or {} for need in needs]
-            if ",".join(str(m.get("fingerprint")) for m in now) != inputs[sid]:
+            held.append(stack.enter_context(scene_lock(root, sid, LockOptions(build), log)))
+            now = [read_marker(Path(entry["scene_dir"]), need) for need in needs]
+            if ",".join(str(m.fingerprint if m else None) for m in now) != inputs[sid]:
                 raise ParaDriveError(f"scene {sid}: another build changed its {', '.join(needs)} "
                                      f"outputs while this build waited for them; re-run")
-        yield
+        yield held
 
 
 def _allow_open_files(locks: int) -> None:
@@ -311,11 +316,11 @@ def _published(index: Path, fp: str) -> bool:
         return False
 
 
-def _intact(marker: dict | None, runs: dict, build_dir: Path) -> bool:
+def _intact(marker: StageMarker | None, runs: dict, build_dir: Path) -> bool:
     """A build stage's marker agrees with its scenes and files, contents included: a published
     copy damaged in place at the same size is found (its stat changed, so it is read again) and
     the stage runs again, as a scene stage would."""
-    return (marker is not None and marker.get("scene_runs") == runs
+    return (marker is not None and marker.scene_runs == runs
             and not damaged_outputs(marker, local_size(build_dir), local_sha256(build_dir)))
 
 
@@ -344,12 +349,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
     config.check(scene_stages + build_stages)  # a value no stage can take fails before any runs
-    seen, uris = set(), []
-    for uri in scene_uris:
-        parse_uri(uri)  # a malformed URI is a usage error for the whole build
-        if uri not in seen:
-            seen.add(uri)
-            uris.append(uri)
+    # a malformed URI, or one log given twice, is a usage error for the whole build
+    uris = distinct_scenes([SceneInput(uri, uri) for uri in scene_uris])
+    check_present(uris)   # and so is a log that is not there: no scene starts, no lock is taken
     build_uris: list[str] = []
     in_build: set[str] = set()
     for uri in list(build_scene_uris or []) + uris:  # the whole build's order comes first

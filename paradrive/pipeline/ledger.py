@@ -47,6 +47,7 @@ from collections.abc import Iterable, Iterator
 
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.contracts.layout import LEDGER, MARKER_DIR, BuildLayout
+from paradrive.contracts.records import StageMarker
 from paradrive.redact import redact, redact_argv
 from paradrive.uri import parse_uri
 
@@ -290,26 +291,20 @@ class Ledger:
 
     @staticmethod
     def _insert_done(c, sid: str, uri: str, marker_dir: Path, first: int) -> None:
-        markers = []
-        for path in marker_dir.glob("*.json"):
-            try:
-                markers.append(json.loads(path.read_text()))
-            except (OSError, ValueError):
-                continue  # an unreadable marker: the stage is not done, the next run redoes it
-        markers = [m for m in markers if isinstance(m, dict) and m.get("stage")]
-        needs = {m["stage"]: list(m.get("upstream_runs") or {}) for m in markers}
+        # an unreadable marker (or the builder's own, not a stage's) counts as not done
+        markers = [m for m in map(StageMarker.read, marker_dir.glob("*.json")) if m is not None]
+        needs = {m.stage: list(m.upstream_runs or {}) for m in markers}
 
         def depth(stage: str, seen: frozenset = frozenset()) -> int:  # pipeline order
             return 1 + max((depth(n, seen | {stage}) for n in needs.get(stage, [])
                             if n not in seen), default=0)
 
-        markers.sort(key=lambda m: (depth(m["stage"]), m["stage"]))
+        markers.sort(key=lambda m: (depth(m.stage), m.stage))
         for pos, m in enumerate(markers, first):
             c.execute("INSERT OR IGNORE INTO tasks (scene_id, stage, scene_uri, position, state, "
                       "attempts, seconds, fingerprint, updated_at) "
                       "VALUES (?, ?, ?, ?, 'done', 1, ?, ?, ?)",
-                      (sid, m["stage"], uri, pos, m.get("seconds"), m.get("fingerprint", ""),
-                       time.time()))
+                      (sid, m.stage, uri, pos, m.seconds, m.fingerprint, time.time()))
 
     # -- writing ----------------------------------------------------------------------------
 

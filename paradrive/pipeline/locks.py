@@ -12,9 +12,14 @@ it after the first one finished; two builds never write one scene at once.
   (``ENOLCK``) fails the stage with that reason rather than running unguarded.
 - A URL root: a lease object ``<root>/locks/<scene_id>.json`` created with the store's
   exclusive create (fsspec mode ``"xb"``: ``If-None-Match`` on S3, ``O_EXCL`` on ``local://``),
-  then read back to be sure it is ours. The holder renews its expiry from a background thread
+  then read back to be sure it is ours. Its expiry is ``LEASE_SECONDS`` after the moment it is
+  written (never counted from before a wait), and the holder renews it from a background thread
   every ``LEASE_SECONDS / 3``; a lease past its expiry, or one whose holder is a dead process
-  on this host, is taken over.
+  on this host, is taken over. A holder whose renewal finds the lease taken, or its own expiry
+  passed (another build may take it from then on), never writes it again: the lease is lost
+  (:meth:`HeldLock.check` raises :class:`LeaseLost`), and the runner stops the stage before it
+  writes anything more to the data root (at its next progress report, before its upload and
+  before its marker); a plain re-run builds the scene.
 
 A build that meets a held lock polls for it up to ``timeout`` seconds (``--lock-timeout``),
 then gives up on that scene for this run with :class:`SceneLocked`, naming the holder.
@@ -32,18 +37,24 @@ import socket
 import threading
 import time
 import uuid
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from collections.abc import Iterator
 
-from paradrive.errors import ParaDriveError
+from paradrive.errors import ParaDriveError, SceneError
 from paradrive.contracts.layout import LOCKS_DIR, DataLayout
 from paradrive.storage import DataRoot
 
 LOCK_DIR = LOCKS_DIR
 DEFAULT_LOCK_TIMEOUT_S = 3600.0  # a waiting build gives up on a held scene after this long
 LEASE_SECONDS = 60.0             # a URL root's lease lives this long unless its holder renews it
+RENEW_MARGIN = 0.1               # of LEASE_SECONDS: a lease this close to its expiry is not
+                                 # renewed (clocks of two hosts differ; a write takes time)
 POLL_SECONDS = 0.25              # how often a waiting build looks at the lock again
+
+
+class LeaseLost(SceneError):
+    """The scene's lease was taken by another build, or lapsed before its holder renewed it."""
 
 
 class SceneLocked(ParaDriveError):
@@ -134,11 +145,23 @@ class Holder:
 
 @dataclass
 class HeldLock:
-    """A lock this process holds; ``took_over`` describes a dead or expired holder it replaced."""
+    """A lock this process holds; ``took_over`` describes a dead or expired holder it replaced.
+    ``discard``: remove the lock file on release (set for a scene that never started, so a
+    build of logs that were not there leaves no lock file behind). ``lost``: why a lease is no
+    longer this build's ('' while it is)."""
 
     scene_id: str
     holder: Holder
     took_over: str = ""
+    discard: bool = False
+    lost: str = ""
+
+    def check(self) -> None:
+        """Raise :class:`LeaseLost` once the lease is lost: nothing may be written after."""
+        if self.lost:
+            raise LeaseLost(self.lost, scene_id=self.scene_id,
+                            fix="the stage stopped before writing more; re-run the build (a "
+                                "plain re-run builds the scene, or finds it done)")
 
 
 # -- a folder root: flock ---------------------------------------------------------------------
@@ -152,20 +175,39 @@ def _file_lock(root: DataRoot, scene_id: str, options: LockOptions,
                log: logging.Logger) -> Iterator[HeldLock]:
     path = _lock_file(root, scene_id)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _locked_file(path, scene_id, options, log)
     try:
-        _wait(scene_id, options, log, lambda: _try_flock(fd), lambda: _read_record(path))
         previous = Holder.parse(os.pread(fd, 1 << 16, 0))
         me = Holder.me(options.build)
         os.ftruncate(fd, 0)
         os.pwrite(fd, me.dumps().encode(), 0)
         took_over = previous.describe() if previous else ""  # it ended without letting go
+        held = HeldLock(scene_id, me, took_over)
         try:
-            yield HeldLock(scene_id, me, took_over)
+            yield held
         finally:
+            if held.discard:  # removed while held: a waiter that took the old file tries again
+                path.unlink(missing_ok=True)
             os.ftruncate(fd, 0)  # an empty record: let go cleanly
             fcntl.flock(fd, fcntl.LOCK_UN)
     finally:
+        os.close(fd)
+
+
+def _locked_file(path: Path, scene_id: str, options: LockOptions, log: logging.Logger) -> int:
+    """An open descriptor of the lock file at ``path``, flocked. A holder may remove the file
+    (its scene never started); a build that took the lock of a file no longer at ``path`` lets
+    it go and takes the one there now, so two builds never hold one scene through two files."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            _wait(scene_id, options, log, lambda: _try_flock(fd), lambda: _read_record(path))
+            with contextlib.suppress(FileNotFoundError):
+                if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                    return fd
+        except BaseException:
+            os.close(fd)
+            raise
         os.close(fd)
 
 
@@ -213,21 +255,23 @@ class _Lease:
         except FileNotFoundError:
             return None
 
-    def create(self, holder: Holder) -> bool:
-        """Write ``holder`` if no lease exists; True when it is ours afterwards."""
-        data = holder.dumps().encode()
+    def create(self, holder: Holder) -> Holder | None:
+        """Write ``holder`` if no lease exists, expiring ``LEASE_SECONDS`` from now (the moment
+        of writing); the lease written when it is ours afterwards, else None."""
+        mine = replace(holder, expires_at=time.time() + LEASE_SECONDS)
+        data = mine.dumps().encode()
         try:
             self._create(data)
         except FileExistsError:
-            return False
+            return None
         except (ValueError, NotImplementedError):  # a backend without exclusive create
             if self.fs.exists(self.path):
-                return False
+                return None
             self.fs.pipe_file(self.path, data)
         # Read back: of two racing creators on a store without a true conditional put, the one
         # whose record is there holds it.
         found = self.read()
-        return found is not None and found.token == holder.token
+        return mine if found is not None and found.token == mine.token else None
 
     def _create(self, data: bytes) -> None:
         try:
@@ -239,11 +283,13 @@ class _Lease:
                 f.write(data)
 
     def renew(self, holder: Holder) -> Holder | None:
-        """A later expiry for our lease; None when it is no longer ours."""
+        """Our lease with a later expiry, ``LEASE_SECONDS`` from the moment it is written; None
+        when it is no longer ours: another build's is there, or ours has expired (from then on
+        another build may take it at any moment, so writing it again could overwrite theirs)."""
         found = self.read()
-        if found is None or found.token != holder.token:
+        if found is None or found.token != holder.token or _lapsing(holder):
             return None
-        renewed = Holder(**{**asdict(holder), "expires_at": time.time() + LEASE_SECONDS})
+        renewed = replace(holder, expires_at=time.time() + LEASE_SECONDS)
         self.fs.pipe_file(self.path, renewed.dumps().encode())
         return renewed
 
@@ -261,45 +307,68 @@ class _Lease:
 def _lease_lock(root: DataRoot, scene_id: str, options: LockOptions,
                 log: logging.Logger) -> Iterator[HeldLock]:
     lease = _Lease(root, scene_id)
-    mine = Holder(**{**asdict(Holder.me(options.build)), "expires_at": time.time() + LEASE_SECONDS})
+    me = Holder.me(options.build)
+    current: list[Holder] = []
     took_over: list[str] = []
 
     def attempt() -> bool:
-        if lease.create(mine):
-            return True
-        found = lease.read()
-        if found is not None and (found.dead() or found.expired()) and lease.remove_if(found) \
-                and lease.create(mine):
+        written = lease.create(me)
+        if written is None:
+            found = lease.read()
+            if found is None or not (found.dead() or found.expired()) or not lease.remove_if(found):
+                return False
+            written = lease.create(me)
+            if written is None:
+                return False
             took_over.append(found.describe() + (" (lease expired)" if found.expired()
                                                  else " (process gone)"))
-            return True
-        return False
+        current[:] = [written]
+        return True
 
     _wait(scene_id, options, log, attempt, lease.read)
+    held = HeldLock(scene_id, current[0], took_over[-1] if took_over else "")
     stop = threading.Event()
-    current = [mine]
-
-    def keep_alive() -> None:
-        while not stop.wait(LEASE_SECONDS / 3):
-            try:
-                renewed = lease.renew(current[0])
-            except Exception as exc:  # the store hiccuped: try again at the next beat
-                log.warning("lease of scene %s: renewal failed: %s", scene_id, exc)
-                continue
-            if renewed is None:
-                log.error("lease of scene %s was taken by another build", scene_id)
-                return
-            current[0] = renewed
-
-    thread = threading.Thread(target=keep_alive, name=f"lease-{scene_id}", daemon=True)
+    thread = threading.Thread(target=_keep_alive, args=(lease, held, current, stop, log),
+                              name=f"lease-{scene_id}", daemon=True)
     thread.start()
     try:
-        yield HeldLock(scene_id, mine, took_over[-1] if took_over else "")
+        yield held
     finally:
         stop.set()
         thread.join()
-        with contextlib.suppress(Exception):
-            lease.remove_if(current[0])
+        if not held.lost:
+            with contextlib.suppress(Exception):
+                lease.remove_if(current[0])
+
+
+def _lapsing(holder: Holder) -> bool:
+    """Too near its expiry (or past it) to be renewed safely."""
+    return holder.expired(time.time() + RENEW_MARGIN * LEASE_SECONDS)
+
+
+def _keep_alive(lease: _Lease, held: HeldLock, current: list[Holder], stop: threading.Event,
+                log: logging.Logger) -> None:
+    """Renew ``held``'s lease every ``LEASE_SECONDS / 3`` until ``stop``; on finding it taken
+    or lapsed, mark it lost and write it no more."""
+    while not stop.wait(LEASE_SECONDS / 3):
+        try:
+            renewed = lease.renew(current[0])
+        except Exception as exc:  # the store hiccuped: try again at the next beat, if there is time
+            if not _lapsing(current[0]):
+                log.warning("lease of scene %s: renewal failed: %s", held.scene_id, exc)
+                continue
+            renewed = None
+        if renewed is None:
+            found = None
+            with contextlib.suppress(Exception):
+                found = lease.read()
+            taken = found is not None and found.token != current[0].token
+            held.lost = (f"its lease was taken by {found.describe()}" if taken and found
+                         else "its lease lapsed before it could be renewed (another build may "
+                              "hold the scene now)")
+            log.error("scene %s: %s; stopping the stage", held.scene_id, held.lost)
+            return
+        current[0] = renewed
 
 
 def _lease_holders(root: DataRoot) -> dict[str, Holder]:
@@ -363,5 +432,5 @@ def held_locks(root: DataRoot) -> dict[str, Holder]:
     return out
 
 
-__all__ = ["DEFAULT_LOCK_TIMEOUT_S", "Holder", "HeldLock", "LockOptions", "SceneLocked",
+__all__ = ["DEFAULT_LOCK_TIMEOUT_S", "Holder", "HeldLock", "LeaseLost", "LockOptions", "SceneLocked",
            "held_locks", "scene_lock"]

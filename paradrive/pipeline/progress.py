@@ -92,6 +92,7 @@ ProgressSink = Callable[[Snapshot], None]
 class StageProgress:
     """The ``ctx.progress`` of one (scene, stage): call it as ``progress(done, total, **fields)``.
 
+    ``guard()``, when given, is called first on every call: it raises to stop the stage.
     ``sink`` gets a :class:`Snapshot` on every call (cheap fields only: a function field keeps
     its last computed value); the scene's ``log`` gets :meth:`Snapshot.line` at the intervals
     of the module doc and at the end. ``clock`` is the time source (seconds).
@@ -99,8 +100,10 @@ class StageProgress:
 
     def __init__(self, scene_id: str, stage: str, log: Logger | None = None,
                  sink: ProgressSink | None = None, *, every_s: float = LOG_EVERY_S,
-                 steps: int = LOG_STEPS, clock: Callable[[], float] = time.monotonic):
+                 steps: int = LOG_STEPS, clock: Callable[[], float] = time.monotonic,
+                 guard: Callable[[], None] | None = None):
         self.scene_id, self.stage, self.log, self.sink = scene_id, stage, log, sink
+        self.guard = guard   # raises when the stage must stop (its scene's lease was lost)
         self.every_s, self.steps, self.clock = every_s, max(int(steps), 1), clock
         self.samples: deque[tuple[float, int]] = deque()   # (time, done), the last minute's
         self.logged_at: float | None = None
@@ -111,6 +114,8 @@ class StageProgress:
         self.losses: list[float] = []                  # losses since the last line (their mean is shown)
 
     def __call__(self, done: int, total: int, **fields: Any) -> None:
+        if self.guard is not None:
+            self.guard()
         now = self.clock()
         if not self.samples or now - self.samples[-1][0] >= 0.5:
             self.samples.append((now, done))

@@ -41,12 +41,13 @@ from collections.abc import Callable, Iterator
 import paradrive
 from paradrive.errors import (ConfigError, ParaDriveError, SceneError, StageNotImplemented, missing_extra,
                               os_error_fix)
-from paradrive.io import remove_stale_temporaries, sha256_file, write_json
-from paradrive.pipeline.locks import LockOptions, SceneLocked, scene_lock
+from paradrive.io import remove_stale_temporaries, sha256_file
+from paradrive.pipeline.locks import HeldLock, LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
 from paradrive.contracts.specs import ResolvedConfig, StageSpec, typed_params
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.layout import MARKER_DIR, DataLayout, SceneLayout
+from paradrive.contracts.records import DroppedOutputs, OutputFile, StageMarker
 from paradrive.redact import redact
 from paradrive.storage import DataRoot, SceneMirror, file_stats, matches
 from paradrive.uri import parse_uri
@@ -81,12 +82,9 @@ def marker_path(scene_dir: Path, stage: str) -> Path:
     return SceneLayout(Path(scene_dir)).marker(stage)
 
 
-def read_marker(scene_dir: Path, stage: str) -> dict | None:
-    path = marker_path(scene_dir, stage)
-    try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
+def read_marker(scene_dir: Path, stage: str) -> StageMarker | None:
+    """The marker of ``stage`` in a scene or build folder (None: not done, or unreadable)."""
+    return StageMarker.read(marker_path(scene_dir, stage))
 
 
 def expand_outputs(patterns: list[str], params: dict) -> list[str]:
@@ -112,11 +110,11 @@ def outputs_present(scene_dir: Path, spec: StageSpec, params: dict,
 
 
 def written_outputs(folder: Path, before: dict[str, tuple[int, int]], declared: list[str],
-                    hashes: dict[str, str] | None = None) -> dict[str, dict]:
+                    hashes: dict[str, str] | None = None) -> dict[str, OutputFile]:
     """What a stage wrote under ``folder``: files new or changed since ``before`` and files its
     declared outputs name, as relative path -> :func:`output_entry` (markers left out). The
     sha256 the stage computed while writing (``hashes``) is kept; the others are read here."""
-    out: dict[str, dict] = {}
+    out: dict[str, OutputFile] = {}
     for rel, stat in sorted(file_stats(folder).items()):
         if rel.startswith(MARKER_DIR + "/") or (before.get(rel) == stat and not matches(rel, declared)):
             continue
@@ -124,30 +122,30 @@ def written_outputs(folder: Path, before: dict[str, tuple[int, int]], declared: 
     return out
 
 
-def output_entry(path: Path, sha256: str | None = None) -> dict:
+def output_entry(path: Path, sha256: str | None = None) -> OutputFile:
     """How a marker records one output: its size and sha256, and the modification time (ns) and
     inode the file had when it was hashed. An up-to-date check trusts the sha256 while those
     three are unchanged (:func:`local_sha256`), so a no-op re-run reads no file; any write moves
     the modification time, and a file put in its place has another inode. The stat is taken
     before the hash: a write during hashing shows as a changed time, never as a trusted hash."""
     stat = path.stat()
-    return {"bytes": stat.st_size, "sha256": sha256 or sha256_file(path),
-            "mtime_ns": stat.st_mtime_ns, "inode": stat.st_ino}
+    return OutputFile(bytes=stat.st_size, sha256=sha256 or sha256_file(path),
+                      mtime_ns=stat.st_mtime_ns, inode=stat.st_ino)
 
 
-def damaged_outputs(marker: dict, size_of: Callable[[str], int | None],
-                    sha_of: Callable[[str, dict], str | None] | None = None) -> dict[str, str]:
+def damaged_outputs(marker: StageMarker | None, size_of: Callable[[str], int | None],
+                    sha_of: Callable[[str, OutputFile], str | None] | None = None) -> dict[str, str]:
     """The recorded outputs of ``marker`` that are missing or changed: rel -> what is wrong.
     Sizes always; with ``sha_of(rel, recorded)``, the content of each file whose size still
     matches."""
     problems = {}
-    for rel, info in marker.get("outputs", {}).items():
+    for rel, info in ((marker.outputs if marker else None) or {}).items():
         size = size_of(rel)
         if size is None:
             problems[rel] = f"{rel} is missing"
-        elif size != info["bytes"]:
-            problems[rel] = f"{rel} is {size} bytes, {info['bytes']} when written"
-        elif sha_of is not None and info.get("sha256") and sha_of(rel, info) != info["sha256"]:
+        elif size != info.bytes:
+            problems[rel] = f"{rel} is {size} bytes, {info.bytes} when written"
+        elif sha_of is not None and info.sha256 and sha_of(rel, info) != info.sha256:
             problems[rel] = f"{rel} has changed since it was written (sha256 differs, same size)"
     return problems
 
@@ -166,7 +164,7 @@ def local_size(folder: Path) -> Callable[[str], int | None]:
     return size_of
 
 
-def local_sha256(folder: Path, *, trust_stat: bool = True) -> Callable[[str, dict], str | None]:
+def local_sha256(folder: Path, *, trust_stat: bool = True) -> Callable[[str, OutputFile], str | None]:
     """``sha_of(rel, recorded)``: the sha256 of an output as it is now (None: not a file).
 
     With ``trust_stat`` a file whose size, modification time and inode are those ``recorded``
@@ -174,13 +172,13 @@ def local_sha256(folder: Path, *, trust_stat: bool = True) -> Callable[[str, dic
     paper-size scene's clips then costs a stat per file instead of reading ~0.3 GB. Without it
     (``--verify-outputs``) every file is read. A marker written before the stat was recorded
     has its files read."""
-    def sha_of(rel: str, recorded: dict) -> str | None:
+    def sha_of(rel: str, recorded: OutputFile) -> str | None:
         path = Path(folder) / rel
         try:
             stat = path.stat()
             if trust_stat and (stat.st_size, stat.st_mtime_ns, stat.st_ino) == (
-                    recorded.get("bytes"), recorded.get("mtime_ns"), recorded.get("inode")):
-                return recorded.get("sha256")
+                    recorded.bytes, recorded.mtime_ns, recorded.inode):
+                return recorded.sha256
             return sha256_file(path)
         except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
             return None
@@ -197,18 +195,18 @@ def hashes_checked(config: ResolvedConfig, stage: str, verify_outputs: bool = Fa
     return verify_outputs or any(stage in s.needs for s in specs.values() if s.scope == "build")
 
 
-def stale_reason(marker: dict | None, fp: str, upstream: dict[str, dict],
+def stale_reason(marker: StageMarker | None, fp: str, upstream: dict[str, StageMarker],
                  size_of: Callable[[str], int | None], missing_declared: Callable[[], list[str]],
-                 sha_of: Callable[[str, dict], str | None] | None = None) -> str:
+                 sha_of: Callable[[str, OutputFile], str | None] | None = None) -> str:
     """Why a stage is not up to date ('' when it is): see the module doc."""
     if marker is None:
         return "not run yet"
-    if marker.get("fingerprint") != fp:
+    if marker.fingerprint != fp:
         return "parameters or inputs changed"
     for need, up in upstream.items():
-        if marker.get("upstream_runs", {}).get(need) != up.get("run"):
+        if (marker.upstream_runs or {}).get(need) != up.run:
             return f"'{need}' was redone since"
-    if "outputs" in marker:
+    if marker.outputs is not None:
         damaged = list(damaged_outputs(marker, size_of, sha_of).values())
         if not damaged:
             return ""
@@ -229,25 +227,26 @@ def why_stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Pat
                   size_of, exists)
 
 
-def _stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path, marker: dict | None,
-           fp: str, upstream: dict[str, dict], size_of: Callable[[str], int | None],
-           exists: Callable[[str], bool] | None,
-           sha_of: Callable[[str, dict], str | None] | None = None) -> str:
+def _stale(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path,
+           marker: StageMarker | None, fp: str, upstream: dict[str, StageMarker],
+           size_of: Callable[[str], int | None], exists: Callable[[str], bool] | None,
+           sha_of: Callable[[str, OutputFile], str | None] | None = None) -> str:
     specs = config.registry().specs
     reason = stale_reason(marker, fp, upstream, size_of,
                           lambda: outputs_present(scene_dir, specs[stage], config.params[stage], exists),
                           sha_of)
-    if reason or marker is None or not marker.get("dropped"):
+    if reason or marker is None or not marker.dropped:
         return reason
-    dropped = marker["dropped"]
-    for user, run in dropped["after"].items():
+    dropped = marker.dropped
+    for user, run in dropped.after.items():
         why = "it is no longer a stage"
         if user in specs:
             why = why_stale(config, user, scene_uri, scene_dir, size_of, exists)
-        if not why and (read_marker(scene_dir, user) or {}).get("run") != run:
+        used = read_marker(scene_dir, user)
+        if not why and (used.run if used else None) != run:
             why = "it ran again since"
         if why:
-            return (f"{len(dropped['files'])} output(s) were let go by its retention policy and "
+            return (f"{len(dropped.files)} output(s) were let go by its retention policy and "
                     f"'{user}' needs them again ({why})")
     return ""
 
@@ -261,24 +260,24 @@ def release_outputs(config: ResolvedConfig, stage: str, scene_dir: Path,
     for need in specs[stage].needs:
         patterns = specs[need].released(config.params[need])
         marker = read_marker(scene_dir, need)
-        if not patterns or marker is None or "outputs" not in marker:
+        if not patterns or marker is None or marker.outputs is None:
             continue
         users = {name: read_marker(scene_dir, name) for name, spec in specs.items()
                  if need in spec.needs and spec.scope == "scene"}
-        if any((m or {}).get("upstream_runs", {}).get(need) != marker.get("run")
-               for m in users.values()):
+        if any(((m.upstream_runs or {}) if m else {}).get(need) != marker.run for m in users.values()):
             continue  # a stage needing them has not used this run's outputs yet
         # what the files held; their stat goes with them (a file made again has another)
-        files = {rel: {k: info[k] for k in ("bytes", "sha256") if k in info}
-                 for rel, info in marker["outputs"].items() if matches(rel, patterns)}
+        files = {rel: OutputFile(bytes=info.bytes, sha256=info.sha256)
+                 for rel, info in marker.outputs.items() if matches(rel, patterns)}
         if not files:
             continue
-        before = dict(marker.get("dropped", {}).get("files", {}))
-        marker["outputs"] = {rel: info for rel, info in marker["outputs"].items() if rel not in files}
-        marker["dropped"] = {"files": {**before, **files},
-                             "after": {name: m["run"] for name, m in users.items() if m}}
+        before = dict(marker.dropped.files) if marker.dropped else {}
+        marker = marker.model_copy(update={
+            "outputs": {rel: info for rel, info in marker.outputs.items() if rel not in files},
+            "dropped": DroppedOutputs(files={**before, **files},
+                                      after={name: m.run for name, m in users.items() if m})})
         try:
-            write_json(marker_path(scene_dir, need), marker)
+            marker.save(marker_path(scene_dir, need))
             if mirror:
                 mirror.push(mirror.snapshot(), last=[marker_path(Path(), need).as_posix()])
                 mirror.remove(sorted(files))
@@ -287,7 +286,7 @@ def release_outputs(config: ResolvedConfig, stage: str, scene_dir: Path,
             log.warning("%s: could not let go the outputs of %s: %s", stage, need, exc)
             continue
         log.info("%s: %d file(s) of %s let go (%.1f MB; retention: %s)", stage, len(files), need,
-                 sum(i["bytes"] for i in files.values()) / 1e6,
+                 sum(i.bytes for i in files.values()) / 1e6,
                  ", ".join(k for k in specs[need].retention if config.params[need][k] is False))
 
 
@@ -311,6 +310,14 @@ def peak_rss_mb() -> float:
     return peak()
 
 
+def _upload(mirror: SceneMirror, before: dict[str, tuple[int, int]], marker_rel: str,
+            guard: Callable[[], None], log: logging.Logger, said: str) -> None:
+    """A URL root: what the stage wrote, marker last, while the scene's lease is still ours."""
+    guard()
+    uploaded, deleted = mirror.push(before, last=[marker_rel])
+    log.info(said, uploaded, deleted)
+
+
 def _remove_if_empty(scene_dir: Path, made: bool) -> None:
     if made:
         with contextlib.suppress(OSError):  # not empty: what is there stays
@@ -322,13 +329,14 @@ def scene_dir_for(data_dir: Path, scene_id: str) -> Path:
     return SceneLayout.of(data_dir, scene_id).root
 
 
-def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str, scene_dir: Path) -> tuple[str, dict]:
+def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str,
+                      scene_dir: Path) -> tuple[str, dict[str, StageMarker]]:
     """Fingerprint of (scene, stage) and the markers of the stages it needs.
 
     Raises ConfigError when a needed stage has not completed for this scene.
     """
     spec = config.registry().specs[stage]
-    upstream: dict[str, dict] = {}
+    upstream: dict[str, StageMarker] = {}
     inputs: dict[str, str] = {}
     for need in spec.needs:
         marker = read_marker(scene_dir, need)
@@ -336,17 +344,17 @@ def stage_fingerprint(config: ResolvedConfig, stage: str, scene_uri: str, scene_
             raise ConfigError(f"stage '{stage}' needs '{need}', which has not completed for "
                               f"{scene_dir.name}; add '{need}' to --stages")
         upstream[need] = marker
-        inputs[need] = marker["fingerprint"]
+        inputs[need] = marker.fingerprint
     extra = scene_uri if spec.needs == [] else ""
     return fingerprint(stage, spec.fingerprinted(config.params[stage]), inputs, extra), upstream
 
 
-def check_inputs(scene_id: str, stage: str, upstream: dict[str, dict],
+def check_inputs(scene_id: str, stage: str, upstream: dict[str, StageMarker],
                  size_of: Callable[[str], int | None]) -> None:
     """Refuse to run on damaged inputs or inputs a retention policy let go, naming the stage a
     plain re-run redoes first."""
     for need, marker in upstream.items():
-        dropped = sorted(marker.get("dropped", {}).get("files", {}))
+        dropped = sorted(marker.dropped.files) if marker.dropped else []
         if dropped:
             raise SceneError(f"{stage} needs the outputs of {need}, and {len(dropped)} of them "
                              f"({dropped[0]}, ...) were let go by {need}'s retention policy",
@@ -371,7 +379,8 @@ def admit_scene(config: ResolvedConfig, stage: str, scene_dir: Path) -> None:
         return
     ingested: dict[str, Any] = {}
     for name in (n for n, s in specs.items() if not s.needs):
-        ingested.update((read_marker(scene_dir, name) or {}).get("summary") or {})
+        first = read_marker(scene_dir, name)
+        ingested.update((first.summary if first else None) or {})
     for name, spec in specs.items():
         try:
             check = getattr(importlib.import_module(spec.entry.partition(":")[0]), "admit", None)
@@ -470,19 +479,23 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                                error=f"scene {scene_id}: {stage}: cannot lock "
                                      f"{root.scene_location(scene_id)}: {type(exc).__name__}: "
                                      f"{exc}; check the data root and re-run")
-        result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress,
-                             verify_outputs)
+        try:
+            result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress,
+                                 verify_outputs, held)
+        finally:   # however it ended: a scene that never started keeps no lock file
+            held.discard = not scene_dir_for(root.local, scene_id).exists()
         result.took_over = held.took_over
         return result
 
 
 def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str, root: DataRoot,
-                force: bool, on_progress: ProgressSink | None, verify_outputs: bool) -> StageResult:
+                force: bool, on_progress: ProgressSink | None, verify_outputs: bool,
+                held: HeldLock) -> StageResult:
     mirror = root.mirror(scene_id)
     if mirror is None:
         return _run_scene_stage(config, stage, scene_uri, scene_id, root, None, force, on_progress,
                                 hashes_checked(config, stage, verify_outputs),
-                                trust_stat=not verify_outputs)
+                                trust_stat=not verify_outputs, guard=held.check)
     try:
         mirror.pull_log()
         mirror.sync([f"{MARKER_DIR}/*.json"])  # the remote markers are the truth
@@ -491,10 +504,11 @@ def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: st
     try:
         # A URL root is checked from one listing (sizes): hashing would download every file.
         result = _run_scene_stage(config, stage, scene_uri, scene_id, root, mirror, force,
-                                  on_progress, False)
+                                  on_progress, False, guard=held.check)
     finally:
         with contextlib.suppress(OSError):
-            mirror.push_log()
+            if not held.lost:   # a lost lease writes nothing more there, its log included
+                mirror.push_log()
         if root.drop_cache:
             mirror.drop()
     return result
@@ -503,7 +517,11 @@ def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: st
 def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str,
                      root: DataRoot, mirror: SceneMirror | None, force: bool,
                      on_progress: ProgressSink | None, check_hashes: bool, *,
-                     trust_stat: bool = True) -> StageResult:
+                     trust_stat: bool = True, guard: Callable[[], None] = lambda: None) -> StageResult:
+    """Decide, run and mark one (scene, stage) under its lock. ``guard()`` raises once the lock
+    is lost (:class:`~paradrive.pipeline.locks.LeaseLost`): it is called at every progress
+    report of the stage and before the marker and the upload, so a stage whose lease another
+    build took stops before it writes anything more."""
     data_dir = root.local
     spec = config.registry().specs[stage]
     scene_dir = scene_dir_for(data_dir, scene_id)
@@ -524,7 +542,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                 log.info("%s: up to date (fingerprint %s), skipped", stage, fp)
                 release_outputs(config, stage, scene_dir, mirror, log)
                 return StageResult(scene_id, stage, "skipped", fingerprint=fp,
-                                   summary=(marker or {}).get("summary", {}))
+                                   summary=dict((marker.summary if marker else None) or {}))
             log.info("%s: to run: %s", stage, reason)
             check_inputs(scene_id, stage, upstream, size_of)
             func = load_entry(spec)
@@ -539,7 +557,7 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             # A stage may resume from what it finds (a fit's state.pt), never from a damaged
             # output, nor, on a URL root, a cached copy of one the remote lost. Whether a stage
             # is done is decided here only, never by the stage itself.
-            for rel in damaged_outputs(marker or {}, size_of):
+            for rel in damaged_outputs(marker, size_of):
                 (scene_dir / rel).unlink(missing_ok=True)
             remove_stale_temporaries(scene_dir)
             before = file_stats(scene_dir)
@@ -547,26 +565,25 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
             ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
                                layout=SceneLayout(scene_dir), data_dir=data_dir,
                                params=typed_params(spec, params), log=log, upstream=upstream,
-                               progress=StageProgress(scene_id, stage, log, on_progress))
+                               build_params=config.params,
+                               progress=StageProgress(scene_id, stage, log, on_progress, guard=guard))
             summary = summary_of(func(ctx))
             missing = outputs_present(scene_dir, spec, params)
             if missing:
                 raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
                                           f"outputs: {', '.join(missing[:5])}")
             seconds = time.time() - t0
-            write_json(marker_path(scene_dir, stage),
-                       {"stage": stage, "scene_id": scene_id, "scene_uri": scene_uri, "fingerprint": fp,
-                        "params": params, "inputs": {k: v["fingerprint"] for k, v in upstream.items()},
-                        "version": paradrive.__version__, "seconds": round(seconds, 3),
-                        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary,
-                        "run": uuid.uuid4().hex,
-                        "upstream_runs": {k: v.get("run") for k, v in upstream.items()},
-                        "outputs": written_outputs(scene_dir, before,
-                                                   expand_outputs(spec.outputs, params), ctx.hashes)})
+            guard()
+            StageMarker(stage=stage, scene_id=scene_id, scene_uri=scene_uri, fingerprint=fp,
+                        params=params, inputs={k: v.fingerprint for k, v in upstream.items()},
+                        version=paradrive.__version__, seconds=round(seconds, 3),
+                        finished_at=time.strftime("%Y-%m-%dT%H:%M:%S"), summary=summary,
+                        run=uuid.uuid4().hex, upstream_runs={k: v.run for k, v in upstream.items()},
+                        outputs=written_outputs(scene_dir, before, expand_outputs(spec.outputs, params),
+                                                ctx.hashes)).save(marker_path(scene_dir, stage))
             if mirror:
-                uploaded, deleted = mirror.push(before, last=[marker_rel])
-                log.info("%s: %d file(s) uploaded to %s, %d removed there", stage, uploaded,
-                         root.scene_location(scene_id), deleted)
+                _upload(mirror, before, marker_rel, guard, log, f"{stage}: %d file(s) uploaded to "
+                        f"{root.scene_location(scene_id)}, %d removed there")
             release_outputs(config, stage, scene_dir, mirror, log)
             log.info("%s: done in %.1f s", stage, seconds)
             return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,

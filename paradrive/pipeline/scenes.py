@@ -17,20 +17,51 @@
     refused.
 
 Paths in the URIs are absolute, so a build reads the same logs whatever the working folder of a
-worker. Duplicates are dropped, first occurrence wins.
+worker.
+
+Every log is given once, and every scene gets an id of its own (:func:`distinct_scenes`): two
+inputs that are the same log (one URI twice, one file by two paths or through a link, one
+synthetic street or nuScenes scene twice) are refused before any work, naming where each was
+given; two different logs whose names give one scene id (``/a/drive.mp4`` and
+``/b/drive.mp4``) each get that id followed by a short hash of the log's identity (its real
+path, and the query that cuts it), written into the URI as its scene name
+(``video:/b/drive.mp4#drive-<hash>``), so the ledger, the markers and the index all carry it.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 from paradrive.errors import ConfigError
-from paradrive.ingest.waymo import SUFFIXES as WAYMO_SUFFIXES
-from paradrive.uri import KINDS
+from paradrive.uri import KINDS, SceneURI, parse_uri, scene_name, short_hash, with_name
 
 _TRAILING_COMMENT = re.compile(r"\s+#.*$")
+# kinds whose id names the log itself: the same id is the same log
+_NAMED_LOGS = ("synthetic", "nuscenes")
+
+
+@dataclass(frozen=True)
+class SceneInput:
+    """A scene URI and where it was given (``--scene``, ``list.txt:3``, a folder)."""
+
+    uri: str
+    where: str
+
+    def describe(self) -> str:
+        return self.where if self.uri in self.where else f"{self.where} ({self.uri})"
+
+
+def _waymo_suffixes() -> tuple[str, ...]:
+    """A Waymo segment's file suffixes; imported when a path is looked at, so a build (and every
+    command) starts without the log readers and what they import (torch)."""
+    from paradrive.ingest.waymo import SUFFIXES
+
+    return tuple(SUFFIXES)
 
 
 def is_uri(text: str) -> bool:
@@ -39,17 +70,96 @@ def is_uri(text: str) -> bool:
 
 
 def expand_scene_inputs(items: list[str]) -> list[str]:
-    """Scene URIs from URIs, list files and folders of logs (see the module doc)."""
-    uris: list[str] = []
-    for item in items:
-        uris.extend(_expand(str(item).strip(), base=Path.cwd(), depth=0, within=None))
-    seen: set[str] = set()
-    out = []
-    for u in uris:
-        if u not in seen:
-            seen.add(u)
-            out.append(u)
-    return out
+    """Scene URIs from URIs, list files and folders of logs, each log once with an id of its
+    own (see the module doc)."""
+    return scene_uris([], items)
+
+
+def scene_uris(scene: list[str], scenes: list[str]) -> list[str]:
+    """The scenes of ``--scene`` URIs and ``--scenes`` items (URIs, list files, folders), in
+    the order given, through :func:`distinct_scenes`."""
+    given = [SceneInput(str(uri).strip(), "--scene") for uri in scene]
+    for item in scenes:
+        given.extend(_expand(str(item).strip(), base=Path.cwd(), depth=0, within=None,
+                             where=f"--scenes {item}"))
+    return distinct_scenes(given)
+
+
+def log_key(uri: SceneURI) -> str:
+    """What one log is, whatever path or name it is given by: the scene id of a synthetic street
+    or a nuScenes scene (their ids name the log), else the kind, the real path of the file or
+    folder (links followed), a folder's segment and the query that cuts or scales it."""
+    if uri.kind in _NAMED_LOGS:
+        return f"{uri.kind}\0{uri.scene_id}"
+    path = os.path.realpath(os.path.expanduser(uri.path))
+    # a fragment only names the scene, except for a folder of Waymo segments, where it picks one
+    picked = uri.scene if uri.kind == "waymo" and os.path.isdir(path) and uri.scene else ""
+    query = "&".join(f"{k}={v}" for k, v in sorted(uri.query.items()))
+    return "\0".join((uri.kind, path, picked, query))
+
+
+def distinct_scenes(inputs: list[SceneInput]) -> list[str]:
+    """The URIs of ``inputs``, each log once, no two sharing a scene id (see the module doc).
+
+    Two inputs of one log are a ConfigError naming both. Two logs whose ids meet are renamed
+    ``<name>-<hash of the log>``, every one of them, so the result depends on the set of
+    inputs, not their order; where a name cannot be given (a Waymo folder with ``#<segment>``)
+    the error names both and the fix."""
+    first: dict[str, SceneInput] = {}
+    by_id: dict[str, list[tuple[str, SceneInput]]] = defaultdict(list)
+    for given in inputs:
+        uri = parse_uri(given.uri)
+        key = log_key(uri)
+        if key in first:
+            raise ConfigError(f"{first[key].describe()} and {given.describe()} are the same log "
+                              f"({_what(uri)}); give it once")
+        first[key] = given
+        by_id[uri.scene_id].append((key, given))
+    renamed: dict[str, str] = {}
+    for scene_id, logs in by_id.items():
+        if len(logs) > 1:
+            renamed.update((given.uri, _renamed(scene_id, key, given, logs)) for key, given in logs)
+    return [renamed.get(given.uri, given.uri) for given in inputs]
+
+
+def missing_inputs(uris: list[str]) -> list[str]:
+    """The URIs whose log is a local file or folder that is not there (a synthetic street has
+    none to look for)."""
+    missing = []
+    for text in uris:
+        uri = parse_uri(text)
+        if uri.kind != "synthetic" and not os.path.exists(os.path.expanduser(uri.path)):
+            missing.append(text)
+    return missing
+
+
+def check_present(uris: list[str], shown: int = 3) -> None:
+    """Refuse, in one line, scene inputs whose files are not there: how many, the first few, and
+    the fix. A build or a plan of logs that do not exist stops before any work."""
+    missing = missing_inputs(uris)
+    if not missing:
+        return
+    names = ", ".join(missing[:shown]) + (f" and {len(missing) - shown} more" if len(missing) > shown
+                                          else "")
+    raise ConfigError(f"{len(missing)} of {len(uris)} scene input(s) do not exist: {names}; fix "
+                      f"their paths or leave them out, then re-run")
+
+
+def _what(uri: SceneURI) -> str:
+    if uri.kind in _NAMED_LOGS:
+        return f"scene {uri.scene_id}"
+    return os.path.realpath(os.path.expanduser(uri.path))
+
+
+def _renamed(scene_id: str, key: str, given: SceneInput,
+             logs: list[tuple[str, SceneInput]]) -> str:
+    uri = parse_uri(given.uri)
+    if uri.kind == "waymo" and uri.scene and Path(uri.path).expanduser().is_dir():
+        others = ", ".join(g.describe() for _, g in logs if g is not given)
+        raise ConfigError(f"{given.describe()} and {others} are different logs that give one "
+                          f"scene id {scene_id}; name the segment files themselves "
+                          f"(waymo:<folder>/<file>.tfrecord) or build them apart")
+    return with_name(given.uri, f"{scene_name(uri)}-{short_hash(key)}")
 
 
 def _inside(path: Path, folder: Path, what: str) -> None:
@@ -60,21 +170,21 @@ def _inside(path: Path, folder: Path, what: str) -> None:
                           f"name it by a scene URI (waymo:/…, drivestudio:/…)")
 
 
-def _expand(item: str, base: Path, depth: int, within: Path | None) -> list[str]:
+def _expand(item: str, base: Path, depth: int, within: Path | None, where: str) -> list[SceneInput]:
     if not item:
         return []
     if is_uri(item):
-        return [item]
+        return [SceneInput(item, where)]
     path = Path(item).expanduser()
     if not path.is_absolute():
         path = base / path
     if within is not None:  # a line of a list file: the list's folder is what was given
         _inside(path, within, f"{item!r}")
     if path.is_dir():
-        return scenes_in_folder(path)
+        return [SceneInput(uri, where) for uri in scenes_in_folder(path)]
     if path.is_file():
-        if path.suffix in WAYMO_SUFFIXES:
-            return [f"waymo:{path.resolve()}"]
+        if path.suffix in _waymo_suffixes():
+            return [SceneInput(f"waymo:{path.resolve()}", where)]
         if depth > 4:
             raise ConfigError(f"{path}: scene lists nest more than 4 deep; is a list including itself?")
         return _read_list(path, depth)
@@ -82,21 +192,22 @@ def _expand(item: str, base: Path, depth: int, within: Path | None) -> list[str]
                       f"nor an existing list file or folder of logs")
 
 
-def _read_list(path: Path, depth: int) -> list[str]:
+def _read_list(path: Path, depth: int) -> list[SceneInput]:
     try:
         text = path.read_text()
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not a text scene list (one URI or path per line)") from exc
-    uris: list[str] = []
+    inputs: list[SceneInput] = []
     for number, raw in enumerate(text.splitlines(), 1):
         line = _TRAILING_COMMENT.sub("", raw).strip()
         if not line or line.startswith("#"):
             continue
         try:
-            uris.extend(_expand(line, base=path.parent, depth=depth + 1, within=path.parent))
+            inputs.extend(_expand(line, base=path.parent, depth=depth + 1, within=path.parent,
+                                  where=f"{path}:{number}"))
         except ConfigError as exc:
             raise ConfigError(f"{path}:{number}: {exc}") from exc
-    return uris
+    return inputs
 
 
 def is_drivestudio_scene(folder: Path) -> bool:
@@ -131,7 +242,7 @@ def scenes_in_folder(folder: Path) -> list[str]:
     if is_drivestudio_scene(folder):
         return [f"drivestudio:{folder}"]
     found = [p for p in sorted(folder.rglob("*"))
-             if p.is_file() and p.suffix in WAYMO_SUFFIXES and not p.name.startswith(".")]
+             if p.is_file() and p.suffix in _waymo_suffixes() and not p.name.startswith(".")]
     scenes = [p for p in sorted(folder.iterdir()) if p.is_dir() and is_drivestudio_scene(p)]
     for p in found + scenes:
         _inside(p, folder, f"{p}")

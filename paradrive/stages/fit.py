@@ -36,7 +36,7 @@ def run(ctx: StageContext[Params]) -> FitRecord:
     from paradrive.gs.init import Holdout
     from paradrive.stages.ingest import recorded_params
 
-    threshold = recorded_params(ctx.layout).moving_threshold_m
+    threshold = recorded_params(ctx.layout, ctx.build_params.get("ingest")).moving_threshold_m
     record = fit_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress,
                        moving_threshold_m=threshold)
     if record.complete and Holdout.of(ctx.params).active:

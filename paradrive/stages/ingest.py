@@ -13,7 +13,6 @@ nuScenes ``6cams``), which the ReCamDriving recipe keeps.
 from __future__ import annotations
 
 import importlib
-import json
 import os
 import shutil
 from pathlib import Path
@@ -28,6 +27,7 @@ from paradrive.scene import Scene, load_scene, write_image, write_scene
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.params import IngestParams as Params
 from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import StageMarker
 from paradrive.uri import parse_uri
 
 READERS = {
@@ -41,30 +41,31 @@ READERS = {
 INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
 
 
-def params_of(values: Mapping[str, Any] | None = None) -> Params:
-    """Ingest parameters from a recorded mapping (a scene's ingest marker); the YAML's values
-    fill what an older marker lacks, and keys the YAML no longer has are left out."""
-    from paradrive.contracts.specs import StageRegistry
+def params_of(values: Mapping[str, Any] | None = None,
+              defaults: Mapping[str, Any] | None = None) -> Params:
+    """Ingest parameters from a recorded mapping (a scene's ingest marker). What an older
+    marker lacks comes from ``defaults``: the build's own ingest parameters (its profile and
+    ``--set``), or where none are given the stage file's defaults (read once, not per call);
+    keys the stage no longer has are left out."""
+    if defaults is None:
+        from paradrive.contracts.specs import cached_registry
 
+        defaults = cached_registry().specs["ingest"].defaults()
     known = {k: v for k, v in (values or {}).items() if k in Params.model_fields}
-    return Params.of("ingest", {**StageRegistry().resolve(None).params["ingest"], **known})
+    return Params.of("ingest", {**defaults, **known})
 
 
 def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
     """The parameter mapping the scene at ``layout`` was ingested with (its stage marker), or
     None where it has no readable marker (a scene folder made without the runner)."""
-    try:
-        doc = json.loads(layout.marker("ingest").read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-    values = doc.get("params") if isinstance(doc, dict) else None
-    return values if isinstance(values, dict) else None
+    marker = StageMarker.read(layout.marker("ingest"))
+    return marker.params if marker is not None else None
 
 
-def recorded_params(layout: SceneLayout) -> Params:
-    """The parameters the scene at ``layout`` was ingested with, typed; the YAML's values where
-    it has no marker."""
-    return params_of(recorded_values(layout))
+def recorded_params(layout: SceneLayout, defaults: Mapping[str, Any] | None = None) -> Params:
+    """The parameters the scene at ``layout`` was ingested with, typed; ``defaults`` (the
+    build's ingest parameters) where its marker lacks one or it has none (:func:`params_of`)."""
+    return params_of(recorded_values(layout), defaults)
 
 
 class IngestSummary(dict[str, Any]):

@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from pydantic import ValidationInfo, field_validator
 
 from paradrive import geometry
 from paradrive.errors import SceneError
@@ -57,8 +58,8 @@ from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
 from paradrive.contracts.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
                                       SkippedClip, SkyDomeRecord, WindowRecord)
 from paradrive.streams import (ClipWindow, OutputCamera, StreamPlan, clip_shortfall, crop_resize,
-                               frames_needed, output_camera, path_shortfall, plan_streams,
-                               source_clip_windows, source_poses)
+                               format_offset, frames_needed, output_camera, path_shortfall,
+                               plan_streams, source_clip_windows, source_poses)
 
 if TYPE_CHECKING:
     from paradrive.gs.graph import FittedModel
@@ -86,6 +87,19 @@ class Params(StageParams):
     threads: int
     keep_frames: bool
 
+    @field_validator("offsets_m", "longitudinal_offsets_m")
+    @classmethod
+    def _offsets_once(cls, value: list[float]) -> list[float]:
+        """Each offset once, as its stream is named (1 and 1.0 are one stream, ``+1m``): checked
+        with the configuration, before any stage runs, not when render meets it after the fit."""
+        return _once(value, format_offset, "offset")
+
+    @field_validator("condition_checkpoints", "clips", "cameras")
+    @classmethod
+    def _names_once(cls, value: list, info: ValidationInfo) -> list:
+        return _once(value, str, {"condition_checkpoints": "checkpoint", "clips": "clip",
+                                  "cameras": "camera"}[str(info.field_name)])
+
     @property
     def source_offsets(self) -> list[float]:
         """The offsets of the chosen transform: ``offsets_m`` or ``longitudinal_offsets_m``."""
@@ -94,6 +108,18 @@ class Params(StageParams):
     def streams(self) -> list[StreamPlan]:
         return plan_streams(self.condition_checkpoints, self.source_checkpoint, self.source_offsets,
                             self.transform)
+
+
+def _once(values: list, name: Callable[[Any], str], what: str) -> list:
+    """``values`` when no two give one name, else a ValueError naming the repeat and the fix."""
+    seen: dict[str, Any] = {}
+    for value in values:
+        if name(value) in seen:
+            first = seen[name(value)]
+            both = f" ({first!r} and {value!r})" if repr(first) != repr(value) else ""
+            raise ValueError(f"repeats the {what} {name(value)}{both}; list each {what} once")
+        seen[name(value)] = value
+    return values
 
 
 @dataclass
@@ -116,11 +142,7 @@ def check_params(params: Params, scene: Scene, layout: SceneLayout) -> None:
     if params.clip_frames <= 0:
         raise SceneError(f"render.clip_frames = {params.clip_frames} is not positive",
                          scene_id=sid, fix="set render.clip_frames >= 1")
-    streams = params.streams()
-    if len({s.name for s in streams}) != len(streams):
-        key = "longitudinal_offsets_m" if params.transform == "longitudinal" else "offsets_m"
-        raise SceneError(f"render.{key} {params.source_offsets} repeats an offset", scene_id=sid,
-                         fix="list each offset once")
+    streams = params.streams()   # each named once: Params refused a repeated offset or checkpoint
     nodes = FitRecord.load(layout.fit_json).actors if layout.fit_json.is_file() else []
     for it in sorted({s.iteration for s in streams if s.iteration is not None}):
         for path in [layout.checkpoint(it)] + [layout.actor_checkpoint(it, a.file) for a in nodes]:

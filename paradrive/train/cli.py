@@ -10,14 +10,14 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.errors import EXIT_FAILED, ParaDriveError
 from paradrive.io import path_inside
 
 console = Console(stderr=True)
 
 
 def _fail(message: str) -> None:
-    console.print(f"[bold red]error:[/] {escape(message)}")
+    console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)   # one line, whatever the width
     raise typer.Exit(2)
 
 
@@ -38,13 +38,28 @@ def train(
     text_encoder: Path | None = typer.Option(None, "--text-encoder", help="--model wan: the umT5 folder (or the whole diffusers folder) for the empty prompt's embedding; sets model.text_encoder."),
     sample_set: Path | None = typer.Option(None, "--sample-set", help="With --sample FOLDER: generate every row of this inference set (paradrive build --kind inference) into FOLDER/<pair_id>.mp4, as 'paradrive eval --build' scores them."),
 ) -> None:
-    """Train the ReCamDriving-style model on a build's pairs (resumes a run left in --out)."""
+    """Train the ReCamDriving-style model on a build's pairs (resumes a run left in --out).
+
+    On several GPUs: torchrun --nproc_per_node N --no-python paradrive train ... (data parallel;
+    rank 0 writes the run folder and prints)."""
+    from paradrive.train.distributed import leave
+
+    try:
+        _train(build, stage, config, out_dir, steps, init, set_, sample, pair, sample_steps, model,
+               {"transformer": transformer, "vae": vae, "text_encoder": text_encoder}, sample_set)
+    finally:
+        leave()
+
+
+def _train(build: Path, stage: int, config: str | None, out_dir: Path | None, steps: int | None,
+           init: Path | None, set_: list[str], sample: Path | None, pair: str, sample_steps: int | None,
+           model: str, folders: dict[str, Path | None], sample_set: Path | None) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from paradrive.train.trainer import parse_set
 
+    notes: list[str] = []
     try:
-        folders = {"transformer": transformer, "vae": vae, "text_encoder": text_encoder}
         cfg = _load_config(model, config, parse_set(set_), folders)
         if not build.is_dir():
             raise FileNotFoundError(f"--build {build}: no such build folder (run 'paradrive build' first)")
@@ -55,10 +70,15 @@ def train(
             if not init.exists():
                 raise FileNotFoundError(f"stage 2 needs stage-1 weights: none at {init}; run "
                                         f"'paradrive train --stage 1' with the same --out, or pass --init")
-        dataset = _open_dataset(model, build, cfg)
+        dataset = _open_dataset(model, build, cfg, notes)
         trainer = _trainer_class(model)(cfg, stage, stage_dir, dataset, init=init)
-    except (ValueError, FileNotFoundError, TypeError, ConfigError) as exc:
+    except (ValueError, FileNotFoundError, TypeError, ParaDriveError) as exc:
         _fail(str(exc))
+    if not trainer.world.main:   # rank 0 alone prints, writes and samples
+        _run(trainer, int(cfg["train"]["steps"] if steps is None else steps))
+        return
+    for line in notes + trainer.notes:
+        console.print(f"[yellow]note:[/] {escape(line)}", soft_wrap=True)
 
     total = int(cfg["train"]["steps"] if steps is None else steps)
     progress = Progress(TextColumn("[bold]stage {task.fields[stage]}"), BarColumn(), MofNCompleteColumn(),
@@ -66,12 +86,13 @@ def train(
                         disable=not console.is_terminal)
     with progress:
         task = progress.add_task("train", total=total, completed=min(trainer.step, total), stage=stage, loss="-")
-        losses = trainer.train(total, on_step=lambda s, l: progress.update(task, completed=s, loss=f"{l:.4f}"))
+        losses = _run(trainer, total, on_step=lambda s, l: progress.update(task, completed=s, loss=f"{l:.4f}"))
     if losses:
         k = max(1, min(10, len(losses) // 4))
         first, last = sum(losses[:k]) / k, sum(losses[-k:]) / k
         typer.echo(f"stage {stage}: {len(losses)} steps to step {trainer.step}; loss {first:.4f} -> {last:.4f} "
-                  f"(mean of first / last {k}); checkpoint {stage_dir / 'last.pt'}")
+                  f"(mean of first / last {k}); {trainer.world.world_size} process(es); checkpoint "
+                  f"{stage_dir / 'last.pt'}")
     else:
         typer.echo(f"stage {stage}: already at step {trainer.step} (of {total}); checkpoint {stage_dir / 'last.pt'}")
 
@@ -108,6 +129,17 @@ def train(
                        f"{item['offset_m']} m) -> {path}")
 
 
+def _run(trainer, total: int, on_step=None) -> list[float]:
+    """``trainer.train``; a failure of a step (a loss that is not finite, a pair that cannot be
+    read) is one line, exit 1: the run resumes from its last checkpoint once fixed."""
+    try:
+        return trainer.train(total, on_step=on_step)
+    except (FloatingPointError, ParaDriveError) as exc:
+        console.print(f"[bold red]error:[/] stage {trainer.stage} stopped at step {trainer.step}: {escape(str(exc))}; "
+                      f"a re-run resumes from {trainer.out_dir / 'last.pt'}", soft_wrap=True)
+        raise typer.Exit(EXIT_FAILED) from None
+
+
 def _load_config(model: str, config: str | None, overrides: dict, folders: dict[str, Path | None]) -> dict:
     """The training config of ``--model``: ``wan`` reads ``stages/train/wan-<name>.yaml`` and takes
     the weights folders given on the command line; ``reference`` refuses a wan config."""
@@ -126,12 +158,13 @@ def _load_config(model: str, config: str | None, overrides: dict, folders: dict[
     return cfg
 
 
-def _open_dataset(model: str, build: Path, cfg: dict):
-    """The build's pairs as ``--model``'s trainer reads them."""
+def _open_dataset(model: str, build: Path, cfg: dict, notes: list[str] | None = None):
+    """The build's pairs as ``--model``'s trainer reads them (``notes``: what a user should know
+    of how, e.g. a latent cache that does not fit)."""
     if model == "wan":
         from paradrive.train.wan import open_wan_dataset
 
-        return open_wan_dataset(build, cfg)
+        return open_wan_dataset(build, cfg, notes)
     from paradrive.train.trainer import open_dataset
 
     return open_dataset(build, cfg)

@@ -6,16 +6,18 @@
     (the target), ``OUT/train/<pair_id>/cameras/camera_extrinsics.json`` (per frame, each camera's
     4x4 matrix as a string of four bracketed rows, in the axes and units ReCamMaster's loader
     undoes: its parse gives back our OpenCV camera-to-world in metres), ``OUT/metadata.csv``
-    (``file_name,text``: the target videos, empty prompts) and, with a VAE, each video's cached
-    ``<video>.tensors.pth`` (``latents`` (16, T', h, w) bf16 normalised as Wan trainers cache
-    them, ``prompt_emb`` ``{"context": (1, L, D)}`` bf16, ``image_emb`` ``{}``). Those are written
-    with ``torch.save``, the format ReCamMaster reads: a hand-off file in its format, holding
-    tensors only (it loads them with ``weights_only=True``); the builder's own outputs stay
-    pickle-free.
+    (``file_name,text``: the target videos, the empty prompt written as one space, see
+    :data:`EMPTY_PROMPT`) and each video's cached ``<video>.tensors.pth`` (``latents``
+    (16, T', h, w) bf16 normalised as Wan trainers cache them, ``prompt_emb`` ``{"context":
+    (1, L, D)}`` bf16, ``image_emb`` ``{}``), so a VAE is required: ReCamMaster's ``data_process``
+    caches only the videos ``metadata.csv`` lists (the targets) and its loader needs the source's
+    cache too. Those are written with ``torch.save``, the format ReCamMaster reads: a hand-off
+    file in its format, holding tensors only (it loads them with ``weights_only=True``); the
+    builder's own outputs stay pickle-free.
 ``paradrive convert diffsynth BUILD OUT``
     DiffSynth-Studio's dataset form (``--dataset_base_path OUT --dataset_metadata_path
     OUT/metadata.csv``): ``metadata.csv`` and ``metadata.json`` with one row per pair: ``video``
-    (the target), ``prompt`` (empty), ``source_video``, ``condition_video`` (paths relative to OUT,
+    (the target), ``prompt`` (:data:`EMPTY_PROMPT`), ``source_video``, ``condition_video`` (paths relative to OUT,
     the files under ``OUT/videos/``), ``offset_m`` and ``camera`` (the relative pose per latent
     frame, 12 numbers each, as JSON text in the CSV, a list in the JSON).
 ``paradrive convert pixels BUILD OUT``
@@ -25,7 +27,9 @@
     :func:`read_pixel_pair` reads one back and :func:`collate_pixels` batches samples as
     (B, 3, F, H, W) in [-1, 1] for a diffusers pipeline or a custom loop.
 
-Every output lands atomically (written under a temporary name, then renamed).
+The export lands whole: it is written into a temporary folder beside OUT and renamed into place
+when complete (an earlier export in OUT is replaced; a folder holding anything else is refused),
+so a failed conversion (a full disk, a file-size limit) leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -50,6 +54,12 @@ from paradrive.train.wan import relative_camera, to_channels_first
 
 FORMATS = ("recammaster", "diffsynth", "pixels")
 SOURCE_CAMERA, TARGET_CAMERA = "cam01", "cam02"
+# The empty prompt as a metadata cell: pandas (how DiffSynth-Studio's and ReCamMaster's loaders
+# read metadata.csv) reads an empty cell as NaN, which their tokenizer refuses; their Wan prompter
+# strips whitespace first (clean='whitespace'), so one space encodes exactly as the empty prompt.
+EMPTY_PROMPT = " "
+# written last into every export: marks a folder convert may replace
+MARKER = ".paradrive-convert.json"
 
 
 # -- poses -----------------------------------------------------------------------------------------
@@ -140,7 +150,7 @@ def to_recammaster(build: str | Path, out: str | Path, vae: Any = None,
                 with atomic_path(folder / "videos" / f"{cam}.mp4.tensors.pth") as tmp:
                     torch.save(cached, tmp)
         names.append(f"{pair_id}/videos/{TARGET_CAMERA}.mp4")
-    _write_csv(out / "metadata.csv", ["file_name", "text"], [{"file_name": n, "text": ""} for n in names])
+    _write_csv(out / "metadata.csv", ["file_name", "text"], [{"file_name": n, "text": EMPTY_PROMPT} for n in names])
     return len(names)
 
 
@@ -160,7 +170,7 @@ def to_diffsynth(build: str | Path, out: str | Path, limit: int | None = None) -
             paths[role] = f"videos/{pair_id}/{role}.mp4"
         rel = torch.from_numpy(np.array(row["rel_pose"], dtype=np.float32))[None]
         camera = relative_camera(rel)[0].tolist()
-        rows.append({"video": paths["target"], "prompt": "", "source_video": paths["source"],
+        rows.append({"video": paths["target"], "prompt": EMPTY_PROMPT, "source_video": paths["source"],
                      "condition_video": paths["condition"], "offset_m": float(row["offset_m"]),
                      "camera": camera})
     write_json(out / "metadata.json", rows)
@@ -183,7 +193,7 @@ def to_pixels(build: str | Path, out: str | Path, num_frames: int | None = None,
     """One safetensors file per pair (the first ``limit``) in diffusers' (3, F, H, W) layout
     (see the module docstring), at ``num_frames`` / ``output_size`` (default: as stored).
     Returns the count."""
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     ds = PairDataset(build, dtype="uint8", num_frames=num_frames, output_size=output_size)
     out = Path(out)
@@ -196,7 +206,8 @@ def to_pixels(build: str | Path, out: str | Path, num_frames: int | None = None,
         tensors["rel_pose"] = sample["rel_pose"].contiguous()
         path = path_inside(out, f"{pair_id}.safetensors", f"{build}: pair {pair_id}")
         with atomic_path(path) as tmp:
-            save_file(tensors, str(tmp), metadata={"pair_id": pair_id, "offset_m": repr(sample["offset_m"])})
+            # written by Python, so a failed write (a full disk, a size limit) is the OSError it is
+            tmp.write_bytes(save(tensors, metadata={"pair_id": pair_id, "offset_m": repr(sample["offset_m"])}))
         files.append({"pair_id": pair_id, "file": f"{pair_id}.safetensors", "offset_m": sample["offset_m"]})
     write_json(out / "index.json", {"layout": "(3, F, H, W) uint8 per video; camera (T', 12) float32",
                                    "pairs": files})
@@ -231,25 +242,66 @@ def collate_pixels(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return batch
 
 
+def check_output(out: Path) -> None:
+    """ValueError before any work when ``out`` cannot become the export: a file or device, a path
+    under a file, a folder this user cannot write in, or a folder holding anything but an earlier
+    export."""
+    if out.is_dir():
+        if any(out.iterdir()) and not (out / MARKER).is_file():
+            raise ValueError(f"OUT {out} is a folder holding other files (no {MARKER}: not an earlier export); "
+                             f"pass a new or empty folder")
+    elif out.exists():
+        raise ValueError(f"OUT {out} is a file, not a folder; pass the path of a folder to create")
+    above = next(p for p in out.absolute().parents if p.exists())   # the export is made beside OUT
+    if not above.is_dir():
+        raise ValueError(f"OUT {out}: {above} is a file, not a folder; pass the path of a folder to create")
+    if not os.access(above, os.W_OK | os.X_OK):
+        raise ValueError(f"OUT {out}: {above} cannot be written by this user; pass another OUT")
+
+
 def convert_build(fmt: str, build: Path, out: Path, *, vae: Path | None = None,
                   text_encoder: Path | None = None, num_frames: int | None = None,
-                  limit: int | None = None) -> int:
-    """Write ``build`` into ``out`` in the layout ``fmt`` names (one of :data:`FORMATS`); the
-    number of pairs written."""
+                  limit: int | None = None, device: str | None = None) -> int:
+    """Write ``build`` into ``out`` in the layout ``fmt`` names (one of :data:`FORMATS`), whole
+    or not at all; the number of pairs written. ``device``: where the VAE and text encoder run
+    (default: the encode stage's ``device``). Usage errors (ValueError, FileNotFoundError,
+    ConfigError) come before any work."""
     if fmt not in FORMATS:
         raise ValueError(f"format {fmt!r}: use one of {', '.join(FORMATS)}")
     if not build.is_dir():
         raise FileNotFoundError(f"{build}: no such build folder (run 'paradrive build' first)")
-    if fmt == "diffsynth":
-        return to_diffsynth(build, out, limit)
-    if fmt == "pixels":
-        return to_pixels(build, out, num_frames=num_frames, limit=limit)
+    check_output(out)
     model, embedding = None, None
-    if vae is not None:
-        from paradrive.wan.text import empty_prompt_embedding
-        from paradrive.wan.vae import load_vae
+    if fmt == "recammaster":
+        model, embedding = _recammaster_encoders(vae, text_encoder, device)
+    with atomic_path(out) as tmp:
+        tmp.mkdir(parents=True)
+        if fmt == "diffsynth":
+            count = to_diffsynth(build, tmp, limit)
+        elif fmt == "pixels":
+            count = to_pixels(build, tmp, num_frames=num_frames, limit=limit)
+        else:
+            count = to_recammaster(build, tmp, model, embedding, limit)
+        write_json(tmp / MARKER, {"format": fmt, "build": str(build), "pairs": count})
+    return count
 
-        if text_encoder is None:
-            raise ValueError("--vae needs --text-encoder: the cached tensors hold the empty prompt's embedding")
-        model, embedding = load_vae(vae), empty_prompt_embedding(text_encoder)
-    return to_recammaster(build, out, model, embedding, limit)
+
+def _recammaster_encoders(vae: Path | None, text_encoder: Path | None, device: str | None) -> tuple[Any, Any]:
+    """The VAE and the empty prompt's embedding ReCamMaster's cached tensors need, on ``device``
+    in the encode stage's compute dtype; ValueError without ``vae``."""
+    from paradrive.devices import resolve_device
+    from paradrive.contracts.specs import StageRegistry
+    from paradrive.wan.text import empty_prompt_embedding
+    from paradrive.wan.vae import load_vae
+
+    if vae is None:
+        raise ValueError("convert recammaster needs --vae DIR (and --text-encoder DIR): ReCamMaster's data_process "
+                         "caches only the videos metadata.csv lists (each pair's cam02, the target) and its loader "
+                         "then fails on every cam01 (the source) it needs beside it, retrying forever; with --vae "
+                         "both videos' <video>.tensors.pth are written here")
+    if text_encoder is None:
+        raise ValueError("--vae needs --text-encoder: the cached tensors hold the empty prompt's embedding")
+    settings = StageRegistry().resolve(None, {"encode": {"device": device} if device else {}}).typed("encode")
+    dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16}[settings.compute_dtype]
+    where = resolve_device(settings.device)
+    return load_vae(vae, where, dtype), empty_prompt_embedding(text_encoder, where, dtype)

@@ -19,6 +19,7 @@ import contextlib
 import copy
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -28,19 +29,20 @@ import torch
 import yaml
 from pydantic import ValidationError
 
-from paradrive.data import PairDataset, to_unit_range
+from paradrive.data import PairDataset, epoch_order, per_rank, to_unit_range
 from paradrive.devices import resolve_device
-from paradrive.io import UnsafeFileError, atomic_path, load_tensors, write_text
+from paradrive.io import UnsafeFileError, atomic_path, load_tensors, stop_point, write_text
 from paradrive.errors import ConfigError
 from paradrive.contracts.specs import Param, coerce, default_stages_dir
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
-from paradrive.train.flow import euler_sample, flow_matching_loss
+from paradrive.train.distributed import all_agree, barrier, device_for, join, mean_over_ranks
+from paradrive.train.flow import Generators, euler_sample, flow_matching_loss
 from paradrive.train.model import ModelConfig, VideoDiT, is_stage2_parameter, load_stage1_weights
 
 log = logging.getLogger(__name__)
 
 CONFIG_DIR = default_stages_dir() / "train"
-CHECKPOINT_FORMAT = "paradrive-train/1"
+CHECKPOINT_FORMAT = "paradrive-train/2"
 
 
 # -- configs -------------------------------------------------------------------------------------
@@ -120,7 +122,12 @@ def parse_set(items: Sequence[str]) -> dict:
         *parents, leaf = key.split(".")
         for part in parents:
             node = node.setdefault(part, {})
-        node[leaf] = yaml.safe_load(raw)
+        try:
+            node[leaf] = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:   # a tag such as !!python/object is refused, never run
+            problem = getattr(exc, "problem", None) or "unreadable"
+            raise ValueError(f"--set {item!r}: the value is not plain YAML ({problem}); write a "
+                             f"number, string, list or map, e.g. train.lr=3e-4 or data.height=48") from exc
     return out
 
 
@@ -199,29 +206,84 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+# -- checkpoints ---------------------------------------------------------------------------------
+# what every checkpoint of a trainer holds (a file without one of them is damaged, not a resume point)
+CHECKPOINT_KEYS = ("format", "stage", "step", "epoch", "batch_in_epoch", "world_size", "config", "model",
+                   "optimizer", "torch_rng")
+PREVIOUS = "previous.pt"
+
+
+class DamagedCheckpoint(ValueError):
+    """A checkpoint file that cannot be what it says: empty, truncated, overwritten, or missing a part."""
+
+
+def read_checkpoint(path: str | Path, what: str, keys: Sequence[str] = CHECKPOINT_KEYS,
+                    map_location: Any = "cpu") -> dict:
+    """A trainer checkpoint's contents, loaded without pickle; :class:`DamagedCheckpoint` naming
+    ``what`` (``--init x.pt``, the run's ``last.pt``) and what is wrong with it, in one line."""
+    import zipfile
+
+    path = Path(path)
+    size = path.stat().st_size
+    if size == 0:
+        raise DamagedCheckpoint(f"{what} {path} is empty (0 bytes)")
+    # torch writes a zip archive; anything else (a cut-off copy loses the zip's directory at its
+    # end) is damage, not a file that needs pickle
+    if not zipfile.is_zipfile(path):
+        raise DamagedCheckpoint(f"{what} {path} is not a whole checkpoint ({size} bytes, not a torch "
+                                f"archive: truncated or overwritten)")
+    try:
+        ckpt = load_tensors(path, map_location=map_location)
+    except UnsafeFileError:
+        raise
+    except (RuntimeError, EOFError, OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DamagedCheckpoint(f"{what} {path} is damaged ({first})") from exc
+    if not isinstance(ckpt, dict):
+        raise DamagedCheckpoint(f"{what} {path} holds a {type(ckpt).__name__}, not a trainer checkpoint")
+    missing = [k for k in keys if k not in ckpt]
+    if missing:
+        raise DamagedCheckpoint(f"{what} {path} lacks {', '.join(missing)}: not a whole trainer checkpoint")
+    return ckpt
+
+
+def sample_seed(seed: int, stage: int, step: int, position: int) -> int:
+    """The seed of one sample's flow noise and time: from the run's seed, the stage, the optimiser
+    step and the sample's place in that step's global batch, so it is the same on any number of
+    processes and after a resume."""
+    import numpy as np
+
+    return int(np.random.SeedSequence([int(seed), int(stage), int(step), int(position)]).generate_state(1)[0])
+
+
 # -- the trainer ---------------------------------------------------------------------------------
 class Trainer:
     """Trains one stage on a map-style dataset of pair dicts (see docs/manifest.md, "The dataset adapter").
 
     ``init``: weights to start from (a trainer checkpoint or a bare state dict). Stage 2 needs the
     stage-1 weights; its new modules start fresh. A ``last.pt`` in ``out_dir`` takes precedence:
-    the run resumes from it.
+    the run resumes from it (or from ``previous.pt``, the one before, when ``last.pt`` is damaged).
+
+    Data parallel: started by torchrun, each process trains on its own pairs of every global batch
+    (the adapter's rank split, :func:`paradrive.data.epoch_order`), gradients are averaged over the
+    processes (DDP) and rank 0 alone writes the run folder. ``train.batch_size`` is per process and
+    per micro-batch; a step averages ``train.grad_accumulation`` micro-batches on every process.
     """
 
     # what a checkpoint says it is, and the settings a resumed run must share with it
     checkpoint_format = CHECKPOINT_FORMAT
+    checkpoint_keys: tuple[str, ...] = CHECKPOINT_KEYS
     resume_keys: tuple[str, ...] = ("model", "autoencoder", "seed")
 
-    def _restore(self, seed: int, stage: int, init: str | Path | None) -> bool:
-        """The data order's generator and counters at their start, then the run's ``last.pt``
-        (resume), else ``init``; stage 2 needs one of them. True when neither was there: a
+    def _restore(self, stage: int, init: str | Path | None) -> bool:
+        """The counters at their start, then the run's ``last.pt`` (resume; ``previous.pt`` when
+        it is damaged), else ``init``; stage 2 needs one of them. True when neither was there: a
         stage 1 starting afresh."""
-        self.generator = torch.Generator().manual_seed(seed + 1000 * stage)
         self.step = self.epoch = self.batch_in_epoch = 0
         self._pending_optimizer: dict | None = None
-        resume = self.out_dir / "last.pt"
-        if resume.exists():
-            self._load(resume)
+        resume = self._resume_checkpoint()
+        if resume is not None:
+            self._load(*resume)
         elif init is not None:
             self._init_from(Path(init))
         elif stage == 2:
@@ -231,89 +293,159 @@ class Trainer:
             return True
         return False
 
+    def _resume_checkpoint(self) -> tuple[Path, dict] | None:
+        """(path, contents) of the newest whole checkpoint of this run, ``last.pt`` else
+        ``previous.pt``; None for a new run. A damaged ``last.pt`` with a whole ``previous.pt`` is
+        noted (:attr:`notes`); with none whole, one line saying what is wrong and what to do."""
+        last, previous = self.out_dir / "last.pt", self.out_dir / PREVIOUS
+        problems = []
+        for path in (last, previous):
+            if not path.is_file():
+                continue
+            try:
+                ckpt = read_checkpoint(path, f"stage {self.stage}'s", self.checkpoint_keys, self.device)
+            except DamagedCheckpoint as exc:
+                problems.append(str(exc))
+                continue
+            if problems:
+                self.notes.append(f"{problems[0]}; resuming from {path} (step {ckpt['step']}), the "
+                                  f"checkpoint before it")
+                self._rotate = False   # the damaged last.pt is overwritten, never kept as previous.pt
+            elif path == previous:
+                self.notes.append(f"{last} is missing (a run stopped while replacing it); resuming from "
+                                  f"{path} (step {ckpt['step']})")
+            return path, ckpt
+        if problems:
+            raise DamagedCheckpoint(f"{problems[0]}, and no earlier whole checkpoint is there to resume from; "
+                                    f"delete {self.out_dir} to train stage {self.stage} from the start, or use "
+                                    f"another --out")
+        return None
+
     def _start(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset) -> int:
-        """What every trainer holds before its model: the config, stage, run folder, data and
-        device; torch's generator seeded. Returns the seed."""
+        """What every trainer holds before its model: the config, stage, run folder, data, device
+        and place among the run's processes; torch's generator seeded. Returns the seed."""
         if stage not in (1, 2):
             raise ValueError(f"stage must be 1 or 2, got {stage}")
         self.config = copy.deepcopy(dict(config))
         self.stage = stage
         self.out_dir = Path(out_dir)
         self.dataset = dataset
-        self.device = resolve_device(self.config["device"])
+        device = resolve_device(self.config["device"])
+        self.world = join(device)
+        self.device = device_for(device, self.world)
+        if self.device.type == "cuda":
+            torch.cuda.set_device(self.device)
+        self.notes: list[str] = []   # what a user should read: a fallback to an earlier checkpoint
+        self._rotate = True           # the next save keeps the last.pt it replaces as previous.pt
+        self._ddp: torch.nn.Module | None = None
+        t = self.config["train"]
+        self.batch_size, self.accumulation = int(t["batch_size"]), int(t["grad_accumulation"])
+        need = self.batch_size * self.accumulation
+        if per_rank(len(dataset), self.world.world_size) < need:
+            raise ValueError(f"the dataset has {len(dataset)} pairs: {self.world.world_size} process(es) at "
+                             f"train.batch_size={self.batch_size} x train.grad_accumulation={self.accumulation} "
+                             f"need {need * self.world.world_size} for one step; lower them or add pairs")
         seed = int(self.config["seed"])
         torch.manual_seed(seed)
         return seed
 
     def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
                  init: str | Path | None = None):
-        seed = self._start(config, stage, out_dir, dataset)
+        self._start(config, stage, out_dir, dataset)
         self.encoder = make_autoencoder(self.config["autoencoder"])
         if isinstance(self.encoder, torch.nn.Module):
             self.encoder.to(self.device).eval()
         self.model = build_model(self.config, stage, self.encoder).to(self.device)
         t = self.config["train"]
-        self.batch_size = int(t["batch_size"])
-        if len(dataset) < self.batch_size:
-            raise ValueError(f"the dataset has {len(dataset)} pairs, fewer than train.batch_size={self.batch_size}")
-        self._restore(seed, stage, init)
+        self._restore(stage, init)
         mask = trainable_mask(self.model, stage, t["stage1_trainable"])
         for name, p in self.model.named_parameters():
             p.requires_grad_(mask[name])
-        params = [p for p in self.model.parameters() if p.requires_grad]
+        self._make_optimizer([p for p in self.model.parameters() if p.requires_grad])
+
+    def _make_optimizer(self, params: list[torch.nn.Parameter]) -> None:
+        """AdamW over the trained ``params`` (with a resumed run's state)."""
+        t = self.config["train"]
         self.optimizer = torch.optim.AdamW(params, lr=float(t["lr"]), betas=tuple(t["betas"]),
                                            weight_decay=float(t["weight_decay"]), eps=float(t["eps"]))
         if self._pending_optimizer is not None:
-            self.optimizer.load_state_dict(self._pending_optimizer)
+            try:
+                self.optimizer.load_state_dict(self._pending_optimizer)
+            except (ValueError, KeyError) as exc:
+                raise DamagedCheckpoint(f"{self.out_dir / 'last.pt'}: its optimiser state does not fit this "
+                                        f"run's trained parameters ({exc}); use another --out") from exc
         self._pending_optimizer = None
 
     # -- weights -----------------------------------------------------------------------------------
     def _init_from(self, path: Path) -> None:
         if not path.is_file():
             raise FileNotFoundError(f"--init {path}: no such checkpoint")
-        ckpt = load_tensors(path, map_location=self.device)
-        state = ckpt.get("model", ckpt) if isinstance(ckpt, dict) else ckpt
-        if isinstance(ckpt, dict) and "config" in ckpt:
+        ckpt = read_checkpoint(path, "--init", keys=(), map_location=self.device)
+        state = ckpt.get("model", ckpt)
+        if "config" in ckpt:
             for key in ("model", "autoencoder"):
-                if ckpt["config"][key] != self.config[key]:
-                    raise ValueError(f"--init {path}: its {key} settings {ckpt['config'][key]} differ from "
+                if ckpt["config"].get(key) != self.config[key]:
+                    raise ValueError(f"--init {path}: its {key} settings {ckpt['config'].get(key)} differ from "
                                      f"this run's {self.config[key]}; use the same training config")
         try:
             load_stage1_weights(self.model, state)
         except RuntimeError as exc:  # tensor size mismatch
-            raise ValueError(f"--init {path}: weights do not fit this model ({exc})") from exc
+            raise ValueError(f"--init {path}: weights do not fit this model ({exc}); use the same training "
+                             f"config") from exc
         log.info("initialised from %s", path)
 
-    def _load(self, path: Path) -> None:
-        ckpt = load_tensors(path, map_location=self.device)
-        if not isinstance(ckpt, dict) or ckpt.get("format") != self.checkpoint_format \
-                or ckpt.get("stage") != self.stage:
-            raise ValueError(f"{path}: not a stage-{self.stage} trainer checkpoint; use another --out "
-                             f"or delete it to start over")
+    def _load(self, path: Path, ckpt: dict) -> None:
+        if ckpt.get("format") != self.checkpoint_format or ckpt.get("stage") != self.stage:
+            raise ValueError(f"{path}: not a stage-{self.stage} checkpoint of this trainer ({self.checkpoint_format}); "
+                             f"use another --out or delete it to start over")
         for key in self.resume_keys:
-            if ckpt["config"][key] != self.config[key]:
-                raise ValueError(f"{path}: was trained with {key}={ckpt['config'][key]}, this run has "
+            if ckpt["config"].get(key) != self.config[key]:
+                raise ValueError(f"{path}: was trained with {key}={ckpt['config'].get(key)}, this run has "
                                  f"{self.config[key]}; resume with the same config or use another --out")
-        self.model.load_state_dict(ckpt["model"])
+        for key in ("batch_size", "grad_accumulation"):
+            if ckpt["config"]["train"].get(key) != self.config["train"][key]:
+                raise ValueError(f"{path}: was trained with train.{key}={ckpt['config']['train'].get(key)}, this "
+                                 f"run has {self.config['train'][key]} (the data position depends on it); resume "
+                                 f"with the same value or use another --out")
+        if ckpt["world_size"] != self.world.world_size:
+            raise ValueError(f"{path}: was trained on {ckpt['world_size']} process(es), this run has "
+                             f"{self.world.world_size}; resume with torchrun --nproc_per_node "
+                             f"{ckpt['world_size']} (the data order and batches depend on it) or use another --out")
+        self._load_model_state(path, ckpt)
         self._pending_optimizer = ckpt["optimizer"]
         self.step, self.epoch, self.batch_in_epoch = ckpt["step"], ckpt["epoch"], ckpt["batch_in_epoch"]
-        self.generator.set_state(ckpt["generator"])
         torch.set_rng_state(ckpt["torch_rng"])
         log.info("resumed %s at step %d", path, self.step)
 
+    def _load_model_state(self, path: Path, ckpt: dict) -> None:
+        """The model's weights from a resumed checkpoint (all of them, for this trainer)."""
+        try:
+            self.model.load_state_dict(ckpt["model"])
+        except RuntimeError as exc:
+            raise DamagedCheckpoint(f"{path}: its weights do not fit this model ({str(exc).splitlines()[0]}); "
+                                    f"use another --out") from exc
+
+    def model_state(self) -> dict[str, torch.Tensor]:
+        """The weights a checkpoint holds (all of them, for this trainer)."""
+        return self.model.state_dict()
+
     def state_dict(self) -> dict:
         return {"format": self.checkpoint_format, "stage": self.stage, "step": self.step, "epoch": self.epoch,
-                "batch_in_epoch": self.batch_in_epoch, "config": self.config,
-                "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state()}
+                "batch_in_epoch": self.batch_in_epoch, "world_size": self.world.world_size,
+                "config": self.config, "model": self.model_state(), "optimizer": self.optimizer.state_dict(),
+                "torch_rng": torch.get_rng_state()}
 
     def save(self) -> Path:
-        """Write ``last.pt`` (and ``ckpt_<step>.pt`` on checkpoint steps) atomically."""
+        """Write ``last.pt`` (and ``ckpt_<step>.pt`` on checkpoint steps) atomically; the checkpoint
+        it replaces stays as ``previous.pt``, the fallback of a damaged ``last.pt``. Rank 0 only."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
         state = self.state_dict()
         last = self.out_dir / "last.pt"
         with atomic_path(last) as tmp:
             torch.save(state, tmp)
+            if last.exists() and self._rotate:
+                os.replace(last, self.out_dir / PREVIOUS)
+        self._rotate = True
         every = int(self.config["train"]["checkpoint_every"])
         if every and self.step % every == 0:
             with atomic_path(self.out_dir / f"ckpt_{self.step:06d}.pt") as tmp:
@@ -325,25 +457,47 @@ class Trainer:
         return last
 
     # -- data --------------------------------------------------------------------------------------
-    def _epoch_order(self, epoch: int) -> list[list[int]]:
-        """Batches of one epoch: a permutation drawn from (seed, epoch), incomplete tail dropped."""
-        g = torch.Generator().manual_seed(int(self.config["seed"]) * 100003 + epoch)
-        order = torch.randperm(len(self.dataset), generator=g).tolist()
-        n = len(order) // self.batch_size
-        return [order[i * self.batch_size:(i + 1) * self.batch_size] for i in range(n)]
+    def _epoch_steps(self, epoch: int) -> list[list[list[int]]]:
+        """This process's micro-batches of each step of ``epoch``: its share of the epoch's order
+        (:func:`paradrive.data.epoch_order`, rank r reads every world_size-th pair from r), cut into
+        steps of grad_accumulation micro-batches of batch_size; an incomplete last step dropped."""
+        w = self.world
+        order = epoch_order(len(self.dataset), int(self.config["seed"]), epoch, w.world_size)[w.rank::w.world_size]
+        b, per_step = self.batch_size, self.batch_size * self.accumulation
+        return [[order[s * per_step + m * b:s * per_step + (m + 1) * b].tolist() for m in range(self.accumulation)]
+                for s in range(len(order) // per_step)]
 
-    def _batches(self) -> Iterator[dict]:
-        """Batches from the current (epoch, batch_in_epoch) on; the caller advances the position."""
+    def _batches(self) -> Iterator[list[dict]]:
+        """The micro-batches of each step from the current (epoch, batch_in_epoch) on; the caller
+        advances the position."""
         workers = int(self.config["data"]["num_workers"])
         while True:
-            remaining = self._epoch_order(self.epoch)[self.batch_in_epoch:]
-            loader = torch.utils.data.DataLoader(self.dataset, batch_sampler=remaining, num_workers=workers,
-                                                 collate_fn=collate, persistent_workers=False)
-            yield from loader
+            steps = self._epoch_steps(self.epoch)[self.batch_in_epoch:]
+            loader = torch.utils.data.DataLoader(self.dataset, batch_sampler=[m for s in steps for m in s],
+                                                 num_workers=workers, collate_fn=collate, persistent_workers=False)
+            micro: list[dict] = []
+            for batch in loader:
+                micro.append(batch)
+                if len(micro) == self.accumulation:
+                    yield micro
+                    micro = []
             self.epoch += 1
             self.batch_in_epoch = 0
 
+    def _generators(self, micro: int) -> list[torch.Generator]:
+        """One generator per sample of micro-batch ``micro`` of this step, seeded by the sample's
+        place in the global batch: ((micro * batch_size + i) * world_size + rank)."""
+        w, b = self.world, self.batch_size
+        seed = int(self.config["seed"])
+        return [torch.Generator().manual_seed(sample_seed(seed, self.stage, self.step,
+                                                          (micro * b + i) * w.world_size + w.rank))
+                for i in range(b)]
+
     # -- one step ----------------------------------------------------------------------------------
+    def forward(self, *inputs: Any) -> torch.Tensor:
+        """The model's forward for training: through DDP in a run of several processes."""
+        return (self._ddp or self.model)(*inputs)
+
     def latents(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         """Encode a batch: target/source(/condition) latents and per-latent-frame poses."""
         frames = batch["target"].shape[1]
@@ -356,16 +510,16 @@ class Trainer:
         out["identity_pose"] = latent_poses(batch["identity_pose"].to(self.device), groups)
         return out
 
-    def loss(self, z: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
-        """Flow-matching loss on the target half for encoded batch ``z`` (noise and times from
-        ``generator``, default the run's own)."""
+    def loss(self, z: Mapping[str, torch.Tensor], generator: Generators) -> torch.Tensor:
+        """Flow-matching loss on the target half for encoded batch ``z``; noise and times from
+        ``generator`` (one, or one per sample)."""
         f = self.config["flow"]
 
         def velocity(x_t, t):
-            return self.model(x_t, t, z["source"], z["rel_pose"], z["identity_pose"], z.get("condition"))
+            return self.forward(x_t, t, z["source"], z["rel_pose"], z["identity_pose"], z.get("condition"))
 
-        return flow_matching_loss(velocity, z["target"], generator or self.generator, f["schedule"],
-                                  float(f["shift"]))
+        return flow_matching_loss(velocity, z["target"], generator, f["schedule"], float(f["shift"]),
+                                  f["weighting"])
 
     @torch.no_grad()
     def evaluate(self, batch: Mapping[str, Any], seed: int = 0, repeats: int = 8) -> float:
@@ -387,52 +541,85 @@ class Trainer:
 
     def train(self, steps: int | None = None,
               on_step: Callable[[int, float], None] | None = None) -> list[float]:
-        """Train until ``steps`` total steps (default ``train.steps``); return this call's losses."""
+        """Train until ``steps`` total steps (default ``train.steps``); return this call's losses
+        (each the mean over the step's micro-batches and processes)."""
         with torch_threads(self.config["threads"]):
             return self._train(steps, on_step)
+
+    def _wrap(self) -> None:
+        """DDP around the model in a run of several processes (once)."""
+        if self.world.distributed and self._ddp is None:
+            from torch.nn.parallel import DistributedDataParallel
+
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self._ddp = DistributedDataParallel(self.model, device_ids=ids)
+
+    def _write_run_files(self) -> None:
+        """config.yaml (with the stage and the world size) and metrics.jsonl cut at the resumed
+        step; rank 0 writes, the others wait for it."""
+        if self.world.main:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            write_text(self.out_dir / "config.yaml", yaml.safe_dump(
+                {"stage": self.stage, "world_size": self.world.world_size, **self.config}, sort_keys=False))
+            self._trim_metrics()
+        barrier(self.world)
+
+    def _step(self, micro: list[dict]) -> float:
+        """One optimiser step over this process's micro-batches; the loss averaged over them and
+        over the processes."""
+        self.optimizer.zero_grad(set_to_none=True)
+        value = 0.0
+        for m, batch in enumerate(micro):
+            last = m == len(micro) - 1
+            sync = contextlib.nullcontext() if self._ddp is None or last else self._ddp.no_sync()  # type: ignore[operator]
+            with sync:
+                loss = self.loss(self.latents(batch), self._generators(m))
+                if not all_agree(bool(torch.isfinite(loss)), self.world):
+                    raise FloatingPointError(f"the loss is not finite on some process ({loss.item()} here); "
+                                             f"lower train.lr or check the data ({batch['pair_id']})")
+                (loss / len(micro)).backward()
+            value += float(loss.detach()) / len(micro)
+        clip = float(self.config["train"]["grad_clip"])
+        if clip > 0:
+            torch.nn.utils.clip_grad_norm_([p for p in self.model.parameters() if p.requires_grad], clip)
+        self.optimizer.step()
+        return mean_over_ranks(value, self.world, self.device)
 
     def _train(self, steps: int | None, on_step: Callable[[int, float], None] | None) -> list[float]:
         total = int(self.config["train"]["steps"] if steps is None else steps)
         t = self.config["train"]
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        write_text(self.out_dir / "config.yaml", yaml.safe_dump({"stage": self.stage, **self.config},
-                                                                  sort_keys=False))
-        self._trim_metrics()
+        self._write_run_files()
         losses: list[float] = []
         if self.step >= total:
             return losses
+        self._wrap()
         self.model.train()
-        clip = float(t["grad_clip"])
-        params = [p for p in self.model.parameters() if p.requires_grad]
-        save_every = int(t["save_every"])
+        save_every, every_ckpt = int(t["save_every"]), int(t["checkpoint_every"])
+        global_batch = self.batch_size * self.accumulation * self.world.world_size
         started = time.time()
-        with open(self.out_dir / "metrics.jsonl", "a") as metrics:
-            for batch in self._batches():
+        metrics = open(self.out_dir / "metrics.jsonl", "a") if self.world.main else None
+        with metrics if metrics is not None else contextlib.nullcontext():
+            for micro in self._batches():
                 lr = self.learning_rate(self.step)
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr
-                loss = self.loss(self.latents(batch))
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"stage {self.stage} step {self.step}: loss is {loss.item()}; "
-                                             f"lower train.lr or check the data ({batch['pair_id']})")
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                if clip > 0:
-                    torch.nn.utils.clip_grad_norm_(params, clip)
-                self.optimizer.step()
+                value = self._step(micro)
                 self.step += 1
                 self.batch_in_epoch += 1
-                value = float(loss.detach())
                 losses.append(value)
-                metrics.write(json.dumps({"step": self.step, "loss": value, "lr": lr,
-                                          "seconds": round(time.time() - started, 3)}) + "\n")
-                metrics.flush()
-                if on_step:
+                if metrics is not None:
+                    metrics.write(json.dumps({"step": self.step, "loss": value, "lr": lr,
+                                              "world_size": self.world.world_size, "global_batch": global_batch,
+                                              "seconds": round(time.time() - started, 3)}) + "\n")
+                    metrics.flush()
+                if on_step and self.world.main:
                     on_step(self.step, value)
-                every_ckpt = int(t["checkpoint_every"])
                 if self.step >= total or (save_every and self.step % save_every == 0) \
                         or (every_ckpt and self.step % every_ckpt == 0):
-                    self.save()
+                    if self.world.main:
+                        self.save()
+                        stop_point(f"train:stage{self.stage}-saved-{self.step}")
+                    barrier(self.world)
                 if self.step >= total:
                     break
         return losses
@@ -442,10 +629,18 @@ class Trainer:
         path = self.out_dir / "metrics.jsonl"
         if not path.exists():
             return
-        lines = [l for l in path.read_text().splitlines() if l.strip()]
-        kept = [l for l in lines if json.loads(l)["step"] <= self.step]
-        if len(kept) != len(lines):
+        text = path.read_text()
+        kept = [line for line in text.splitlines() if (_metric_step(line) or self.step + 1) <= self.step]
+        if "".join(l + "\n" for l in kept) != text:
             write_text(path, "".join(l + "\n" for l in kept))
+
+
+def _metric_step(line: str) -> int | None:
+    """The step of a metrics line; None for a blank one or one cut off by a kill."""
+    try:
+        return int(json.loads(line)["step"])
+    except (ValueError, KeyError, TypeError):
+        return None
 
 
 # -- sampling ------------------------------------------------------------------------------------

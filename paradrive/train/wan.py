@@ -1,9 +1,11 @@
 """``paradrive train --model wan``: ReCamDriving's two stages on Wan2.1 (:mod:`paradrive.wan.recam`).
 
 :class:`WanTrainer` is the reference trainer (:class:`paradrive.train.trainer.Trainer`) with the
-Wan model in place of the compact DiT: the loop, the data order, the learning rate, the
-checkpoints (tensors and plain values only, loaded without pickle) and the exact resume are the
-reference's own; what differs is how a batch becomes the model's inputs and how the model is built.
+Wan model in place of the compact DiT: the loop, the data order, the processes, the learning
+rate and the exact resume are the reference's own; what differs is how a batch becomes the
+model's inputs (:class:`WanRunner`, shared with generation), how the model is built and what a
+checkpoint holds: the parameters trained so far, their optimiser state and the counters, beside
+the base transformer's folder and a fingerprint of its config, never the frozen base weights.
 
 A batch comes in one of two forms, told apart by its keys:
 
@@ -14,9 +16,10 @@ A batch comes in one of two forms, told apart by its keys:
   (frozen, no gradients), the camera taken from ``rel_pose`` at frames 0, 4, 8, ... (one per
   latent frame) and the empty prompt's embedding computed once.
 
-The camera input (``model.camera``) is ``relative`` by default: ΔT, the target's pose relative to
-the source at the same frame, as the paper conditions on; ``recammaster`` is the target relative
-to the source's first frame, which carries the ego's own motion too (see
+The camera input (``model.camera``) is ``relative`` by default: ΔT = ``rel_pose`` =
+inv(c2w_target)·c2w_source at the same frame, the map from source-camera to target-camera
+coordinates, as the paper conditions on; ``recammaster`` is the target camera in the source
+camera's coordinates at its first frame, which carries the ego's own motion too (see
 docs/train-recamdriving.md).
 """
 
@@ -31,19 +34,22 @@ from typing import Any, cast
 import torch
 
 from paradrive.data import PairDataset
-from paradrive.errors import ConfigError
+from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import load_tensors
-from paradrive.train.flow import euler_sample, flow_matching_loss
-from paradrive.train.trainer import Trainer, collate, frames_on, load_config
-from paradrive.latents import has_latents
-from paradrive.wan.recam import (ReCamDrivingWan, load_recammaster, load_stage1_weights, load_transformer,
-                                 make_tiny_transformer, trainable_parameters)
+from paradrive.train.flow import Generators, euler_sample, flow_matching_loss
+from paradrive.train.trainer import (CHECKPOINT_KEYS, DamagedCheckpoint, Trainer, collate, frames_on, load_config,
+                                     read_checkpoint)
+from paradrive.latents import has_latents, latents_index_path, read_latents_index
+from paradrive.wan.recam import (ReCamDrivingWan, checkpoint_parameter_names, config_fingerprint, load_recammaster,
+                                 load_trained, load_transformer, make_tiny_transformer, trainable_parameters)
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "paradrive-train-wan/1"
+CHECKPOINT_FORMAT = "paradrive-train-wan/2"
 TINY = "tiny"
 TINY_TEXT_TOKENS = 8
+# model settings a stage-2 run may set apart from the stage-1 run it starts from
+_STAGE_ONLY = ("stage2_ffn", "recammaster")
 
 
 def load_wan_config(source: str | Path | None, overrides: Mapping[str, Any] | None = None) -> dict:
@@ -61,6 +67,11 @@ def latent_frame_indices(frames: int) -> list[int]:
     return list(range(0, frames, 4))[: 1 + (frames - 1) // 4]
 
 
+def generated_frames(frames: int) -> int:
+    """Frames the VAE decodes from the latents of a ``frames``-frame clip: 1 + 4 (T' - 1)."""
+    return 1 + 4 * (len(latent_frame_indices(frames)) - 1)
+
+
 def relative_camera(rel_pose: torch.Tensor) -> torch.Tensor:
     """ΔT per latent frame as the camera encoder reads it: rel_pose (B, F, 4, 4) -> (B, T', 12),
     the top 3x4 rows of frames 0, 4, 8, ... flattened row-major, float32."""
@@ -74,85 +85,101 @@ def to_channels_first(frames: torch.Tensor) -> torch.Tensor:
     return frames.permute(0, 2, 1, 3, 4)
 
 
-def open_wan_dataset(build_dir: str | Path, config: Mapping[str, Any]) -> PairDataset:
+def check_shape(config: Mapping[str, Any], model: ReCamDrivingWan) -> None:
+    """ConfigError before any work when the frame embedding cannot cover a clip's target and
+    source latent frames together, or the frames do not divide into the transformer's patches."""
+    d = config["data"]
+    frames, cover = int(d["num_frames"]), int(config["model"]["max_frames"])
+    need = 2 * len(latent_frame_indices(frames))
+    if need > cover:
+        raise ConfigError(f"model.max_frames = {cover}: {frames}-frame clips need {need} (the target's and "
+                          f"the source's latent frames together); set model.max_frames={need} or more")
+    _, p_h, p_w = model.transformer.config.patch_size
+    unit_h, unit_w = 8 * p_h, 8 * p_w   # the VAE's 8x, then the transformer's patch
+    if int(d["height"]) % unit_h or int(d["width"]) % unit_w:
+        raise ConfigError(f"data.height x data.width = {d['height']}x{d['width']}: the VAE's 8x and the "
+                          f"transformer's {p_h}x{p_w} patch need multiples of {unit_h}x{unit_w} (e.g. 480x832)")
+
+
+# -- the build's pairs ---------------------------------------------------------------------------
+def cache_mismatch(build_dir: str | Path, config: Mapping[str, Any]) -> str | None:
+    """Why the build's latent cache cannot feed this run (its frames, size or VAE differ from the
+    config's, or it is unreadable), as what follows "the cache" in a sentence; None when it fits."""
+    from paradrive.wan.vae import folder_checksum, vae_folder
+
+    d = config["data"]
+    try:
+        doc = read_latents_index(build_dir)
+    except ParaDriveError as exc:
+        return f"cannot be read ({exc})"
+    differ = []
+    if int(doc["num_frames"]) != int(d["num_frames"]):
+        differ.append(f"{doc['num_frames']} frames, this run reads {d['num_frames']} (data.num_frames)")
+    if [int(v) for v in doc["size"]] != [int(d["height"]), int(d["width"])]:
+        differ.append(f"{doc['size'][0]}x{doc['size'][1]}, this run reads {d['height']}x{d['width']} "
+                      f"(data.height x data.width)")
+    if int(d["frame_stride"]) != 1:
+        differ.append(f"every frame, this run reads every {d['frame_stride']}th (data.frame_stride)")
+    vae = config["model"]["vae"]
+    if vae not in (None, TINY):
+        own = folder_checksum(vae_folder(vae))
+        if own != doc["vae"]["sha256"]:
+            differ.append(f"by the VAE in {doc['vae']['path']} (sha256 {doc['vae']['sha256'][:12]}…), this run's "
+                          f"model.vae {vae} is another (sha256 {own[:12]}…)")
+    return "; ".join(f"was encoded {d}" if d.startswith("by ") else f"was encoded at {d}" for d in differ) or None
+
+
+def open_wan_dataset(build_dir: str | Path, config: Mapping[str, Any], notes: list[str] | None = None) -> PairDataset:
     """The build's pairs as the trainer reads them: cached latents (``latents=True``) when
-    ``data.input`` asks for them or is ``auto`` and the build has them, else uint8 frames."""
+    ``data.input`` asks for them or is ``auto`` and the build has a cache that fits the config
+    (:func:`cache_mismatch`), else uint8 frames. ``data.input: latents`` with no fitting cache is
+    a ConfigError; ``auto`` then reads the videos and says why in ``notes``."""
     d = config["data"]
     pose_format = "recammaster" if config["model"]["camera"] == "recammaster" else None
     kwargs: dict[str, Any] = {"num_frames": d["num_frames"], "frame_stride": d["frame_stride"],
                               "output_size": (d["height"], d["width"]), "pose_format": pose_format}
+    fix = (f"re-encode it with 'paradrive encode {build_dir} --vae DIR --set encode.num_frames={d['num_frames']} "
+           f"--set encode.size=[{d['height']},{d['width']}]', or set data.input=pixels")
     if d["input"] != "pixels" and has_latents(build_dir):
-        return PairDataset(build_dir, latents=True, dtype="float32")
-    if d["input"] == "latents":
+        why = cache_mismatch(build_dir, config)
+        if why is None:
+            return PairDataset(build_dir, latents=True, dtype="float32")
+        where = latents_index_path(build_dir)
+        if d["input"] == "latents":
+            raise ConfigError(f"--build {build_dir}: its latent cache ({where}) {why}; {fix}")
+        if notes is not None:
+            notes.append(f"--build {build_dir}: its latent cache ({where}) {why}; encoding the videos on "
+                         f"the fly instead (data.input=auto); to train from the cache, {fix.split(', or ')[0]}")
+    elif d["input"] == "latents":
         raise ConfigError(f"--build {build_dir}: data.input=latents but the build has no cached latents; "
                           f"run 'paradrive encode {build_dir} --vae DIR' first, or use data.input=pixels")
     return PairDataset(build_dir, dtype="uint8", **kwargs)
 
 
-class WanTrainer(Trainer):
-    """Trains one stage of :class:`ReCamDrivingWan` on a map-style dataset of pair dicts (pixel or
-    latent samples). ``init``: for stage 2, the stage-1 checkpoint (default: none, an error);
-    for stage 1, a checkpoint of this trainer to start from. A ``last.pt`` in ``out_dir`` wins."""
+# -- a batch as the model's inputs, and sampling ---------------------------------------------------
+class WanRunner:
+    """A stage's :class:`ReCamDrivingWan` with what turns a batch into its inputs (the VAE and
+    the empty prompt's embedding, loaded on first use) and samples videos from it: what
+    training and generation share."""
 
-    checkpoint_format = CHECKPOINT_FORMAT
-    resume_keys = ("model", "seed")
+    config: dict
+    stage: int
+    device: torch.device
+    model: Any
 
-    def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
-                 init: str | Path | None = None):
-        # the reference's __init__ builds its own model: only its first steps are shared
-        seed = self._start(config, stage, out_dir, dataset)
-        m = self.config["model"]
-        self.model = build_wan_model(self.config, stage).to(self.device)  # type: ignore[assignment]
-        self.wan.enable_gradient_checkpointing(bool(m["gradient_checkpointing"]))
+    def _setup_inputs(self) -> None:
         self.autocast = _autocast_dtype(self.config["precision"], self.device)
         self._vae: Any = None
         self._text: torch.Tensor | None = None
-        t = self.config["train"]
-        self.batch_size = int(t["batch_size"])
-        if len(dataset) < self.batch_size:
-            raise ValueError(f"the dataset has {len(dataset)} pairs, fewer than train.batch_size={self.batch_size}")
-        if self._restore(seed, stage, init) and m["recammaster"] is not None:
-            self._init_from_recammaster(Path(m["recammaster"]))
-        params = trainable_parameters(self.wan, stage)
-        self.optimizer = torch.optim.AdamW(params, lr=float(t["lr"]), betas=tuple(t["betas"]),
-                                           weight_decay=float(t["weight_decay"]), eps=float(t["eps"]))
-        if self._pending_optimizer is not None:
-            self.optimizer.load_state_dict(self._pending_optimizer)
-        self._pending_optimizer = None
 
     @property
     def wan(self) -> ReCamDrivingWan:
         """The model, typed as what it is (the reference trainer's attribute names a VideoDiT)."""
         return cast(ReCamDrivingWan, self.model)
 
-    # -- weights -----------------------------------------------------------------------------
-    def _init_from(self, path: Path) -> None:
-        if not path.is_file():
-            raise FileNotFoundError(f"--init {path}: no such checkpoint")
-        ckpt = load_tensors(path, map_location=self.device)
-        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"--init {path}: not a 'paradrive train --model wan' checkpoint")
-        if ckpt["config"]["model"] != self.config["model"]:
-            raise ValueError(f"--init {path}: its model settings {ckpt['config']['model']} differ from this "
-                             f"run's {self.config['model']}; use the same config, --transformer and --vae")
-        load_stage1_weights(self.wan, ckpt["model"])
-        log.info("initialised from %s", path)
+    def forward(self, *inputs: Any) -> torch.Tensor:
+        return self.model(*inputs)
 
-    def _init_from_recammaster(self, path: Path) -> None:
-        if not path.is_file():
-            raise FileNotFoundError(f"model.recammaster {path}: no such checkpoint")
-        state: Any
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            state = load_file(str(path), device="cpu")
-        else:
-            state = load_tensors(path)
-            state = state.get("state_dict", state) if isinstance(state, dict) else state
-        count = load_recammaster(self.wan, state, str(path))
-        log.info("loaded %d ReCamMaster tensors from %s", count, path)
-
-    # -- inputs --------------------------------------------------------------------------------
     def vae(self) -> Any:
         """The frozen VAE (``model.vae``), loaded on first use: a latent build never needs it."""
         if self._vae is None:
@@ -204,17 +231,17 @@ class WanTrainer(Trainer):
             return contextlib.nullcontext()
         return torch.autocast(self.device.type, dtype=self.autocast)
 
-    def loss(self, z: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
-        """Flow-matching loss on the target latents (noise and times from ``generator``, default
-        the run's own); the source (and condition) latents stay clean."""
+    def loss(self, z: Mapping[str, torch.Tensor], generator: Generators) -> torch.Tensor:
+        """Flow-matching loss on the target latents (noise and times from ``generator``: one, or
+        one per sample); the source (and condition) latents stay clean."""
         f = self.config["flow"]
 
         def velocity(x_t, t):
-            return self.model(x_t, t, z["source"], z["camera"], z["text"], z.get("condition")).float()
+            return self.forward(x_t, t, z["source"], z["camera"], z["text"], z.get("condition")).float()
 
         with self._autocast():
-            return flow_matching_loss(velocity, z["target"], generator or self.generator, f["schedule"],
-                                      float(f["shift"]))
+            return flow_matching_loss(velocity, z["target"], generator, f["schedule"], float(f["shift"]),
+                                      f["weighting"])
 
     @torch.no_grad()
     def sample(self, item: Mapping[str, Any], steps: int, seed: int = 0) -> torch.Tensor:
@@ -225,7 +252,8 @@ class WanTrainer(Trainer):
         was_training = self.model.training
         self.model.eval()
         z = self.latents(collate([dict(item)]))
-        noise = torch.randn(z["source"].shape, generator=torch.Generator().manual_seed(seed)).to(self.device)
+        noise = torch.randn(z["source"].shape, generator=torch.Generator().manual_seed(seed),
+                            device="cpu").to(self.device)
         with self._autocast():
             latents = euler_sample(
                 lambda x, t: self.model(x, t, z["source"], z["camera"], z["text"], z.get("condition")).float(),
@@ -233,6 +261,92 @@ class WanTrainer(Trainer):
         video = decode_latents(self.vae(), latents)[0].permute(1, 0, 2, 3)
         self.model.train(was_training)
         return video.clamp(-1, 1).cpu()
+
+
+# -- the trainer -----------------------------------------------------------------------------------
+class WanTrainer(WanRunner, Trainer):
+    """Trains one stage of :class:`ReCamDrivingWan` on a map-style dataset of pair dicts (pixel or
+    latent samples). ``init``: for stage 2, the stage-1 checkpoint (default: none, an error);
+    for stage 1, a checkpoint of this trainer to start from. A ``last.pt`` in ``out_dir`` wins."""
+
+    checkpoint_format = CHECKPOINT_FORMAT
+    checkpoint_keys = (*CHECKPOINT_KEYS, "base")
+    resume_keys = ("model", "seed")
+    forward = Trainer.forward   # through DDP in a run of several processes
+
+    def __init__(self, config: Mapping[str, Any], stage: int, out_dir: str | Path, dataset,
+                 init: str | Path | None = None):
+        # the reference's __init__ builds its own model: only its first steps are shared
+        self._start(config, stage, out_dir, dataset)
+        m = self.config["model"]
+        self.ffn = bool(m["stage2_ffn"])
+        self.model = build_wan_model(self.config, stage).to(self.device)
+        check_shape(self.config, self.wan)
+        self.wan.enable_gradient_checkpointing(bool(m["gradient_checkpointing"]))
+        self.base = base_record(self.config, self.wan)
+        self._setup_inputs()
+        if self._restore(stage, init) and m["recammaster"] is not None:
+            self._init_from_recammaster(Path(m["recammaster"]))
+        self._make_optimizer(trainable_parameters(self.wan, stage, self.ffn))
+
+    # -- checkpoints of what trains --------------------------------------------------------------
+    def model_state(self) -> dict[str, torch.Tensor]:
+        """The parameters trained so far (:func:`checkpoint_parameter_names`), not the base's."""
+        names = checkpoint_parameter_names(self.wan, self.stage, self.ffn)
+        return {n: p.detach() for n, p in self.wan.named_parameters() if n in names}
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "base": dict(self.base)}
+
+    def _load_model_state(self, path: Path, ckpt: dict) -> None:
+        check_base(ckpt, self.base, str(path))
+        load_trained(self.wan, ckpt["model"], checkpoint_parameter_names(self.wan, self.stage, self.ffn), str(path))
+
+    def _init_from(self, path: Path) -> None:
+        if not path.is_file():
+            raise FileNotFoundError(f"--init {path}: no such checkpoint")
+        ckpt = read_checkpoint(path, "--init", ("format", "stage", "config", "model", "base"), self.device)
+        if ckpt["format"] != CHECKPOINT_FORMAT:
+            raise ValueError(f"--init {path}: not a 'paradrive train --model wan' checkpoint ({CHECKPOINT_FORMAT})")
+        mine = {k: v for k, v in self.config["model"].items() if k not in _STAGE_ONLY}
+        theirs = {k: v for k, v in ckpt["config"]["model"].items() if k not in _STAGE_ONLY}
+        if theirs != mine:
+            raise ValueError(f"--init {path}: its model settings {theirs} differ from this run's {mine}; use the "
+                             f"same config, --transformer and --vae")
+        check_base(ckpt, self.base, f"--init {path}")
+        names = checkpoint_parameter_names(self.wan, int(ckpt["stage"]), bool(ckpt["config"]["model"]["stage2_ffn"]))
+        load_trained(self.wan, ckpt["model"], names, f"--init {path}")
+        log.info("initialised from %s", path)
+
+    def _init_from_recammaster(self, path: Path) -> None:
+        if not path.is_file():
+            raise FileNotFoundError(f"model.recammaster {path}: no such checkpoint")
+        state: Any
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path), device="cpu")
+        else:
+            state = load_tensors(path)
+            state = state.get("state_dict", state) if isinstance(state, dict) else state
+        count = load_recammaster(self.wan, state, str(path))
+        log.info("loaded %d ReCamMaster tensors from %s", count, path)
+
+
+def base_record(config: Mapping[str, Any], model: ReCamDrivingWan) -> dict[str, str]:
+    """What a checkpoint says of its base weights: the folder (``model.transformer``) and the
+    fingerprint of the transformer's config."""
+    return {"folder": str(config["model"]["transformer"]), "config_sha256": config_fingerprint(model.transformer)}
+
+
+def check_base(ckpt: Mapping[str, Any], base: Mapping[str, str], where: str) -> None:
+    """ValueError naming the checkpoint's base folder when ``base`` (this run's) has another config."""
+    theirs = ckpt["base"]
+    if theirs.get("config_sha256") != base["config_sha256"]:
+        raise ValueError(f"{where}: its parameters were trained on the transformer in {theirs.get('folder')} "
+                         f"(config sha256 {str(theirs.get('config_sha256'))[:12]}…), and model.transformer "
+                         f"{base['folder']} has another config (sha256 {base['config_sha256'][:12]}…); pass "
+                         f"--transformer {theirs.get('folder')}")
 
 
 def build_wan_model(config: Mapping[str, Any], stage: int) -> ReCamDrivingWan:
@@ -271,7 +385,7 @@ def empty_text_embedding(config: Mapping[str, Any], text_dim: int) -> torch.Tens
                           "diffusers folder) for a pixel build, or encode the build with 'paradrive encode'")
     if source == TINY:
         g = torch.Generator().manual_seed(int(config["seed"]) + 7)
-        return torch.randn(TINY_TEXT_TOKENS, text_dim, generator=g)
+        return torch.randn(TINY_TEXT_TOKENS, text_dim, generator=g, device="cpu")
     from paradrive.wan.text import empty_prompt_embedding
 
     embedding = empty_prompt_embedding(source, "cpu")
@@ -287,3 +401,8 @@ def _autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
         return torch.bfloat16
     return None
 
+
+__all__ = ["CHECKPOINT_FORMAT", "DamagedCheckpoint", "WanRunner", "WanTrainer", "base_record", "build_wan_model",
+           "cache_mismatch", "check_base", "check_shape", "empty_text_embedding", "generated_frames",
+           "latent_frame_indices", "load_wan_config", "load_wan_vae", "open_wan_dataset", "relative_camera",
+           "to_channels_first"]

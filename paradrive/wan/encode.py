@@ -25,7 +25,7 @@ import pyarrow as pa
 import torch
 
 import paradrive
-from paradrive.data import output_geometry, recammaster_camera
+from paradrive.data import frame_array, output_geometry, plane_sink, recammaster_camera
 from paradrive.devices import resolve_device
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import remove_stale_temporaries, sha256_file, write_json
@@ -155,15 +155,10 @@ class _Encoder:
         ``PairDataset`` decodes them (planar RGB, area resize, centre crop, x / 127.5 - 1)."""
         geo = output_geometry(width, height, self.plan.size, self.settings.resize)
         path = build_file(self.build_dir, uri, f"{self.build_dir}: row {pair_id}", self.index)
-        oh, ow = geo["size"]
-        y0, x0 = geo["crop"]
-        out = torch.empty((3, self.plan.frames, oh, ow), dtype=torch.float32, device="cpu")
-
-        def fill(idx: int, planes: tuple[np.ndarray, ...]) -> None:
-            for channel, plane in zip(out[:, idx], planes):
-                torch.div(torch.from_numpy(plane[y0:y0 + oh, x0:x0 + ow]), 127.5, out=channel).sub_(1.0)
-
-        each_frame(path, list(range(self.plan.frames)), fill, size=geo["resize"], planar=True)
+        out = torch.empty((3, self.plan.frames, *geo["size"]), dtype=torch.float32, device="cpu")
+        array = frame_array(out)
+        each_frame(path, list(range(self.plan.frames)), plane_sink(lambda idx: array[:, idx], geo, torch.float32),
+                   size=geo["resize"], planar=True)
         return out
 
     def encode(self, videos: list[torch.Tensor]) -> torch.Tensor:
@@ -260,22 +255,36 @@ def encode_build(build_dir: str | Path, settings: EncodeSettings, *, log: loggin
         raise ParaDriveError(f"build {index.build} has no pairs to encode ({build_dir})")
     plan = _plan(settings, rows, vae_sha256)
     folder = cache.latents_dir(build_dir)
-    folder.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(folder)
-    encoder = _Encoder(settings, build_dir, index, plan)
-    text = _text(settings, folder, encoder.device, log)
-    entries, total = [], -(-rows.num_rows // settings.shard_pairs)
-    for k, shard in enumerate(_shards(rows, settings.shard_pairs)):
-        entries.append(_encode_shard(encoder, shard, folder, log))
-        stop_point(f"encode:shard-{k}")
-        if progress is not None:
-            progress(k + 1, total)
-    doc = _index_doc(index, settings, plan, vae_sha256, text, entries, fingerprint)
-    write_json(cache.latents_index_path(build_dir), doc)
-    _remove_unlisted(folder, {e["file"] for e in entries} | {text["file"]})
+    what = f"{plan.frames} frames of {plan.size[0]}x{plan.size[1]}, {settings.dtype}"
+    with cache.writer_lock(build_dir, what):   # a second encode of this build is refused here
+        remove_stale_temporaries(folder)
+        encoder = _Encoder(settings, build_dir, index, plan)
+        text = _text(settings, folder, encoder.device, log)
+        entries, total = [], -(-rows.num_rows // settings.shard_pairs)
+        for k, shard in enumerate(_shards(rows, settings.shard_pairs)):
+            entries.append(_encode_shard(encoder, shard, folder, log))
+            stop_point(f"encode:shard-{k}")
+            if progress is not None:
+                progress(k + 1, total)
+        doc = _index_doc(index, settings, plan, vae_sha256, text, entries, fingerprint)
+        _check_listed(folder, [*entries, text])
+        write_json(cache.latents_index_path(build_dir), doc)
+        _remove_unlisted(folder, {e["file"] for e in entries} | {text["file"]})
     log.info("encode: %d pairs, %d videos in %d shards (%.1f MB)", doc["totals"]["pairs"],
              doc["totals"]["videos"], len(entries), doc["totals"]["bytes"] / 1e6)
     return doc
+
+
+def _check_listed(folder: Path, entries: list[dict]) -> None:
+    """Every file the new index lists is there at its size, checked before the index is
+    written: an index never names a shard that does not exist."""
+    for entry in entries:
+        path = folder / entry["file"]
+        size = path.stat().st_size if path.is_file() else None
+        if size != entry["bytes"]:
+            state = "is missing" if size is None else f"has {size} bytes, not {entry['bytes']}"
+            raise ParaDriveError(f"{path} {state} after this encode wrote it (removed or changed by "
+                                 f"another process); the index was not written: run the encode again")
 
 
 def _encode_shard(encoder: _Encoder, shard: pa.Table, folder: Path, log: logging.Logger) -> dict:

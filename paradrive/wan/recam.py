@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
+import json
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,8 +48,8 @@ IDENTITY_CAMERA = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 # module names (inside ``recam.<i>.`` or the transformer's ``blocks.<i>.``) each stage trains
 STAGE1_MODULES = ("attn1", "cam_encoder", "projector", "frame_embed")
-STAGE2_MODULES = ("render_norm", "render_attn", "cross_norm", "cross_attn", "ffn")
 RENDERING_MODULES = ("render_norm", "render_attn", "cross_norm", "cross_attn")
+STAGE2_MODULES = RENDERING_MODULES   # the paper's stage 2; ``ffn=True`` adds every block's FFN
 
 
 def tiny_transformer_config() -> dict[str, Any]:
@@ -58,6 +60,16 @@ def tiny_transformer_config() -> dict[str, Any]:
             "in_channels": 16, "out_channels": 16, "text_dim": 32, "freq_dim": 32, "ffn_dim": 48,
             "num_layers": 2, "cross_attn_norm": True, "qk_norm": "rms_norm_across_heads",
             "eps": 1e-6, "rope_max_seq_len": 64}
+
+
+def wan21_t2v_1_3b_config() -> dict[str, Any]:
+    """Wan2.1-T2V-1.3B's transformer as diffusers configures it (its ``transformer/config.json``):
+    30 blocks of width 1536 (12 heads of 128), FFN 8960, umT5's 4096-wide text. For sizes and
+    device checks with random weights; the real weights come from a local folder."""
+    return {"patch_size": (1, 2, 2), "num_attention_heads": 12, "attention_head_dim": 128, "in_channels": 16,
+            "out_channels": 16, "text_dim": 4096, "freq_dim": 256, "ffn_dim": 8960, "num_layers": 30,
+            "cross_attn_norm": True, "qk_norm": "rms_norm_across_heads", "eps": 1e-6, "image_dim": None,
+            "added_kv_proj_dim": None, "rope_max_seq_len": 1024}
 
 
 def make_tiny_transformer(seed: int = 0):
@@ -156,7 +168,8 @@ class ReCamDrivingWan(nn.Module):
       condition_latents  (B, C, T', h, w)  the 3DGS condition rendering's latents (stage 2 only)
     returns the velocity (data - noise) of the target latents, (B, C, T', h, w).
 
-    ``max_frames``: latent frames the frame embedding covers (31 for 121 frames).
+    ``max_frames``: latent frames the frame embedding covers, the target's and the source's
+    together (62 for 121-frame clips: 2 x 31).
     """
 
     def __init__(self, transformer: Any, rendering: bool = False, max_frames: int = 64):
@@ -268,23 +281,43 @@ def _in_modules(name: str, modules: tuple[str, ...]) -> bool:
     return any(f".{m}." in f".{name}." or name == m for m in modules)
 
 
-def stage_parameter_names(model: ReCamDrivingWan, stage: int) -> set[str]:
+def stage_parameter_names(model: ReCamDrivingWan, stage: int, ffn: bool = False) -> set[str]:
     """The names of the parameters ``stage`` trains: the paper's sets exactly.
 
     Stage 1: every block's self-attention (``attn1``: q, k, v, out, q/k norms), camera encoder
-    and projector, and the frame embedding. Stage 2: the rendering attention, the cross attention
-    (with their norms) and every block's FFN; everything stage 1 trained is frozen.
+    and projector, and the frame embedding. Stage 2: the rendering attention and the cross
+    attention with their norms; everything stage 1 trained is frozen. ``ffn`` (stage 2 only,
+    beyond the paper): every block's FFN too.
     """
     if stage not in (1, 2):
         raise ValueError(f"stage must be 1 or 2, got {stage}")
-    modules = STAGE1_MODULES if stage == 1 else STAGE2_MODULES
+    modules = STAGE1_MODULES if stage == 1 else STAGE2_MODULES + (("ffn",) if ffn else ())
     return {n for n, _ in model.named_parameters() if _in_modules(n, modules)}
 
 
-def trainable_parameters(model: ReCamDrivingWan, stage: int) -> list[nn.Parameter]:
+def checkpoint_parameter_names(model: ReCamDrivingWan, stage: int, ffn: bool = False) -> set[str]:
+    """What a checkpoint of ``stage`` holds besides the base transformer's own weights: every
+    parameter trained so far (stage 1's, and at stage 2 also stage 2's), so that the base folder
+    and the checkpoint together are the whole model."""
+    names = stage_parameter_names(model, 1)
+    return names | stage_parameter_names(model, 2, ffn) if stage == 2 else names
+
+
+def checkpoint_size(model: ReCamDrivingWan, stage: int, ffn: bool = False) -> dict[str, int]:
+    """What a checkpoint of ``stage`` holds, counted: the parameters it saves (fp32, 4 bytes each)
+    and the trained ones whose AdamW moments it saves (two fp32 tensors each, 8 bytes), and their
+    bytes (``model`` may live on the meta device: only shapes are read)."""
+    count = dict(model.named_parameters())
+    saved = sum(count[n].numel() for n in checkpoint_parameter_names(model, stage, ffn))
+    trained = sum(count[n].numel() for n in stage_parameter_names(model, stage, ffn))
+    base = sum(p.numel() for p in model.transformer.parameters())
+    return {"base": base, "saved": saved, "trained": trained, "bytes": 4 * saved + 8 * trained}
+
+
+def trainable_parameters(model: ReCamDrivingWan, stage: int, ffn: bool = False) -> list[nn.Parameter]:
     """Set ``requires_grad`` on exactly the parameters ``stage`` trains (all others frozen) and
     return those, in the model's order (the optimiser's parameter order)."""
-    names = stage_parameter_names(model, stage)
+    names = stage_parameter_names(model, stage, ffn)
     params = []
     for name, p in model.named_parameters():
         p.requires_grad_(name in names)
@@ -293,14 +326,28 @@ def trainable_parameters(model: ReCamDrivingWan, stage: int) -> list[nn.Paramete
     return params
 
 
-def load_stage1_weights(model: ReCamDrivingWan, state: Mapping[str, torch.Tensor]) -> None:
-    """Load a stage-1 model's weights into ``model`` (a stage-2 one): only the rendering and cross
-    attention may be missing, and they keep their initialisation."""
-    result = model.load_state_dict(dict(state), strict=False)
-    missing = [k for k in result.missing_keys if not _in_modules(k, RENDERING_MODULES)]
-    if missing or result.unexpected_keys:
-        raise ValueError(f"stage-1 weights do not fit this model: missing {missing[:5]}, unexpected "
-                         f"{result.unexpected_keys[:5]}; use the transformer and config of the stage-1 run")
+def config_fingerprint(transformer: Any) -> str:
+    """sha256 of a transformer's config (its ``config.json`` values, diffusers' private keys left
+    out): what a checkpoint of the parameters trained on it checks the base it is loaded onto by."""
+    config = {k: v for k, v in dict(transformer.config).items() if not k.startswith("_")}
+    text = json.dumps(config, sort_keys=True, separators=(",", ":"), default=list)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def load_trained(model: ReCamDrivingWan, state: Mapping[str, torch.Tensor], names: set[str], where: str) -> None:
+    """Load a checkpoint's trained parameters ``state`` onto ``model`` (its base weights already
+    in place): ``state`` must hold every one of ``names``, and nothing else, at this model's shapes."""
+    own = dict(model.named_parameters())
+    missing = sorted(names - set(state))
+    unexpected = sorted(set(state) - names)
+    if missing or unexpected:
+        raise ValueError(f"{where}: its trained parameters do not fit this model (missing {missing[:3]}, "
+                         f"unexpected {unexpected[:3]}); use the transformer and config of the run that wrote it")
+    for name, value in state.items():
+        if own[name].shape != value.shape:
+            raise ValueError(f"{where}: {name} is {tuple(value.shape)}, this model's {tuple(own[name].shape)}; "
+                             f"use the transformer and config of the run that wrote it")
+    model.load_state_dict(dict(state), strict=False)
 
 
 # -- ReCamMaster checkpoints ----------------------------------------------------------------------

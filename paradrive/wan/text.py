@@ -21,6 +21,7 @@ from typing import Any
 import torch
 
 from paradrive.errors import ConfigError
+from paradrive.wan.vae import first_line, weight_errors
 
 __all__ = ["MAX_SEQUENCE_LENGTH", "EMBEDDING_FORM", "text_encoder_folders", "make_tiny_text_encoder",
            "empty_prompt_embedding"]
@@ -82,10 +83,10 @@ def _load(path: str | os.PathLike, device: torch.device, dtype: torch.dtype) -> 
     try:
         tokenizer = AutoTokenizer.from_pretrained(tokenizer_dir, local_files_only=True)
         model: Any = UMT5EncoderModel.from_pretrained(encoder_dir, local_files_only=True, dtype=dtype)
-    except (OSError, ValueError, TypeError, KeyError, RuntimeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError(f"text encoder folder {path} could not be loaded ({first}); pass a local "
-                          f"folder holding umT5 in text_encoder/ and its tokenizer in tokenizer/") from exc
+    except weight_errors() as exc:
+        raise ConfigError(f"text encoder folder {path} could not be loaded ({first_line(exc)}); pass a "
+                          f"local folder holding umT5 in text_encoder/ and its tokenizer in tokenizer/ "
+                          f"(a file cut short, e.g. by an interrupted download, must be fetched again)") from exc
     return tokenizer, model.to(device).eval()
 
 

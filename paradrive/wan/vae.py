@@ -76,11 +76,23 @@ def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu",
     try:
         vae = AutoencoderKLWan.from_pretrained(folder, local_files_only=True, torch_dtype=dtype,
                                                 low_cpu_mem_usage=False)
-    except (OSError, ValueError, TypeError, KeyError, RuntimeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError(f"Wan VAE folder {folder} could not be loaded ({first}); "
+    except weight_errors() as exc:
+        raise ConfigError(f"Wan VAE folder {folder} could not be loaded ({first_line(exc)}); "
                           f"{_WAN_DOWNLOAD_HINT}") from exc
     return vae.to(device=torch.device(device)).eval()
+
+
+def weight_errors() -> tuple[type[BaseException], ...]:
+    """What loading a model folder raises when its files are missing, damaged or cut short (a
+    truncated safetensors file raises safetensors' own error, which is no OSError)."""
+    from safetensors import SafetensorError
+
+    return (OSError, ValueError, TypeError, KeyError, RuntimeError, SafetensorError)
+
+
+def first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def latent_frames(frames: int) -> int:
