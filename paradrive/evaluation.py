@@ -371,7 +371,7 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
     from paradrive.inference import scene_ingest_params
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.scene import load_scene
-    from paradrive.stages.ingest import params_of
+    from paradrive.contracts.params import params_of
     from paradrive.uri import parse_uri
 
     log = log or log_default
