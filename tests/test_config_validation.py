@@ -185,8 +185,9 @@ def test_paradrive_stages_shows_what_each_parameter_may_be(monkeypatch):
     from typer.testing import CliRunner
 
     from paradrive import cli
+    from paradrive.commands import common
 
-    monkeypatch.setattr(cli.out, "width", 250)  # one table row a line, whatever the terminal
+    monkeypatch.setattr(common.out, "width", 250)  # one table row a line, whatever the terminal
     result = CliRunner().invoke(cli.app, ["stages", "manifest"])
     assert result.exit_code == 0, result.output
     spec = StageRegistry().specs["manifest"]

@@ -206,7 +206,7 @@ def test_inspect_verify_exits_1_naming_the_row_of_an_escaping_uri(clip_build, tm
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.inspection import register
+    from paradrive.commands.inspect import register
 
     build = tmp_path / "b"
     pair_id = tampered(clip_build, build, 0, "source_uri", "/etc/hostname")

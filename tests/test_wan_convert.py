@@ -25,9 +25,10 @@ def convert(*args: str, code: int = 0) -> str:
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.wan.cli import register
+    from paradrive.commands.convert import register
 
-    app = typer.Typer()   # the commands as paradrive.cli registers them, without the others
+    app = typer.Typer()   # the command as paradrive.cli registers it, without the others
+    app.callback()(lambda: None)   # keeps "convert" a sub-command, as in paradrive
     register(app)
     result = CliRunner().invoke(app, ["convert", *args])
     assert result.exit_code == code, result.output
