@@ -210,6 +210,8 @@ class _FrameWalk:
 
         try:
             container = av.open(str(self.path))
+        except MemoryError:
+            raise  # FFmpeg's ENOMEM is both: an allocation that failed is no corrupt file
         except (av.error.FFmpegError, OSError) as exc:
             raise ParaDriveError(f"{self.path}: cannot open video ({exc}); the file is missing or "
                                  f"corrupt, run `paradrive inspect --verify` on the build") from exc
@@ -223,6 +225,8 @@ class _FrameWalk:
             self.scaler, self.scale_threads = VideoReformatter(), max(0, int(threads))
             try:
                 return self._decode(container, stream, seek)
+            except MemoryError:
+                raise
             except av.error.FFmpegError as exc:
                 raise ParaDriveError(f"{self.path}: video is corrupt ({exc}); re-run the clip stage "
                                      f"for its scene, or `paradrive inspect --verify` the build") from exc

@@ -73,6 +73,26 @@ def smoke_build(tmp_path_factory, smoke_scene):
     yield from read_only(root, _build(root, SMOKE_SCENES))
 
 
+# Real recordings, read in place from ../shared/realdata beside the repository (a user's clone
+# lacks it: the tests that need it skip, naming the folder)
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+FREEWAY = REALDATA / "udacity-freeway"
+FREEWAY_VIDEO = FREEWAY / "freeway-shadows-1280x720.mp4"
+# the clip's camera height, measured on its frames (docs/scene-layout.md, "A real freeway clip")
+FREEWAY_HEIGHT_M = 1.23
+FREEWAY_URI = f"video:{FREEWAY_VIDEO}?calib=calibration.json&height_m={FREEWAY_HEIGHT_M}"
+
+
+@pytest.fixture(scope="session")
+def freeway_build(tmp_path_factory):
+    """The real freeway clip (160 frames of 1280x720, its calibration beside it) through every
+    stage with the smoke profile, once per session: its ingest is the default one."""
+    if not FREEWAY_VIDEO.is_file():
+        pytest.skip(f"the real freeway clip is not here ({FREEWAY}): a clone without ../shared/realdata")
+    root = tmp_path_factory.mktemp("freeway")
+    yield from read_only(root, _build(root, [FREEWAY_URI]))
+
+
 def ingest_synthetic(root: Path, frames: int, width: int, height: int) -> Path:
     """``synthetic:demo?seed=7`` ingested with the smoke profile at this size; its scene folder."""
     from paradrive.pipeline import StageRegistry, run_build

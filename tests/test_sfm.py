@@ -149,6 +149,35 @@ def test_the_road_s_motion_measures_the_camera_height(frames):
     hooded[:, -band:] = np.random.default_rng(0).integers(80, 140, hooded[0, -band:].shape)
     under_hood = road_motion_height(lambda k: hooded[k], *args[1:])
     assert under_hood is not None and under_hood.height / s == pytest.approx(1.6, rel=0.02)
+    # or given as the ego mask, made on frames twice the size: the same pixels are left out
+    ego = np.zeros((2 * rgb.shape[1], 2 * rgb.shape[2]), dtype=bool)
+    ego[-2 * band:] = True
+    masked = road_motion_height(lambda k: hooded[k], *args[1:], ego=ego)
+    assert masked is not None and masked.height / s == pytest.approx(1.6, rel=0.02)
     # a road with no texture cannot be measured: no pair aligns
     flat = np.full_like(rgb[0], 128)
     assert road_motion_height(lambda k: flat, *args[1:]) is None
+
+
+def test_a_static_overlay_over_the_road_cancels_out():
+    """A reflection in the windscreen (bright lines across the lane, the same in every frame)
+    would hold the fit towards no motion; aligning each pair after the mean of the frames that
+    show other road takes it away: the height is the one the clean frames give."""
+    street = SyntheticStreet(name="demo", seed=7, frames=40, width=320, height=192)
+    spec = street.cameras["front"]
+    rgb = street.render(street.c2w("front"), spec.K(), spec.width, spec.height)["rgb"]
+    move, s = similarity(4)
+    c2w = street.c2w("front").copy()
+    c2w[:, :3, 3] *= s
+    c2w = np.einsum("ij,fjk->fik", move, c2w)
+    reflected = rgb.astype(np.int16)
+    for row, amplitude in ((140, 70), (152, 50), (165, 60)):
+        reflected[:, row:row + 2, 40:280] += amplitude
+    reflected = np.clip(reflected, 0, 255).astype(np.uint8)
+    args = (c2w, spec.K(), move[:3, 2], 1.06 * 1.6 * s)
+    clean = road_motion_height(lambda k: rgb[k], *args)
+    found = road_motion_height(lambda k: reflected[k], *args)
+    assert clean is not None and found is not None and len(found.pairs) >= 30
+    assert found.height / s == pytest.approx(1.6, rel=0.02)
+    assert found.height == pytest.approx(clean.height, rel=0.002)
+    assert 0 < found.uncertainty < 0.05

@@ -35,6 +35,10 @@ class IngestParams(StageParams):
     synthetic_curvature: float
     moving_threshold_m: float | None
     keep_lidar: bool
+    video_max_fps: float
+    video_folder_fps: float
+    video_sfm_width: int
+    video_max_scale_uncertainty: float
 
 
 

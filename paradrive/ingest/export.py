@@ -570,6 +570,8 @@ def export_drivestudio(street_or_scene, folder: str | Path, *, flavour: str = "w
 # what each format's log is ingested as (DriveStudio folders are written in the Waymo flavour),
 # --------------------------------------------------------------------------- a plain video
 
+MIN_VIDEO_WIDTH = 320
+
 def export_video(street_or_scene, path: str | Path, *, camera: str = "front",
                  frames: int | None = None, crf: int = 18) -> dict:
     """Write one camera of the source as a plain H.264 MP4 (``path``): no poses, calibration or
@@ -592,8 +594,9 @@ def video_uri(path: Path, info: dict, truth: str, *, with_intrinsics: bool) -> s
     from urllib.parse import quote
 
     query = {"fps": f"{info['fps']:g}", "height_m": f"{info['height_m']:g}"}
-    if with_intrinsics:
-        query.update({k: f"{info[k]:.6f}" for k in ("fx", "fy", "cx", "cy")})
+    if with_intrinsics:  # in OpenCV's convention, as a calibration reports them: centres at 0
+        query.update({"fx": f"{info['fx']:.6f}", "fy": f"{info['fy']:.6f}",
+                      "cx": f"{info['cx'] - 0.5:.6f}", "cy": f"{info['cy'] - 0.5:.6f}"})
     query["truth"] = truth
     return f"video:{path}?" + "&".join(f"{k}={quote(v, safe=':/')}" for k, v in query.items())
 
@@ -615,6 +618,18 @@ def export_cameras(fmt: str, ingest_params: IngestParams, scene_id: str) -> list
     return wanted if wanted is not None else [c for c in CAMERA_NAMES if c in EXPORT_CAMERAS[fmt]]
 
 
+def _video_params(uri, ingest_params: IngestParams) -> IngestParams:
+    """The street's front camera, at least :data:`MIN_VIDEO_WIDTH` wide unless the URI sets the
+    size: structure from motion finds too few road points on the smoke profile's 160x96 frames
+    to measure the camera's height, and the printed URI must build with the profile it came from."""
+    update: dict = {"cameras": ["front"]}
+    width, height = ingest_params.synthetic_width, ingest_params.synthetic_height
+    if "width" not in uri.query and "height" not in uri.query and width < MIN_VIDEO_WIDTH:
+        factor = -(-MIN_VIDEO_WIDTH // width)
+        update.update(synthetic_width=width * factor, synthetic_height=height * factor)
+    return ingest_params.model_copy(update=update)
+
+
 def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: IngestParams, *,
                  with_intrinsics: bool = True) -> str:
     """Write the synthetic scene ``scene_uri`` in format ``fmt`` under ``out``; returns its URI.
@@ -629,7 +644,7 @@ def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: Inges
     if uri.kind != "synthetic":
         raise ValueError(f"export writes synthetic scenes only, got {scene_uri!r}")
     if fmt == "video":
-        street = street_from_uri(uri, ingest_params.model_copy(update={"cameras": ["front"]}))
+        street = street_from_uri(uri, _video_params(uri, ingest_params))
         path = Path(out).resolve() / f"{uri.scene_id}.mp4"
         info = export_video(street, path)
         truth = (f"synthetic:{street.name}?seed={street.seed}&frames={street.frames}"

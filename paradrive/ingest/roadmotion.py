@@ -15,16 +15,36 @@ road, and the SfM points leave their plane tilted by a few tenths of a degree, w
 several per cent of height), the three numbers of ``u`` are fitted by aligning the ego lane's
 road pixels of the later frame onto the earlier one, where the road was further ahead and
 still in view (Gauss-Newton on a coarse-to-fine blur, with robust weights so that a vehicle in
-the lane counts little). Pixels that do not change over the video (a car's hood, a text
-overlay) and their neighbours are left out. The step's own length from SfM then gives
-``d = |t| / |u|``. Fitting ``u``'s direction too, rather than taking SfM's, keeps the rotation
-bias out of the size. The height is the median over pairs spread along the video.
+the lane counts little). The step's own length from SfM then gives ``d = |t| / |u|``. Fitting
+``u``'s direction too, rather than taking SfM's, keeps the rotation bias out of the size. The
+height is the median over pairs spread along the video.
+
+What moves with the camera is no road, and pulls the fit towards no motion at all (``u = 0``):
+
+- the pixels that barely change over the video (a car's hood, a vehicle driving ahead at the
+  same speed, the sky), found by their grey level's spread over the frames used (under half the
+  median spread, or under ``static_std``) or given as the ego mask, are left out with their
+  neighbours;
+- what lies *over* the road and stays put in the image (a reflection of the dashboard in the
+  windscreen, dirt, a text overlay) is subtracted: every frame is aligned after its frames' mean
+  image is taken away, which removes anything added in the same place in every frame, while
+  the road, which moves, keeps its texture. On a real freeway clip a windscreen reflection
+  across the ego lane locked a third of the pairs onto ``u = 0`` before.
+
+The median's uncertainty (:attr:`RoadMotion.uncertainty`) combines three figures, each
+relative to the height: the heights' scatter (the standard error of a median, from their
+interquartile range); their drift along the video (half the difference of the medians of the
+first and the second half of the pairs: SfM's scale drifts along a monocular sequence, and one
+height for the whole path then fits neither end exactly); and the band (half the difference of
+the heights the near and the far half of the road pixels give on their own: a road that is no
+plane, or a model that does not hold, shows there).
 
 Pure numpy and deterministic: the same frames give the same height at any thread count.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -33,7 +53,7 @@ import numpy as np
 from paradrive import geometry
 from paradrive.ingest.sfm import level_with_path
 
-__all__ = ["RoadMotion", "road_motion_height"]
+__all__ = ["RoadMotion", "road_motion_height", "still_pixels"]
 
 LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -41,20 +61,32 @@ LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 @dataclass(frozen=True)
 class RoadMotion:
     """The camera's height above the road (model units): the median over frame ``pairs`` of
-    their ``heights``; ``spread`` is the heights' interquartile range over the median."""
+    their ``heights``; ``spread`` is the heights' interquartile range over the median, ``scatter``
+    the median's standard error and ``drift`` half the difference between the medians of the
+    first and the second half of the pairs, both relative to the height."""
 
     height: float
     heights: np.ndarray
     pairs: list[tuple[int, int]]
     spread: float
+    scatter: float
+    drift: float
+    band: float | None
+
+    @property
+    def uncertainty(self) -> float:
+        """The height's relative uncertainty: scatter, drift and band (where both halves of the
+        road could be aligned) combined."""
+        return float(np.sqrt(self.scatter ** 2 + self.drift ** 2 + (self.band or 0.0) ** 2))
 
 
 def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: np.ndarray,
                        up: np.ndarray, height: float, *, pairs: int = 40, baseline: float = 1.5,
                        near: float = 2.0, far: float = 8.0, lane: float = 1.4,
-                       max_width: int = 480, blurs: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5),
+                       max_width: int = 640, blurs: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5),
                        iterations: int = 8, min_pairs: int = 5,
-                       static_std: float = 1.0 / 255.0) -> RoadMotion | None:
+                       static_std: float = 1.0 / 255.0, still_share: float = 0.5,
+                       ego: np.ndarray | None = None) -> RoadMotion | None:
     """The camera's height above the road by the road's motion, or None where fewer than
     ``min_pairs`` frame pairs align (no road texture, a camera that barely moves).
 
@@ -64,8 +96,10 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     also decides the road pixels: ``near``..``far`` heights ahead, within ``lane`` heights to
     either side. Pairs start at ``pairs`` evenly spaced frames; each pairs a frame with the first
     one ``baseline`` heights further along the path. Images wider than ``max_width`` are halved
-    until they are not. Pixels whose grey level varies by less than ``static_std`` (standard
-    deviation over the frames used, in [0, 1]) are left out: they move with the camera.
+    until they are not. ego: bool, True where pixels move with the camera (the ego mask), at the
+    frames' size or any other (taken to it by the nearest pixel); None finds them: pixels whose
+    grey level varies by less than ``static_std`` or than ``still_share`` of its median over the
+    lower half of the image (standard deviations over the frames used, in [0, 1]).
     """
     centres = c2w[:, :3, 3]
     along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))]
@@ -74,30 +108,79 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     chosen = [(int(i), int(j)) for i, j in zip(starts, ends) if j < len(c2w)]
     if len(chosen) < min_pairs:
         return None
-    gray, Kp = {}, np.array(K, dtype=np.float64)
+    gray, Kp, shape = {}, np.array(K, dtype=np.float64), (0, 0)
     for k in sorted({k for pair in chosen for k in pair}):
-        gray[k], Kp = _reduce(K, _gray(image(k)), max_width)
-    # what does not change over the video is not the road: a car's hood, a text overlay
-    still = np.std(np.stack(list(gray.values())), axis=0) <= static_std
-    # and the blur would smear it over the road pixels next to it
+        frame = _gray(image(k))
+        shape = frame.shape
+        gray[k], Kp = _reduce(K, frame, max_width)
+    stack = np.stack(list(gray.values()))
+    still = (still_pixels(stack, static_std, still_share) if ego is None
+             else _reduce(K, _resized(np.asarray(ego, dtype=np.float32), shape), max_width)[0] > 0.0)
+    # the blur would smear what moves with the camera over the road pixels next to it
     moving = ~_dilate(still, int(np.ceil(3 * max(blurs))))
+    # what stays put over the road (a reflection in the windscreen, an overlay) cancels out
+    frames = np.array(sorted(gray))
+    total = stack.sum(axis=0)
+    del stack
     heights, used = [], []
     for i, j in chosen:
-        # the later frame's road pixels, found in the earlier frame: the road comes towards the
-        # camera, so where frame j sees it frame i saw it further up, still in view
+        mean = _mean_elsewhere(gray, total, frames, along, (i, j), (far - near) * height,
+                               min_frames=min_pairs)
         rel = geometry.invert(c2w[i]) @ c2w[j]  # X_i = R X_j + t
         down = -c2w[j, :3, :3].T @ level_with_path(up, c2w[[i, j]])
-        u = _fit_step(gray[j], gray[i], moving, Kp, rel[:3, :3], rel[:3, 3] / height, down,
-                      height, near=near, far=far, lane=lane, blurs=blurs, iterations=iterations)
-        if u is not None:
-            heights.append(float(np.linalg.norm(rel[:3, 3]) / np.linalg.norm(u)))
-            used.append((i, j))
+        later, earlier = gray[j] - mean, gray[i] - mean
+        u = _fit_step(later, earlier, moving, Kp, rel[:3, :3], rel[:3, 3] / height, down, height,
+                      near=near, far=far, lane=lane, blurs=blurs, iterations=iterations)
+        if u is None:
+            continue
+        # the near and the far half of the road pixels alone, from the whole road's step (so at
+        # the two finest blurs only)
+        mid = _median_distance(moving, np.linalg.inv(Kp), down, near, far, lane)
+        halves = [_fit_step(later, earlier, moving, Kp, rel[:3, :3], u, down, height, near=a, far=b,
+                            lane=lane, blurs=blurs[-2:], iterations=iterations)
+                  for a, b in ((near, mid), (mid, far))]
+        size = np.linalg.norm(rel[:3, 3])
+        heights.append([size / np.linalg.norm(v) if v is not None else np.nan for v in (u, *halves)])
+        used.append((i, j))
     if len(heights) < min_pairs:
         return None
-    values = np.array(heights)
+    values, near_h, far_h = np.array(heights).T
     q1, median, q3 = np.percentile(values, [25, 50, 75])
+    half = len(values) // 2
+    # a median's standard error: 1.2533 sigma / sqrt(n), sigma from the IQR (1.349 sigma)
+    scatter = 1.2533 * (q3 - q1) / 1.349 / np.sqrt(len(values)) / median
+    drift = abs(np.median(values[half:]) - np.median(values[:half])) / (2 * median)
+    both = np.isfinite(near_h) & np.isfinite(far_h)
+    band = (abs(np.median(far_h[both]) - np.median(near_h[both])) / (2 * median)
+            if both.sum() >= min_pairs else None)
     return RoadMotion(height=float(median), heights=values, pairs=used,
-                      spread=float((q3 - q1) / median))
+                      spread=float((q3 - q1) / median), scatter=float(scatter), drift=float(drift),
+                      band=None if band is None else float(band))
+
+
+def _mean_elsewhere(gray: dict[int, np.ndarray], total: np.ndarray, frames: np.ndarray,
+                    along: np.ndarray, pair: tuple[int, int], reach: float,
+                    min_frames: int) -> np.ndarray | float:
+    """The mean of the frames that show none of the road ``pair`` aligns: those more than
+    ``reach`` (the depth of the road pixels, model units) along the path from both frames of the
+    pair; the frames near them would put a copy of the pair's own road into the mean, which
+    holds the fit towards no motion. 0 where fewer than ``min_frames`` are that far (a short
+    clip): nothing is subtracted."""
+    far = np.all([np.abs(along[frames] - along[k]) > reach for k in pair], axis=0)
+    if far.sum() < min_frames:
+        return 0.0
+    near = sum((gray[int(k)] for k in frames[~far]), np.zeros_like(total))
+    return (total - near) / float(far.sum())
+
+
+def still_pixels(gray: np.ndarray, static_std: float, share: float) -> np.ndarray:
+    """(H, W) bool: the pixels of the frames ``gray`` (F, H, W) in [0, 1] whose standard
+    deviation over the frames is at most ``static_std`` or below ``share`` of its median over
+    the image (a hood's reflections and a vehicle keeping pace vary, but far less than the road
+    passing under the camera)."""
+    spread = np.std(gray, axis=0)
+    road = float(np.median(spread[spread.shape[0] // 2:]))  # the lower half: mostly road
+    return (spread <= static_std) | (spread < share * road)
 
 
 def _gray(rgb: np.ndarray) -> np.ndarray:
@@ -112,6 +195,16 @@ def _reduce(K: np.ndarray, img: np.ndarray, max_width: int) -> tuple[np.ndarray,
         img = _halve(img)
         K[:2] *= 0.5
     return img, K
+
+
+def _resized(mask: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``mask`` at another size (``shape``, rows and columns), nearest pixel: an ego mask made on
+    the stored frames, used on the smaller ones SfM saw."""
+    if mask.shape == shape:
+        return mask
+    rows = ((np.arange(shape[0]) + 0.5) * mask.shape[0] / shape[0]).astype(int)
+    cols = ((np.arange(shape[1]) + 0.5) * mask.shape[1] / shape[1]).astype(int)
+    return mask[rows][:, cols]
 
 
 def _halve(img: np.ndarray) -> np.ndarray:
@@ -145,19 +238,39 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return sum(t * padded[k:k + h] for k, t in enumerate(taps))
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_rays(shape: tuple[int, ...], kinv: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel centre of an image of ``shape`` (N, 3 homogeneous) and its ray ``K^-1 x``,
+    made once per image size and camera (the fit asks for them at every step)."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
+    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(shape)], -1).reshape(-1, 3)
+    rays = pix @ np.array(kinv).reshape(3, 3).T
+    pix.flags.writeable = rays.flags.writeable = False
+    return pix, rays
+
+
 def _road_pixels(moving: np.ndarray, Kinv: np.ndarray, down: np.ndarray, height: float,
                  near: float, far: float, lane: float) -> np.ndarray:
     """(N, 3) homogeneous centres of the ``moving`` pixels whose ray meets the road
     ``near``..``far`` heights ahead and within ``lane`` heights to the side."""
-    rows, cols = np.mgrid[0:moving.shape[0], 0:moving.shape[1]]
-    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(moving.shape)], -1).reshape(-1, 3)
-    rays = pix @ Kinv.T
+    pix, rays = _pixel_rays(moving.shape, tuple(np.asarray(Kinv, dtype=np.float64).ravel()))
     towards = rays @ down
     with np.errstate(divide="ignore", invalid="ignore"):
         ground = rays * (height / towards)[:, None]
     keep = (moving.reshape(-1) & (towards > 1e-6) & (ground[:, 2] > near * height) & (ground[:, 2] < far * height)
             & (np.abs(ground[:, 0]) < lane * height))
     return pix[keep]
+
+
+def _median_distance(moving: np.ndarray, Kinv: np.ndarray, down: np.ndarray, near: float,
+                     far: float, lane: float) -> float:
+    """The median distance ahead (in heights) of the road pixels: it splits them into a near and
+    a far half of equal size."""
+    pix = _road_pixels(moving, Kinv, down, 1.0, near, far, lane)
+    if not len(pix):
+        return float(np.sqrt(near * far))
+    rays = pix @ Kinv.T
+    return float(np.median(rays[:, 2] / (rays @ down)))
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray):

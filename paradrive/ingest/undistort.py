@@ -12,7 +12,8 @@ Pixel coordinates follow the builder's convention (as Waymo's and the renderers'
 
 ``undistort_image`` maps every pixel of the undistorted output (same size, same pinhole
 fx, fy, cx, cy) to where it lies in the distorted input and samples it bilinearly (inverse
-mapping; torch ``grid_sample``, the sampling grid cached per camera). ``distort_image`` does
+mapping; torch ``grid_sample``, the sampling grid cached per camera; torch is imported when an
+image is sampled, so reading a camera's model does not load it). ``distort_image`` does
 the opposite, inverting the model by fixed-point iteration; the exporters use it to write
 distorted test logs.
 """
@@ -22,7 +23,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-import torch
 
 
 def distortion_is_zero(dist) -> bool:
@@ -58,6 +58,8 @@ def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
 
     Positions outside the image clamp to the border. Returns uint8 (*u.shape, C).
     """
+    import torch
+
     h, w = image.shape[:2]
     grid = np.stack([2.0 * np.asarray(u) / w - 1.0, 2.0 * np.asarray(v) / h - 1.0], -1)
     return _sample(image, torch.from_numpy(grid.astype(np.float32)))
@@ -65,6 +67,8 @@ def bilinear_sample(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
 
 def _sample(image: np.ndarray, grid) -> np.ndarray:
     """torch grid_sample (bilinear, border) of a uint8 image at a normalised (H', W', 2) grid."""
+    import torch
+
     h, w = image.shape[:2]
     # float copy first: decoded images may be read-only buffers
     src = torch.from_numpy(image.reshape(h, w, -1).astype(np.float32))
@@ -86,6 +90,8 @@ def _pixel_grid(width: int, height: int):
 @functools.lru_cache(maxsize=16)
 def _undistort_grid(width: int, height: int, K: tuple, dist: tuple):
     """Normalised sampling grid (H, W, 2) of ``undistort_image``, cached per camera."""
+    import torch
+
     fx, fy, cx, cy = K
     u, v = _pixel_grid(width, height)
     xd, yd = distort_normalized((u - cx) / fx, (v - cy) / fy, dist)

@@ -1,19 +1,26 @@
-"""``video:<file or folder>?fps=…&fx=…&height_m=…`` scenes: one monocular camera, poses by SfM.
+"""``video:<file or folder>?fx=…&k1=…&height_m=…`` scenes: one monocular camera, poses by SfM.
 
 A dashcam video (any container PyAV reads) or a folder of frames (sorted by name) becomes a
-canonical scene with one camera, ``front``: frames sampled at ``fps`` over ``[start, end)``
-seconds, poses from :mod:`paradrive.ingest.sfm` in metres (the road plane and the camera's
-height above it, or a speed / GPS track beside the video), the triangulated points stored where
-LiDAR points go (``lidar/<frame>.npy``, each point under every frame that sees it) so the fit
-starts from them, no actors.
+canonical scene with one camera, ``front``: frames sampled over ``[start, end)`` seconds,
+undistorted with the camera's lens model, poses from :mod:`paradrive.ingest.sfm` in metres (the
+road plane and the camera's height above it, or a speed / GPS track beside the video), the
+triangulated points stored where LiDAR points go (``lidar/<frame>.npy``, each point under every
+frame that sees it) so the fit starts from them, no actors.
 
-Query keys (all optional):
+Query keys (all optional; :data:`KEYS` holds their ranges, and an unknown key or a value out of
+range is a usage error, raised before any work):
 
-- ``fps``: frames per second to sample (default 10, the rate of the paper's logs; a folder of
-  frames is taken to be at this rate);
-- ``fx, fy, cx, cy`` (pixels of the video; all four) or ``fov_deg`` (horizontal, centred
-  principal point): known intrinsics are held fixed; without them SfM estimates one shared
-  camera with radial distortion, the images are undistorted and the estimate is reported;
+- ``fps``: frames per second to sample (default: the video's own rate, at most
+  ``ingest.video_max_fps``; a folder of frames is taken to be at ``fps``, default
+  ``ingest.video_folder_fps``);
+- ``fx, fy, cx, cy`` (pixels of the video, OpenCV's convention: pixel centres at integer
+  coordinates, as ``calibrateCamera`` reports them; all four) and the lens distortion ``k1, k2,
+  p1, p2, k3`` (OpenCV's radial-tangential model), or ``calib=FILE.json`` holding the same keys
+  (and the ``width``/``height`` they were calibrated at), or ``fov_deg`` (horizontal, centred
+  principal point): known intrinsics are held fixed and the frames are undistorted with
+  :mod:`paradrive.ingest.undistort` (the code the Waymo reader uses); without them SfM
+  estimates one shared camera with radial distortion, the images are undistorted and the
+  estimate is reported;
 - ``height_m``: the camera's height above the road (default 1.5 m, a car's dashcam);
 - ``start``, ``end``: the time range in seconds;
 - ``truth``: the ``synthetic:`` URI the video was rendered from (``paradrive export video``), so
@@ -23,27 +30,36 @@ A track ``<stem>.csv`` beside the video, with columns ``t,speed_mps`` (t: second
 video's start, speed in m/s) or ``t,lat,lon`` (degrees, WGS84), sets the scale instead of the
 height: the distance it travels between the first and the last frame over the SfM path length.
 Both scales are recorded, with their disagreement.
+
+Frames are streamed, never held all at once: a first pass decodes each sampled frame at the
+size SfM works at (``ingest.video_sfm_width``) and writes it for SfM; once the poses are known
+a second pass decodes the kept frames at full size, undistorts and stores them. A 4K video then
+needs a few frames' worth of memory, not the clip's.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import json
 import math
+import resource
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from paradrive.errors import ParaDriveError, SceneError
+from paradrive.errors import ConfigError, ParaDriveError, SceneError
 from paradrive.ingest.common import fps_from, save_points
-from paradrive.ingest.roadmotion import road_motion_height
+from paradrive.ingest.roadmotion import RoadMotion, road_motion_height
+from paradrive.ingest.undistort import distortion_is_zero, undistort_image
 from paradrive.ingest.sfm import (Intrinsics, Reconstruction, RoadPlane, SfmError, fit_road_plane,
                                   format_runs, level_with_path, metric_rig, path_length, reconstruct,
                                   registered_runs)
-from paradrive.ingest.undistort import distortion_is_zero, undistort_image
 from paradrive.scene import Camera, Frame, FrameCamera, Scene, write_image
 from paradrive.uri import SceneURI
 
@@ -51,111 +67,305 @@ if TYPE_CHECKING:
     from paradrive.contracts.params import IngestParams
 
 CAMERA = "front"
-DEFAULT_FPS = 10.0
 # nuScenes' CAM_FRONT sits 1.51 m above the road; a car's dashcam behind the windscreen is near it
 DEFAULT_HEIGHT_M = 1.5
 # SfM needs a few frames of parallax and the fit a few views; fewer kept frames is an error
 MIN_FRAMES = 8
 # a trajectory shorter than this (m) after scaling is a parked car: no baseline for SfM
 MIN_PATH_M = 1.0
-QUERY_KEYS = {"fps": float, "fx": float, "fy": float, "cx": float, "cy": float,
-              "fov_deg": float, "height_m": float, "start": float, "end": float, "truth": str}
 FRAME_SUFFIXES = (".jpg", ".jpeg", ".png")
+INTRINSICS = ("fx", "fy", "cx", "cy")
+DISTORTION = ("k1", "k2", "p1", "p2", "k3")
+# the scale's relative uncertainty where the road's motion cannot be measured and the SfM points
+# alone give the height: they were 3-5 % off on the synthetic street and up to 6 % on a real
+# freeway clip (docs/scene-layout.md, "A real freeway clip")
+ROAD_POINTS_UNCERTAINTY = 0.1
+# a speed or GPS track is taken at its word: a speedometer or a phone's GPS is good to about 1 %
+TRACK_UNCERTAINTY = 0.01
+
+
+@dataclass(frozen=True)
+class Key:
+    """One query key: its type and, for a number, its range (``low`` excluded when ``open_low``,
+    ``high`` excluded when ``open_high``)."""
+
+    kind: type
+    text: str
+    low: float = -math.inf
+    high: float = math.inf
+    open_low: bool = False
+    open_high: bool = False
+
+    def admits(self, value: float) -> bool:
+        above = value > self.low if self.open_low else value >= self.low
+        below = value < self.high if self.open_high else value <= self.high
+        return math.isfinite(value) and above and below
+
+
+# a day of video at most: a time beyond it is a typo, and np.arange over it would not fit in memory
+DAY_S = 86400.0
+KEYS: dict[str, Key] = {
+    "fps": Key(float, "(0, 1000] frames a second", 0.0, 1000.0, open_low=True),
+    "fx": Key(float, "(0, 100000] px", 0.0, 1e5, open_low=True),
+    "fy": Key(float, "(0, 100000] px", 0.0, 1e5, open_low=True),
+    "cx": Key(float, "[0, 100000] px", 0.0, 1e5),
+    "cy": Key(float, "[0, 100000] px", 0.0, 1e5),
+    "k1": Key(float, "[-10, 10]", -10.0, 10.0),
+    "k2": Key(float, "[-10, 10]", -10.0, 10.0),
+    "p1": Key(float, "[-1, 1]", -1.0, 1.0),
+    "p2": Key(float, "[-1, 1]", -1.0, 1.0),
+    "k3": Key(float, "[-10, 10]", -10.0, 10.0),
+    "calib": Key(str, "a JSON file with fx, fy, cx, cy (and k1, k2, p1, p2, k3, width, height)"),
+    "fov_deg": Key(float, "(0, 180) degrees", 0.0, 180.0, open_low=True, open_high=True),
+    "height_m": Key(float, "(0, 10] m", 0.0, 10.0, open_low=True),
+    "start": Key(float, "[0, 86400) s", 0.0, DAY_S, open_high=True),
+    "end": Key(float, "(0, 86400] s", 0.0, DAY_S, open_low=True),
+    "truth": Key(str, "the synthetic: URI the video shows"),
+}
+# what a calibration file may hold besides the camera: its own description, as written by the
+# tools that make one (the video it belongs to, its size and how it was calibrated)
+CALIB_NOTES = ("file", "sha256", "fps", "frames", "model", "calibration")
+
+
+def accepted_keys() -> str:
+    """The keys and their ranges, for messages."""
+    return "; ".join(f"{name} {key.text}" for name, key in KEYS.items())
+
+
+def _usage(uri: SceneURI, what: str) -> ConfigError:
+    return ConfigError(f"video URI {uri.text!r}: {what}; accepted keys: {accepted_keys()}")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A camera as given: pinhole ``fx, fy, cx, cy`` in OpenCV's convention (pixel centres at
+    integer coordinates), OpenCV's ``distortion`` (k1, k2, p1, p2, k3), the ``size`` (width,
+    height) it was calibrated at when known, and where it came from."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...]
+    size: tuple[int, int] | None
+    source: str
+
+    def at(self, width: int, height: int) -> Intrinsics:
+        """The pinhole at a ``width`` x ``height`` video in the builder's convention (pixel
+        centres at +0.5), scaled from the calibrated size (the same lens at another resolution)."""
+        sx, sy = (1.0, 1.0) if self.size is None else (width / self.size[0], height / self.size[1])
+        return Intrinsics(self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx, (self.cy + 0.5) * sy)
 
 
 @dataclass(frozen=True)
 class VideoOptions:
-    """The URI's query, typed, with the defaults filled in."""
+    """The URI's query, typed; None where the ingest parameters decide (``fps``)."""
 
-    fps: float
+    fps: float | None
     height_m: float
     start: float
     end: float | None
-    intrinsics: tuple[float, float, float, float] | None
+    calibration: Calibration | None
     fov_deg: float | None
     truth: str | None
 
 
 def options_of(uri: SceneURI) -> VideoOptions:
-    """The typed query of a ``video:`` URI; SceneError for an unknown key or a bad value."""
+    """The typed query of a ``video:`` URI; ConfigError (a usage error, exit 2) naming the
+    accepted keys and ranges for an unknown key, a value out of range or a bad calibration file."""
     q: dict[str, Any] = {}
-    for key, value in uri.query.items():
-        if key not in QUERY_KEYS:
-            raise SceneError(f"unknown video option {key!r} in {uri.text!r}", scene_id=uri.scene_id,
-                             fix=f"use one of {', '.join(QUERY_KEYS)}")
+    for name, value in uri.query.items():
+        key = KEYS.get(name)
+        if key is None:
+            raise _usage(uri, f"unknown key {name!r}")
+        if key.kind is str:
+            q[name] = value
+            continue
         try:
-            q[key] = QUERY_KEYS[key](value)
-        except ValueError as exc:
-            raise SceneError(f"video option {key}={value!r} is not a number", scene_id=uri.scene_id,
-                             fix="fix the scene URI") from exc
-    given = [k for k in ("fx", "fy", "cx", "cy") if k in q]
-    if given and len(given) < 4:
-        raise SceneError(f"video URI {uri.text!r} gives {', '.join(given)} but not all of fx, fy, "
-                         f"cx, cy", scene_id=uri.scene_id,
-                         fix="give all four intrinsics, or fov_deg, or none to estimate them")
-    for key in ("fps", "height_m", "fov_deg", "fx", "fy"):
-        if key in q and not (q[key] > 0 and math.isfinite(q[key])):
-            raise SceneError(f"video option {key}={uri.query[key]!r} must be positive",
-                             scene_id=uri.scene_id, fix="fix the scene URI")
-    if "fov_deg" in q and not q["fov_deg"] < 180:
-        raise SceneError(f"video option fov_deg={uri.query['fov_deg']!r} must be below 180",
-                         scene_id=uri.scene_id, fix="give the horizontal field of view in degrees")
+            number = float(value)
+        except ValueError:
+            raise _usage(uri, f"{name}={value!r} is not a number") from None
+        if not key.admits(number):
+            raise _usage(uri, f"{name}={value} is outside {key.text}")
+        q[name] = number
     start, end = q.get("start", 0.0), q.get("end")
-    if start < 0 or (end is not None and end <= start):
-        raise SceneError(f"video time range start={start:g} end={end} is empty or negative",
-                         scene_id=uri.scene_id, fix="give 0 <= start < end, in seconds")
-    return VideoOptions(fps=q.get("fps", DEFAULT_FPS), height_m=q.get("height_m", DEFAULT_HEIGHT_M),
-                        start=start, end=end,
-                        intrinsics=tuple(q[k] for k in ("fx", "fy", "cx", "cy")) if given else None,
+    if end is not None and end <= start:
+        raise _usage(uri, f"the time range start={start:g} end={end:g} is empty")
+    return VideoOptions(fps=q.get("fps"), height_m=q.get("height_m", DEFAULT_HEIGHT_M),
+                        start=start, end=end, calibration=_calibration(uri, q),
                         fov_deg=q.get("fov_deg"), truth=q.get("truth"))
+
+
+def check(uri: SceneURI) -> None:
+    """Refuse a ``video:`` URI that no ingest could take, before any work (ConfigError)."""
+    options_of(uri)
+
+
+def _calibration(uri: SceneURI, q: dict[str, Any]) -> Calibration | None:
+    """The camera the URI gives: its keys, or ``calib=``'s file, or None."""
+    given = [k for k in (*INTRINSICS, *DISTORTION) if k in q]
+    if "calib" in q:
+        if given or "fov_deg" in q:
+            raise _usage(uri, f"calib= and {', '.join(given) or 'fov_deg'} both give the camera: "
+                              f"give one of them")
+        return _calibration_file(uri, q["calib"])
+    if not given:
+        return None
+    if "fov_deg" in q:
+        raise _usage(uri, f"fov_deg and {', '.join(given)} both give the camera: give one of them")
+    missing = [k for k in INTRINSICS if k not in q]
+    if missing:
+        raise _usage(uri, f"{', '.join(given)} given without {', '.join(missing)}: the "
+                          f"intrinsics need all of fx, fy, cx, cy")
+    return Calibration(float(q["fx"]), float(q["fy"]), float(q["cx"]), float(q["cy"]),
+                       distortion=tuple(float(q.get(k, 0.0)) for k in DISTORTION),
+                       size=None, source="the URI")
+
+
+def _calibration_file(uri: SceneURI, name: str) -> Calibration:
+    """The camera of a calibration JSON (``calib=``; relative to the video's folder when not
+    absolute), every value checked against :data:`KEYS`."""
+    path = Path(name) if Path(name).is_absolute() else Path(uri.path).parent / name
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _usage(uri, f"calib={name}: {path} cannot be read as JSON ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise _usage(uri, f"calib={name}: {path} holds no JSON object")
+    unknown = [k for k in doc if k not in (*INTRINSICS, *DISTORTION, "width", "height", *CALIB_NOTES)]
+    missing = [k for k in INTRINSICS if k not in doc]
+    if unknown or missing:
+        what = f"unknown key(s) {', '.join(unknown)}" if unknown else f"no {', '.join(missing)}"
+        raise _usage(uri, f"calib={name}: {path} has {what} (it holds fx, fy, cx, cy, k1, k2, "
+                          f"p1, p2, k3 and optionally width, height)")
+    values = {}
+    for k in (*INTRINSICS, *DISTORTION):
+        value = doc.get(k, 0.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not KEYS[k].admits(value):
+            raise _usage(uri, f"calib={name}: {k}={value!r} in {path} is outside {KEYS[k].text}")
+        values[k] = float(value)
+    size = None
+    if "width" in doc or "height" in doc:
+        w, h = doc.get("width"), doc.get("height")
+        if not all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 100_000 for v in (w, h)):
+            raise _usage(uri, f"calib={name}: width={w!r}, height={h!r} in {path} must both be "
+                              f"positive whole pixels")
+        size = (int(w), int(h))  # type: ignore[arg-type]
+    return Calibration(values["fx"], values["fy"], values["cx"], values["cy"],
+                       distortion=tuple(values[k] for k in DISTORTION),
+                       size=size, source=str(path))
+
+
+# --------------------------------------------------------------------------- the camera
+
+def camera_of(opts: VideoOptions, width: int, height: int, *, scene_id: str,
+              path: Path) -> tuple[Intrinsics | None, tuple[float, ...]]:
+    """The given pinhole at the video's size (None: SfM estimates it) and the lens distortion;
+    SceneError where the calibration cannot be this video's camera."""
+    cal = opts.calibration
+    if cal is None:
+        if opts.fov_deg is None:
+            return None, (0.0,) * 5
+        f = 0.5 * width / math.tan(math.radians(opts.fov_deg) / 2)
+        return Intrinsics(f, f, 0.5 * width, 0.5 * height), (0.0,) * 5
+    if cal.size is not None:
+        sx, sy = width / cal.size[0], height / cal.size[1]
+        if abs(sx / sy - 1) > 0.01:
+            raise SceneError(f"the calibration ({cal.source}) is for {cal.size[0]}x{cal.size[1]}, "
+                             f"the video is {width}x{height}: another shape", scene_id=scene_id,
+                             path=path, fix="give the calibration of this camera at this size")
+    K = cal.at(width, height)
+    if not (0 <= K.cx <= width and 0 <= K.cy <= height):
+        raise SceneError(f"the principal point ({K.cx - 0.5:g}, {K.cy - 0.5:g}) of {cal.source} lies "
+                         f"outside the {width}x{height} video", scene_id=scene_id, path=path,
+                         fix="give cx, cy of this video (pixels, OpenCV's convention)")
+    folds = _fold_radius(cal.distortion, K, width, height)
+    if folds is not None:
+        raise SceneError(f"the lens model of {cal.source} folds the image back beyond "
+                         f"{folds:.0f} px from the principal point: it cannot be this camera's",
+                         scene_id=scene_id, path=path,
+                         fix="check the signs and scale of k1, k2, k3 (OpenCV's model)")
+    return K, cal.distortion
+
+
+def _fold_radius(dist: tuple[float, ...], K: Intrinsics, width: int, height: int) -> float | None:
+    """The radius (pixels) within the image's corners where the radial model stops growing (it
+    would fold the image), or None where it grows all the way."""
+    k1, k2, _, _, k3 = dist
+    corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], dtype=np.float64)
+    r_max = float(np.max(np.hypot((corners[:, 0] - K.cx) / K.fx, (corners[:, 1] - K.cy) / K.fy)))
+    r = np.linspace(0.0, r_max, 512)
+    growth = 1 + 3 * k1 * r ** 2 + 5 * k2 * r ** 4 + 7 * k3 * r ** 6
+    bad = np.flatnonzero(growth <= 0)
+    return None if not len(bad) else float(r[bad[0]] * K.fx)
 
 
 # --------------------------------------------------------------------------- frames
 
 @dataclass
 class Footage:
-    """The sampled frames: pixels (F, H, W, 3), their source frame numbers and times (s)."""
+    """The sampled frames of a video file (or folder ``files``): their source frame numbers and
+    times (s), the frames' size, the rate sampled at and the source's own (None for a folder)."""
 
-    pixels: np.ndarray
+    path: Path
     source_frames: list[int]
     times: np.ndarray
+    width: int
+    height: int
+    fps: float
+    native_fps: float | None
+    files: list[Path] | None = None
+
+    @property
+    def skipped(self) -> int:
+        """Source frames within the sampled range that were not sampled."""
+        if not self.source_frames:
+            return 0
+        return self.source_frames[-1] - self.source_frames[0] + 1 - len(self.source_frames)
 
 
-def sample_times(count: int, rate: float, opts: VideoOptions) -> list[int]:
-    """Source frame numbers of a ``count``-frame source at ``rate`` sampled at ``opts.fps``
-    within ``[start, end)``: the nearest source frame to each sample time, without repeats."""
+def sample_times(count: int, rate: float, fps: float, start: float, end: float | None) -> list[int]:
+    """Source frame numbers of a ``count``-frame source at ``rate`` sampled at ``fps`` within
+    ``[start, end)``: the nearest source frame to each sample time, without repeats."""
     duration = count / rate
-    end = duration if opts.end is None else min(opts.end, duration)
-    times = np.arange(opts.start, end - 1e-9, 1.0 / opts.fps)
+    stop = duration if end is None else min(end, duration)
+    fps = min(fps, rate)   # above the source's own rate every frame is taken once
+    times = np.arange(start, stop - 1e-9, 1.0 / fps) if stop > start else np.zeros(0)
     picks = np.minimum(np.round(times * rate).astype(np.int64), count - 1)
     return sorted(set(int(i) for i in picks))
 
 
-def read_footage(path: Path, opts: VideoOptions, *, scene_id: str) -> Footage:
-    """The sampled frames of a video file or a folder of frames; SceneErrors name the file."""
+def sample(path: Path, opts: VideoOptions, params: IngestParams, *, scene_id: str) -> Footage:
+    """Which frames of the video file or folder to take; SceneErrors name the file."""
     if not path.exists():
         raise SceneError("video file is missing", scene_id=scene_id, path=path,
                          fix="check the path in the scene URI")
     if path.is_dir():
-        return _folder_footage(path, opts, scene_id=scene_id)
-    count, rate = _probe(path, scene_id=scene_id)
-    wanted = sample_times(count, rate, opts)
+        return _folder(path, opts, params, scene_id=scene_id)
+    count, rate, width, height = _probe(path, scene_id=scene_id)
+    fps = opts.fps if opts.fps is not None else min(rate, params.video_max_fps)
+    wanted = sample_times(count, rate, fps, opts.start, opts.end)
     if not wanted:
         raise SceneError(f"no frame of the {count / rate:.2f} s video lies in the time range",
                          scene_id=scene_id, path=path, fix="give start/end within the video")
-    from paradrive.video import decode_frames
+    return Footage(path, wanted, np.asarray(wanted) / rate, width, height, min(fps, rate), rate)
 
+
+def planned_frames(uri: SceneURI, params: IngestParams) -> tuple[int, int, int] | None:
+    """What ingesting ``uri`` would sample, from its file's header: (frames, width, height);
+    None where there is no file to read yet (a plan made before the videos arrive). A URI no
+    ingest could take is a ConfigError."""
+    opts = options_of(uri)
     try:
-        pixels = decode_frames(path, wanted, seek=False)
-    except ParaDriveError as exc:
-        raise SceneError(f"video is truncated or corrupt: frames up to {wanted[-1]} were expected "
-                         f"({count} by its header) and do not decode", scene_id=scene_id, path=path,
-                         fix="re-encode or re-download the video, or trim the range with end=") from exc
-    return Footage(pixels=pixels, source_frames=wanted, times=np.asarray(wanted) / rate)
+        footage = sample(Path(uri.path), opts, params, scene_id=uri.scene_id)
+    except SceneError:
+        return None
+    frames = len(footage.source_frames)
+    return min(frames, params.max_frames or frames), footage.width, footage.height
 
 
-def _probe(path: Path, *, scene_id: str) -> tuple[int, float]:
-    """Frame count and frame rate of a video file from its header."""
+def _probe(path: Path, *, scene_id: str) -> tuple[int, float, int, int]:
+    """Frame count, frame rate and size of a video file from its header."""
     import av
 
     try:
@@ -165,44 +375,134 @@ def _probe(path: Path, *, scene_id: str) -> tuple[int, float]:
                                  fix="give a video file (mp4, mkv, mov, ...) or a folder of frames")
             stream = container.streams.video[0]
             rate = float(stream.average_rate or stream.guessed_rate or 0)
+            # the stream's duration over its rate, where known: an MP4's frame count may count
+            # frames that never decode (162 in the header of a 160-frame, 6.4 s clip)
             count = int(stream.frames or 0)
-            if not count and stream.duration and stream.time_base:
-                count = int(round(float(stream.duration * stream.time_base) * rate))
+            if stream.duration and stream.time_base:
+                count = int(round(float(stream.duration * stream.time_base) * rate)) or count
+            width, height = int(stream.codec_context.width), int(stream.codec_context.height)
+    except MemoryError as exc:
+        raise _out_of_memory(path, scene_id, "opening the video") from exc
     except (av.error.FFmpegError, OSError) as exc:
+        if not _room_for(0, 0):
+            raise _out_of_memory(path, scene_id, "opening the video") from exc
         raise SceneError(f"video cannot be opened ({exc})", scene_id=scene_id, path=path,
                          fix="the file is not a video or is corrupt: re-encode or re-download it"
                          ) from exc
-    if rate <= 0 or count <= 0:
-        raise SceneError(f"video header gives {count} frames at {rate:g} fps", scene_id=scene_id,
-                         path=path, fix="re-encode the video (ffmpeg -i IN -c:v libx264 OUT.mp4)")
-    return count, rate
+    if rate <= 0 or count <= 0 or width <= 0 or height <= 0:
+        raise SceneError(f"video header gives {count} frames of {width}x{height} at {rate:g} fps",
+                         scene_id=scene_id, path=path,
+                         fix="re-encode the video (ffmpeg -i IN -c:v libx264 OUT.mp4)")
+    return count, rate, width, height
 
 
-def _folder_footage(folder: Path, opts: VideoOptions, *, scene_id: str) -> Footage:
-    """Frames of a folder, sorted by name, taken to be at ``opts.fps``."""
-    from paradrive.scene import read_image
+def _folder(folder: Path, opts: VideoOptions, params: IngestParams, *, scene_id: str) -> Footage:
+    """Frames of a folder, sorted by name, taken to be at ``fps``."""
+    from PIL import Image
 
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in FRAME_SUFFIXES)
     if not files:
         raise SceneError(f"folder has no frames ({', '.join(FRAME_SUFFIXES)})", scene_id=scene_id,
                          path=folder, fix="give a video file or a folder of JPEG/PNG frames")
-    wanted = sample_times(len(files), opts.fps, opts)
-    pixels = [read_image(files[i], scene_id=scene_id) for i in wanted]
-    if any(p.shape != pixels[0].shape for p in pixels):
-        raise SceneError("frames of the folder differ in size", scene_id=scene_id, path=folder,
-                         fix="give frames of one camera at one size")
-    return Footage(pixels=np.stack(pixels), source_frames=wanted,
-                   times=np.asarray(wanted) / opts.fps)
+    fps = opts.fps if opts.fps is not None else params.video_folder_fps
+    wanted = sample_times(len(files), fps, fps, opts.start, opts.end)
+    if not wanted:
+        raise SceneError(f"no frame of the {len(files) / fps:.2f} s of frames lies in the time "
+                         f"range", scene_id=scene_id, path=folder, fix="give start/end within it")
+    try:
+        with Image.open(files[wanted[0]]) as first:
+            width, height = first.size
+    except OSError as exc:
+        raise SceneError(f"frame cannot be read ({exc})", scene_id=scene_id, path=files[wanted[0]],
+                         fix="replace or remove the file") from exc
+    return Footage(folder, wanted, np.asarray(wanted) / fps, width, height, fps, None, files)
 
 
-def given_intrinsics(opts: VideoOptions, width: int, height: int) -> Intrinsics | None:
-    """The URI's intrinsics (fx, fy, cx, cy, or fov_deg with a centred principal point)."""
-    if opts.intrinsics is not None:
-        return Intrinsics(*opts.intrinsics)
-    if opts.fov_deg is not None:
-        f = 0.5 * width / math.tan(math.radians(opts.fov_deg) / 2)
-        return Intrinsics(f, f, 0.5 * width, 0.5 * height)
-    return None
+def each_frame(footage: Footage, sink: Callable[[int, np.ndarray], None], *, scene_id: str,
+               size: tuple[int, int] | None = None, only: list[int] | None = None) -> None:
+    """Hand sampled frame ``k`` (uint8 (H, W, 3), resized to ``size`` = (height, width) with an
+    area filter when given) to ``sink(k, pixels)``, one at a time in order; ``only``: those ``k``.
+    Decoding runs out of memory as a memory error, never as a corrupt file."""
+    picks = list(range(len(footage.source_frames))) if only is None else list(only)
+    try:
+        if footage.files is not None:
+            _each_file(footage, picks, sink, size, scene_id=scene_id)
+        else:
+            _each_decoded(footage, picks, sink, size, scene_id=scene_id)
+    except MemoryError as exc:
+        raise _out_of_memory(footage.path, scene_id, _decoding(footage)) from exc
+
+
+def _decoding(footage: Footage) -> str:
+    return (f"decoding its {footage.width}x{footage.height} frames "
+            f"({footage.width * footage.height * 3 / 1e6:.1f} MB each)")
+
+
+def _each_decoded(footage: Footage, picks: list[int], sink: Callable[[int, np.ndarray], None],
+                  size: tuple[int, int] | None, *, scene_id: str) -> None:
+    from paradrive import video
+
+    k_of = {footage.source_frames[k]: k for k in picks}
+    try:
+        video.each_frame(footage.path, sorted(k_of), lambda i, pixels: sink(k_of[i], pixels),
+                         size=size, seek=False)
+    except ParaDriveError as exc:
+        if not _room_for(footage.width, footage.height):
+            raise _out_of_memory(footage.path, scene_id, _decoding(footage)) from exc
+        raise SceneError(f"video is truncated or corrupt: frames up to {max(k_of)} were expected "
+                         f"and do not decode", scene_id=scene_id, path=footage.path,
+                         fix="re-encode or re-download the video, or trim the range with end=") from exc
+
+
+def _each_file(footage: Footage, picks: list[int], sink: Callable[[int, np.ndarray], None],
+               size: tuple[int, int] | None, *, scene_id: str) -> None:
+    from PIL import Image
+
+    from paradrive.scene import read_image
+
+    assert footage.files is not None
+    for k in picks:
+        file = footage.files[footage.source_frames[k]]
+        pixels = read_image(file, scene_id=scene_id)
+        if pixels.shape[:2] != (footage.height, footage.width):
+            raise SceneError(f"frames of the folder differ in size ({pixels.shape[1]}x"
+                             f"{pixels.shape[0]}, the first is {footage.width}x{footage.height})",
+                             scene_id=scene_id, path=file, fix="give frames of one camera at one size")
+        if size is not None and size != pixels.shape[:2]:
+            pixels = np.asarray(Image.fromarray(pixels).resize((size[1], size[0]), Image.Resampling.BOX))
+        sink(k, pixels)
+
+
+def _room_for(width: int, height: int, frames: int = 4) -> bool:
+    """Whether a few frames' worth of memory can still be had. FFmpeg's decoders report an
+    allocation that failed as "invalid data" as often as not: a decode that fails where this
+    does too ran out of memory, and is not a corrupt file."""
+    try:
+        np.empty(max(frames * width * height * 3, 64 * 2**20), dtype=np.uint8)
+    except MemoryError:
+        return False
+    return True
+
+
+def _out_of_memory(path: Path, scene_id: str, doing: str) -> SceneError:
+    """An allocation that failed: how much this process held and what bounds it."""
+    held = _status_gb("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    limit = "no address-space limit" if soft == resource.RLIM_INFINITY else \
+        f"an address-space limit of {soft / 2**30:.2f} GB, {_status_gb('VmSize'):.2f} GB mapped"
+    return SceneError(f"out of memory {doing}: the process held {held:.2f} GB at its peak, under "
+                      f"{limit}", scene_id=scene_id, path=path,
+                      fix="give the ingest more memory (stages/ingest.yaml resources.memory_gb and "
+                          "the machine's limit), or a smaller video or range (end=)")
+
+
+def _status_gb(field: str) -> float:
+    """A memory figure of this process from /proc/self/status (GB), 0 where there is none."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(f"{field}:"):
+                return int(line.split()[1]) / 2**20
+    return 0.0
 
 
 # --------------------------------------------------------------------------- the track
@@ -240,15 +540,55 @@ def track_distance(path: Path, t0: float, t1: float, *, scene_id: str) -> tuple[
                          ) from exc
 
 
+# --------------------------------------------------------------------------- structure from motion
+
+@dataclass
+class SfmInput:
+    """The frames as SfM sees them: PNGs under ``folder`` named ``names`` (sampled order), at
+    ``size`` (width, height), the given pinhole at that size (None: estimated) and the lens
+    distortion still in them (zero where they were undistorted on the way)."""
+
+    folder: Path
+    names: list[str]
+    size: tuple[int, int]
+    intrinsics: Intrinsics | None
+    distortion: tuple[float, ...]
+    seconds: float
+
+    def scale(self, footage: Footage) -> tuple[float, float]:
+        """Video pixels per SfM pixel, across and down."""
+        return footage.width / self.size[0], footage.height / self.size[1]
+
+
+def sfm_size(width: int, height: int, max_width: int) -> tuple[int, int]:
+    """The size SfM works at: the video's, or ``max_width`` wide with its aspect (even sizes)."""
+    if width <= max_width:
+        return width, height
+    return max_width, max(2, int(round(height * max_width / width / 2)) * 2)
+
+
+def _sfm_input(footage: Footage, K: Intrinsics | None, dist: tuple[float, ...], work: Path,
+               params: IngestParams, *, scene_id: str) -> SfmInput:
+    """First pass: every sampled frame at SfM's size, undistorted where the lens is known."""
+    start = time.perf_counter()
+    size = sfm_size(footage.width, footage.height, params.video_sfm_width)
+    sx, sy = size[0] / footage.width, size[1] / footage.height
+    small = None if K is None else Intrinsics(K.fx * sx, K.fy * sy, K.cx * sx, K.cy * sy)
+    names = [f"{k:06d}.png" for k in range(len(footage.source_frames))]
+    folder = work / "images"
+
+    def keep(k: int, pixels: np.ndarray) -> None:
+        if small is not None and not distortion_is_zero(dist):
+            pixels = undistort_image(pixels, small.K(), dist)
+        write_image(folder / names[k], pixels)
+
+    each_frame(footage, keep, scene_id=scene_id, size=(size[1], size[0]))
+    undistorted = small is not None
+    return SfmInput(folder, names, size, small, (0.0,) * 5 if undistorted else dist,
+                    time.perf_counter() - start)
+
+
 # --------------------------------------------------------------------------- the scene
-
-def _work_images(footage: Footage, work: Path) -> list[str]:
-    """The sampled frames as PNGs for SfM (lossless, so features see what the video holds)."""
-    names = [f"{i:06d}.png" for i in range(len(footage.pixels))]
-    for name, pixels in zip(names, footage.pixels):
-        write_image(work / "images" / name, pixels)
-    return names
-
 
 def _kept_run(rec: Reconstruction, *, scene_id: str, path: Path) -> tuple[int, int]:
     """The longest contiguous run of registered frames; SceneError when it is too short."""
@@ -264,113 +604,211 @@ def _kept_run(rec: Reconstruction, *, scene_id: str, path: Path) -> tuple[int, i
 
 
 def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
-    opts = options_of(uri)
+    try:
+        opts = options_of(uri)
+    except ConfigError as exc:  # a build checks this first; a direct call fails the scene
+        raise SceneError(str(exc), scene_id=scene_id, path=uri.path,
+                         fix="fix the scene URI") from exc
     path = Path(uri.path)
-    footage = read_footage(path, opts, scene_id=scene_id)
-    if params.max_frames is not None:
+    footage = sample(path, opts, params, scene_id=scene_id)
+    if params.max_frames is not None and len(footage.source_frames) > params.max_frames:
         keep = params.max_frames
-        footage = Footage(footage.pixels[:keep], footage.source_frames[:keep], footage.times[:keep])
-    n, height, width = footage.pixels.shape[:3]
+        footage.source_frames, footage.times = footage.source_frames[:keep], footage.times[:keep]
+    n = len(footage.source_frames)
     if n < MIN_FRAMES:
-        raise SceneError(f"{n} frames sampled at {opts.fps:g} fps, at least {MIN_FRAMES} are needed",
-                         scene_id=scene_id, path=path,
+        raise SceneError(f"{n} frames sampled at {footage.fps:g} fps, at least {MIN_FRAMES} are "
+                         f"needed", scene_id=scene_id, path=path,
                          fix="use a longer video or time range, or a higher fps=")
+    K, dist = camera_of(opts, footage.width, footage.height, scene_id=scene_id, path=path)
     work = out_dir / "sfm"
     try:
-        rec = reconstruct(work / "images", _work_images(footage, work), work,
-                          intrinsics=given_intrinsics(opts, width, height))
+        sfm_in = _sfm_input(footage, K, dist, work, params, scene_id=scene_id)
+        rec = _reconstruct(sfm_in, work, scene_id=scene_id, path=path)
+        first, last = _kept_run(rec, scene_id=scene_id, path=path)
+        return _scene(uri, rec, sfm_in, footage, opts, (first, last), out_dir, params, scene_id)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _reconstruct(sfm_in: SfmInput, work: Path, *, scene_id: str, path: Path) -> Reconstruction:
+    try:
+        return reconstruct(sfm_in.folder, sfm_in.names, work, intrinsics=sfm_in.intrinsics)
+    except MemoryError as exc:
+        raise _out_of_memory(path, scene_id, f"in structure from motion at {sfm_in.size[0]}x"
+                                             f"{sfm_in.size[1]}") from exc
     except SfmError as exc:
         raise SceneError(f"structure from motion failed: {exc}", scene_id=scene_id, path=path,
                          fix="a video from a moving vehicle is needed: trim start=/end= to where "
                              "it drives, lower fps=, or give the intrinsics") from exc
-    finally:
-        shutil.rmtree(work / "images", ignore_errors=True)
-    first, last = _kept_run(rec, scene_id=scene_id, path=path)
-    scene = _scene(uri, rec, footage, opts, (first, last), out_dir, params, scene_id)
-    shutil.rmtree(work, ignore_errors=True)
-    return scene
 
 
-def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray, frame,
-           opts: VideoOptions, footage: Footage, path: Path,
-           scene_id: str) -> tuple[float, float, dict]:
+def _no_road(exc: SfmError, footage: Footage) -> str:
+    """The fix of a scene whose road could not be measured: more frames where some were skipped."""
+    fix = ("the camera must see the road ahead: trim start=/end= to where it does, or give a "
+           "speed/GPS track as <stem>.csv (t,speed_mps)")
+    if footage.native_fps is not None and footage.skipped:
+        fix = (f"{footage.skipped} of the video's frames were skipped (fps={footage.fps:g} of its "
+               f"{footage.native_fps:g}): more frames may fix it (a higher fps=, up to "
+               f"{footage.native_fps:g}); else {fix}")
+    return fix
+
+
+def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
+           image: Callable[[int], np.ndarray], K_image: np.ndarray, opts: VideoOptions,
+           footage: Footage, params: IngestParams, scene_id: str, *,
+           ego: np.ndarray | None = None) -> tuple[float, float, dict]:
     """Metres per model unit, from the camera's height above the road (measured by the road's
     motion, else by the SfM points on it) or from the track where there is one; that height in
-    model units; what was measured."""
+    model units; what was measured (``uncertainty``: the scale's relative uncertainty).
+    ``ego``: the pixels that move with the camera (any size), left out of the road's motion.
+    SceneError where that uncertainty is above ``ingest.video_max_scale_uncertainty``."""
     start = time.perf_counter()
-    motion = road_motion_height(frame, rec.c2w[run], rec.intrinsics.K(), up, plane.height)
+    motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height, ego=ego)
     seconds = time.perf_counter() - start
     camera_height = motion.height if motion is not None else plane.height
     by_height = opts.height_m / camera_height
     doc: dict[str, Any] = {"source": "height", "height_m": opts.height_m, "by_height": by_height,
                            "height_from": "road motion" if motion is not None else "road points",
-                           "by_road_points": opts.height_m / plane.height}
+                           "by_road_points": opts.height_m / plane.height,
+                           "uncertainty": motion.uncertainty if motion is not None
+                           else ROAD_POINTS_UNCERTAINTY}
     if motion is not None:
-        doc["road_motion"] = {"pairs": len(motion.pairs), "spread": motion.spread,
-                              "seconds": seconds}
-    track = track_path(path)
+        doc["road_motion"] = _motion_doc(motion, seconds)
+    track = track_path(footage.path)
     if track.is_file():
         times = footage.times[run]
         metres, kind = track_distance(track, float(times[0]), float(times[-1]), scene_id=scene_id)
         by_track = metres / path_length(rec.c2w[run])
         doc.update(source=kind, track=str(track), by_track=by_track,
                    height_vs_track=by_height / by_track - 1.0,
-                   camera_height_by_track_m=camera_height * by_track)
+                   camera_height_by_track_m=camera_height * by_track,
+                   uncertainty=TRACK_UNCERTAINTY)
         return by_track, camera_height, doc
+    if doc["uncertainty"] > params.video_max_scale_uncertainty:
+        raise SceneError(_uncertain(doc, motion, params), scene_id=scene_id, path=footage.path,
+                         fix="give a speed or GPS track as <stem>.csv (t,speed_mps or t,lat,lon), "
+                             "a longer clip, or more frames (a higher fps=)")
     return by_height, camera_height, doc
 
 
-def _scene(uri: SceneURI, rec: Reconstruction, footage: Footage, opts: VideoOptions,
-           kept: tuple[int, int], out_dir: Path, params: IngestParams, scene_id: str) -> Scene:
+def _motion_doc(motion: RoadMotion, seconds: float) -> dict[str, Any]:
+    return {"pairs": len(motion.pairs), "spread": motion.spread, "scatter": motion.scatter,
+            "drift": motion.drift, "band": motion.band,
+            "heights_q10_q90": [float(q) / motion.height for q in np.percentile(motion.heights, [10, 90])],
+            "seconds": seconds}
+
+
+def _uncertain(doc: dict[str, Any], motion: RoadMotion | None, params: IngestParams) -> str:
+    """Why the scale cannot be trusted, in one line."""
+    if motion is None:
+        return (f"the metric scale is uncertain by {doc['uncertainty']:.0%} (above "
+                f"ingest.video_max_scale_uncertainty = {params.video_max_scale_uncertainty:g}): "
+                f"the road's motion could not be measured, and the SfM points alone give the "
+                f"height")
+    band = "" if motion.band is None else \
+        f" and differs by {motion.band:.1%} between the near and the far road"
+    return (f"the metric scale is uncertain by {doc['uncertainty']:.1%} (above "
+            f"ingest.video_max_scale_uncertainty = {params.video_max_scale_uncertainty:g}): the "
+            f"camera height measured by the road's motion over {len(motion.pairs)} frame pairs "
+            f"scatters by {motion.scatter:.1%} and drifts by {motion.drift:.1%} along the "
+            f"video{band}")
+
+
+def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footage,
+           opts: VideoOptions, kept: tuple[int, int], out_dir: Path, params: IngestParams,
+           scene_id: str) -> Scene:
     path = Path(uri.path)
     run = slice(kept[0], kept[1] + 1)
     try:
         plane = fit_road_plane(rec)
     except SfmError as exc:
         raise SceneError(f"no metric scale: {exc}", scene_id=scene_id, path=path,
-                         fix="the camera must see the road ahead: trim start=/end= to where it "
-                             "does, or give a speed/GPS track as <stem>.csv (t,speed_mps)") from exc
-    K, dist = rec.intrinsics, rec.distortion
+                         fix=_no_road(exc, footage)) from exc
+    small, left = rec.intrinsics, rec.distortion if rec.estimated else sfm_in.distortion
+    sx, sy = sfm_in.scale(footage)
+    K = Intrinsics(small.fx * sx, small.fy * sy, small.cx * sx, small.cy * sy)  # the video's pixels
+    dist = rec.distortion if rec.estimated else _lens(opts)
 
-    def frame(k: int) -> np.ndarray:
-        """Kept frame ``k``, undistorted."""
-        pixels = footage.pixels[kept[0] + k]
-        return pixels if distortion_is_zero(dist) else undistort_image(pixels, K.K(), dist)
+    def image(k: int) -> np.ndarray:
+        """Kept frame ``k`` at SfM's size, undistorted."""
+        from paradrive.scene import read_image
 
+        pixels = read_image(sfm_in.folder / sfm_in.names[kept[0] + k], scene_id=scene_id)
+        return pixels if distortion_is_zero(left) else undistort_image(pixels, small.K(), left)
+
+    # the kept frames stored (full size, undistorted) before the scale: what moves with the camera
+    # (the ego mask: a hood, an overlay) is found on them and left out of the road's motion
+    rels = _write_frames(footage, kept, K, dist, out_dir, params, scene_id=scene_id)
+    ego = None   # None: road motion finds the pixels that barely change itself
     up = level_with_path(plane.normal, rec.c2w[run])
-    scale, camera_height, scale_doc = _scale(rec, run, plane, up, frame, opts, footage, path,
-                                             scene_id)
+    scale, camera_height, scale_doc = _scale(rec, run, plane, up, image, small.K(), opts, footage,
+                                             params, scene_id, ego=ego)
     rig = metric_rig(rec.c2w[run], up, camera_height, scale)
     travelled = path_length(rig.c2w)
     if travelled < MIN_PATH_M:
         raise SceneError(f"the camera moves {travelled:.2f} m over the kept frames: a static "
                          f"camera gives no baseline", scene_id=scene_id, path=path,
                          fix="trim start=/end= to where the vehicle drives")
-    camera = Camera(name=CAMERA, width=int(footage.pixels.shape[2]),
-                    height=int(footage.pixels.shape[1]), fx=K.fx, fy=K.fy, cx=K.cx, cy=K.cy,
-                    cam2ego=rig.cam2ego)
-    frames = []
-    for k, i in enumerate(range(kept[0], kept[1] + 1)):
-        rel = f"images/{CAMERA}/{k:06d}.{params.image_ext}"
-        write_image(out_dir / rel, frame(k), quality=params.jpeg_quality)
-        frames.append(Frame(index=k, timestamp_us=int(round(footage.times[i] * 1e6)),
-                            ego2world=rig.ego2world[k],
-                            cameras={CAMERA: FrameCamera(image=rel, c2w=rig.c2w[k])}))
+    camera = Camera(name=CAMERA, width=footage.width, height=footage.height, fx=K.fx, fy=K.fy,
+                    cx=K.cx, cy=K.cy, cam2ego=rig.cam2ego)
+    frames = [Frame(index=k, timestamp_us=int(round(footage.times[i] * 1e6)),
+                    ego2world=rig.ego2world[k],
+                    cameras={CAMERA: FrameCamera(image=rels[k], c2w=rig.c2w[k])})
+              for k, i in enumerate(range(kept[0], kept[1] + 1))]
     if params.lidar:
         _save_model_points(rec, rig, kept, out_dir)
-    video = {"file": uri.path, "fps": opts.fps, "source_frames": footage.source_frames[run],
-             "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy,
-                            "estimated": rec.estimated, "distortion": list(dist)},
+    video = _video_doc(uri, rec, sfm_in, footage, opts, kept, (K, dist), scale, scale_doc, travelled,
+                       plane)
+    stamps = [f.timestamp_us for f in frames]  # a video slower than fps= keeps its own rate
+    return Scene(scene_id=scene_id, dataset="video", source=uri.text,
+                 fps=fps_from(stamps, footage.fps), cameras={CAMERA: camera}, frames=frames,
+                 extra={"video": video})
+
+
+def _lens(opts: VideoOptions) -> tuple[float, ...]:
+    """The given lens distortion (zero for fov_deg or none)."""
+    return opts.calibration.distortion if opts.calibration is not None else (0.0,) * 5
+
+
+def _write_frames(footage: Footage, kept: tuple[int, int], K: Intrinsics, dist: tuple[float, ...],
+                  out_dir: Path, params: IngestParams, *, scene_id: str) -> list[str]:
+    """Second pass: the kept frames at full size, undistorted to the pinhole ``K``, stored."""
+    rels = [f"images/{CAMERA}/{k:06d}.{params.image_ext}" for k in range(kept[1] - kept[0] + 1)]
+
+    def store(k: int, pixels: np.ndarray) -> None:
+        pixels = pixels if distortion_is_zero(dist) else undistort_image(pixels, K.K(), dist)
+        write_image(out_dir / rels[k - kept[0]], pixels, quality=params.jpeg_quality)
+
+    each_frame(footage, store, scene_id=scene_id, only=list(range(kept[0], kept[1] + 1)))
+    return rels
+
+
+def _video_doc(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footage,
+               opts: VideoOptions, kept: tuple[int, int], camera: tuple[Intrinsics, tuple],
+               scale: float, scale_doc: dict, travelled: float, plane: RoadPlane) -> dict[str, Any]:
+    """What ``scene.json`` records under ``video``."""
+    K, dist = camera
+    run = slice(kept[0], kept[1] + 1)
+    given = opts.calibration
+    intrinsics: dict[str, Any] = {
+        "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "estimated": rec.estimated,
+        "distortion": list(dist), "undistorted": not distortion_is_zero(dist),
+        "given_by": given.source if given is not None else "fov_deg" if opts.fov_deg else None}
+    video = {"file": uri.path, "fps": footage.fps, "native_fps": footage.native_fps,
+             "source_frames": footage.source_frames[run], "skipped_frames": footage.skipped,
+             "intrinsics": intrinsics,
              "registered": format_runs(registered_runs(rec.registered)),
              "sampled": len(footage.source_frames), "kept": [kept[0], kept[1]],
              "scale_m_per_unit": scale, "scale": scale_doc, "path_m": travelled,
              "road_plane": {"inliers": plane.inliers, "candidates": plane.candidates},
-             "points": int(len(rec.points)), "sfm_seconds": rec.seconds, "models": rec.models}
+             "points": int(len(rec.points)), "sfm_seconds": rec.seconds,
+             "sfm": {"width": sfm_in.size[0], "height": sfm_in.size[1],
+                     "downscaled": sfm_in.size != (footage.width, footage.height),
+                     "seconds": rec.seconds, "prepare_seconds": sfm_in.seconds},
+             "models": rec.models}
     if opts.truth:
         video["truth"] = opts.truth
-    stamps = [f.timestamp_us for f in frames]  # a video slower than fps= keeps its own rate
-    return Scene(scene_id=scene_id, dataset="video", source=uri.text, fps=fps_from(stamps, opts.fps),
-                 cameras={CAMERA: camera}, frames=frames, extra={"video": video})
+    return video
 
 
 def _save_model_points(rec: Reconstruction, rig, kept: tuple[int, int], out_dir: Path) -> None:

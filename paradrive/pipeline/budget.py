@@ -99,6 +99,8 @@ class Shape:
     known: str        # "ingested", "uri" or "typical <dataset> log"
     gaussians: float | None = None   # of every checkpoint, when a fit with these parameters ran
     sfm_frames: int = 0   # frames whose poses structure from motion finds (a video's)
+    sfm_work: float = 0.0   # their cost in frames of the SfM rate's reference size (sfm_work())
+    sfm_seconds: float = 0.0   # what SfM took, for an ingested video
     # a longitudinal build's cameras' recorded paths (N, 4, 4): where its sources stay on them
     paths: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -166,7 +168,7 @@ def units(params: dict[str, dict], shape: Shape) -> dict[str, float]:
     return {
         "compute:ingest": stored_mp, "compute:fit": float(checkpoints[-1]),
         "compute:render": rendered_mp, "compute:clip": encoded_mp,
-        "compute:sfm": float(shape.sfm_frames),
+        "compute:sfm": shape.sfm_work,
         "bytes:images": stored_mp, "bytes:masks": stored_mp,
         "bytes:lidar": float(shape.frames) if ingest["lidar"] else 0.0,
         # before a fit, an upper bound: under-fitted checkpoints near the initial points, the last at the cap
@@ -203,13 +205,22 @@ def encode_units(encode: dict | None, render: dict, videos: int) -> dict[str, fl
     return {"compute:encode": videos * frames * height * width / MB, "bytes:latents": float(videos * values * item)}
 
 
-def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict) -> Shape:
-    """The scene's frames and cameras: from its scene.json when ingested, else its URI."""
+def sfm_work(frames: int, pixels: float, model: dict) -> float:
+    """Structure from motion's work on ``frames`` frames of ``pixels`` pixels, in frames of the
+    rate's reference size: each counts ``(pixels / reference_pixels) ** exponent``, the power law
+    through SfM's seconds measured at two sizes (``rates.yaml``: ``compute.sfm``)."""
+    return frames * (pixels / model["reference_pixels"]) ** model["exponent"] if frames else 0.0
+
+
+def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, rates_doc: dict) -> Shape:
+    """The scene's frames and cameras: from its scene.json when ingested, else its URI (a video
+    from its file's header where it can be read)."""
     parsed = parse_uri(uri)
+    logs, sfm_model = rates_doc["logs"], rates_doc["compute"]["sfm"]
     if data_dir is not None:
         layout = SceneLayout.of(data_dir, parsed.scene_id)
         if layout.scene_json.is_file():
-            shape = _ingested_shape(layout, config.params["fit"])
+            shape = _ingested_shape(layout, config.params["fit"], sfm_model)
             if _longitudinal(config):
                 from paradrive.scene import load_scene
 
@@ -225,27 +236,49 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, logs: dict
         paths = {c: street.c2w(c)[:frames] for c in street.cameras} if _longitudinal(config) else {}
         return Shape(frames, {c: (street.width, street.height) for c in street.cameras}, "uri",
                      paths=paths)
+    if parsed.kind == "video":
+        return _video_shape(parsed, params, logs["video"], sfm_model)
     typical = logs[parsed.kind]
     names = (params.camera_sets.get(parsed.kind) or typical["cameras"]) if params.cameras == "auto" \
         else params.cameras or typical["cameras"]
     frames = min(typical["frames"], params.max_frames or typical["frames"])
     return Shape(frames, {c: (typical["width"], typical["height"]) for c in names},
-                 f"typical {parsed.kind} log", sfm_frames=frames if parsed.kind == "video" else 0)
+                 f"typical {parsed.kind} log")
+
+
+def _video_shape(parsed, params, typical: dict, sfm_model: dict) -> Shape:
+    """A video not yet ingested: its frames and size from its header (a typical dashcam's where
+    the file is not there to read); SfM runs on them downscaled to ``ingest.video_sfm_width``."""
+    from paradrive.ingest.video import planned_frames, sfm_size
+
+    found = planned_frames(parsed, params)
+    frames, width, height = found or (min(typical["frames"], params.max_frames or typical["frames"]),
+                                      typical["width"], typical["height"])
+    w, h = sfm_size(width, height, params.video_sfm_width)
+    return Shape(frames, {name: (width, height) for name in typical["cameras"]},
+                 "video header" if found else "typical video log", sfm_frames=frames,
+                 sfm_work=sfm_work(frames, w * h, sfm_model))
 
 
 def _longitudinal(config: ResolvedConfig) -> bool:
     return config.params["render"].get("transform") == "longitudinal"
 
 
-def _ingested_shape(layout: SceneLayout, fit_params: dict | None) -> Shape:
+def _ingested_shape(layout: SceneLayout, fit_params: dict | None, sfm_model: dict) -> Shape:
     """An ingested scene's shape; its Gaussians too when its fit ran with ``fit_params`` (None:
     whatever it ran with)."""
     from paradrive.contracts.records import FitRecord
 
     doc = json.loads(layout.scene_json.read_text())
     cams = {name: (int(c["width"]), int(c["height"])) for name, c in doc["cameras"].items()}
-    shape = Shape(len(doc["frames"]), cams, "ingested",
-                  sfm_frames=len(doc["frames"]) if doc.get("dataset") == "video" else 0)
+    shape = Shape(len(doc["frames"]), cams, "ingested")
+    video = doc.get("video")
+    if doc.get("dataset") == "video" and video:  # SfM saw every sampled frame, at its own size
+        size = video.get("sfm") or {}
+        pixels = size.get("width", 0) * size.get("height", 0) or sum(w * h for w, h in cams.values())
+        shape.sfm_frames = int(video.get("sampled", len(doc["frames"])))
+        shape.sfm_work = sfm_work(shape.sfm_frames, pixels, sfm_model)
+        shape.sfm_seconds = float(size.get("seconds", video.get("sfm_seconds", 0.0)))
     marker = read_marker(layout.root, "fit")
     if marker and layout.fit_json.is_file() and fit_params in (None, marker.params):
         shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
@@ -260,7 +293,8 @@ def default_rates(rates_doc: dict) -> dict[str, Rate]:
     return out
 
 
-def measured_rates(data_dir: Path, defaults: dict[str, Rate], config: ResolvedConfig) -> dict[str, Rate]:
+def measured_rates(data_dir: Path, defaults: dict[str, Rate], config: ResolvedConfig,
+                   sfm_model: dict) -> dict[str, Rate]:
     """The defaults, replaced where the finished scenes of ``data_dir`` measure a rate: each stage
     marker's seconds, and the bytes of its outputs (those let go included), over the work its
     recorded parameters make. Where scenes ran a stage on different devices, the device most of
@@ -268,7 +302,7 @@ def measured_rates(data_dir: Path, defaults: dict[str, Rate], config: ResolvedCo
     totals: dict[tuple[str, str], list[float]] = {}   # (rate, device) -> [amount, work, scenes]
     folder = Path(data_dir) / SCENES_DIR
     for scene_dir in sorted(folder.iterdir()) if folder.is_dir() else []:
-        for key, device, amount, work in _samples(scene_dir, config):
+        for key, device, amount, work in _samples(scene_dir, config, sfm_model):
             total = totals.setdefault((key, device), [0.0, 0.0, 0])
             total[0] += amount
             total[1] += work
@@ -282,8 +316,10 @@ def measured_rates(data_dir: Path, defaults: dict[str, Rate], config: ResolvedCo
     return out
 
 
-def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, float, float]]:
-    """(rate, device, seconds or bytes, work) of each stage one scene finished."""
+def _samples(scene_dir: Path, config: ResolvedConfig,
+             sfm_model: dict) -> list[tuple[str, str, float, float]]:
+    """(rate, device, seconds or bytes, work) of each stage one scene finished, and of a video's
+    structure from motion (its seconds in scene.json)."""
     from paradrive.contracts.records import FitRecord
 
     markers = {s: read_marker(scene_dir, s) for s in STAGE_OWNS}
@@ -291,7 +327,8 @@ def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, fl
     if markers["ingest"] is None or not layout.scene_json.is_file():
         return []
     params = {s: {**config.params[s], **((m.params if m else None) or {})} for s, m in markers.items()}
-    u = units(params, _ingested_shape(layout, None))
+    shape = _ingested_shape(layout, None, sfm_model)
+    u = units(params, shape)
     fitted = layout.fit_json.is_file() and FitRecord.load(layout.fit_json).device.startswith("cuda")
     gpu = "gpu" if fitted else "cpu"
     specs = config.registry().specs
@@ -305,6 +342,8 @@ def _samples(scene_dir: Path, config: ResolvedConfig) -> list[tuple[str, str, fl
         sizes = by_folder({rel: info.bytes for rel, info in files.items()})
         out += [(f"bytes:{name}", "", float(sizes[name]), u[f"bytes:{name}"])
                 for name in STAGE_OWNS[stage] if sizes[name] and u[f"bytes:{name}"]]
+    if shape.sfm_work and shape.sfm_seconds and markers["ingest"].outputs is not None:
+        out.append(("compute:sfm", "cpu", shape.sfm_seconds, shape.sfm_work))
     return out
 
 
@@ -313,12 +352,12 @@ def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -
     rates_doc = load_rates(config)
     rates = default_rates(rates_doc)
     if data_dir is not None:
-        rates = measured_rates(Path(data_dir), rates, config)
+        rates = measured_rates(Path(data_dir), rates, config, rates_doc["compute"]["sfm"])
     plan = Plan(rates=rates)
     released = {name for stage, spec in config.registry().specs.items()
                 for glob in spec.released(config.params[stage]) for name in [glob.split("/", 1)[0]]}
     for uri in dict.fromkeys(uris):
-        shape = shape_of(config, uri, data_dir, rates_doc["logs"])
+        shape = shape_of(config, uri, data_dir, rates_doc)
         plan.shapes[shape.known] = plan.shapes.get(shape.known, 0) + 1
         u = units(config.params, shape)
         plan.scenes += 1
@@ -334,7 +373,7 @@ def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -
         if reason is not None:
             # the build fails such a scene right after its ingest: only the ingest is spent
             plan.unfit[parse_uri(uri).scene_id] = reason
-            u = {k: v if k in ("compute:ingest", "bytes:images", "bytes:masks", "bytes:lidar") else 0.0
+            u = {k: v if k in ("compute:ingest", "compute:sfm", "bytes:images", "bytes:masks", "bytes:lidar") else 0.0
                  for k, v in u.items()}
         plan.pairs += int(u["pairs"])
         for key, rate in rates.items():

@@ -80,7 +80,12 @@ class BuildReport:
 def default_selection(config: ResolvedConfig, uris: list[str],
                       exclude_splits: list[str] | None = None) -> Selection:
     """The scenes a build keeps: a training build leaves out ``exclude_splits`` (default: the
-    manifest stage's ``exclude_splits``); an inference build keeps every scene."""
+    manifest stage's ``exclude_splits``); an inference build keeps every scene. A URI whose own
+    values no ingest could take is refused here, before any work (ConfigError)."""
+    from paradrive.stages.ingest import check_uri
+
+    for uri in dict.fromkeys(uris):
+        check_uri(uri)
     manifest = config.params.get("manifest") or {}
     if manifest.get("kind") == "inference":
         return Selection(uris=list(uris))
@@ -346,10 +351,14 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     ``selection`` is what a caller already decided about splits (``paradrive build`` prints it);
     without one, a training build leaves out the scenes of ``manifest.exclude_splits``.
     """
+    from paradrive.stages.ingest import check_uri
+
     data_dir = DataRoot.of(data_dir)  # absolute: the same folder for workers with another cwd
     scene_stages, build_stages = split_stages(config, stages)
     config.check(scene_stages + build_stages)  # a value no stage can take fails before any runs
-    # a malformed URI, or one log given twice, is a usage error for the whole build
+    for uri in scene_uris:
+        check_uri(uri)  # a malformed URI, or values no ingest takes: a usage error for the build
+    # one log given twice is a usage error for the whole build too
     uris = distinct_scenes([SceneInput(uri, uri) for uri in scene_uris])
     check_present(uris)   # and so is a log that is not there: no scene starts, no lock is taken
     build_uris: list[str] = []

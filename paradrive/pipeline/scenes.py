@@ -134,8 +134,13 @@ def missing_inputs(uris: list[str]) -> list[str]:
 
 
 def check_present(uris: list[str], shown: int = 3) -> None:
-    """Refuse, in one line, scene inputs whose files are not there: how many, the first few, and
-    the fix. A build or a plan of logs that do not exist stops before any work."""
+    """Refuse, in one line, scene inputs whose own values no ingest takes (the first of them), then
+    those whose files are not there: how many, the first few, and the fix. A build or a plan of
+    logs that do not exist stops before any work."""
+    from paradrive.stages.ingest import check_uri
+
+    for uri in uris:
+        check_uri(uri)   # a value no ingest takes is the fix to make first, file there or not
     missing = missing_inputs(uris)
     if not missing:
         return

@@ -48,6 +48,15 @@ class IngestSummary(dict[str, Any]):
         return dict(self)
 
 
+def check_uri(scene_uri: str) -> None:
+    """Refuse, before any work, a URI whose own values no ingest could take (a ConfigError, a
+    usage error): its reader's ``check(uri)`` where it has one (``video:``'s keys and ranges)."""
+    uri = parse_uri(scene_uri)
+    check = getattr(importlib.import_module(READERS[uri.kind]), "check", None)
+    if check is not None:
+        check(uri)
+
+
 def ingest(scene_uri: str, layout: SceneLayout | Path, params: Params) -> IngestSummary:
     """Ingest ``scene_uri`` into the scene folder ``layout``."""
     layout = SceneLayout.at(layout)
