@@ -10,6 +10,7 @@ import ast
 import importlib
 import os
 import re
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -196,6 +197,76 @@ def test_each_stage_params_match_its_yaml_exactly(stage):
     # no default restated in code: every value comes from the YAML
     assert all(f.is_required() for f in module.Params.model_fields.values())
     module.Params.of(stage, spec.defaults())   # the YAML's values type-check
+
+
+# The command line lives in one place: only the commands and the app that gathers them print
+# through typer and rich; every other module returns data that a command renders.
+CONSOLE_PACKAGES = ("typer", "rich", "click")
+COMMAND_MODULES = ("paradrive.cli", "paradrive.commands")
+
+
+def _console_imports(path: Path) -> set[str]:
+    """The console packages (typer, rich, click) ``path`` imports anywhere."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module.partition(".")[0])
+        elif isinstance(node, ast.Import):
+            found.update(a.name.partition(".")[0] for a in node.names)
+    return found & set(CONSOLE_PACKAGES)
+
+
+def test_only_the_commands_import_typer_or_rich():
+    outside = sorted(f"{name}: {', '.join(sorted(found))}" for name, path in PATHS.items()
+                     if not name.startswith(COMMAND_MODULES) and (found := _console_imports(path)))
+    assert outside == [], "move the printing into the command's module (paradrive/commands/)"
+
+
+def test_a_library_importing_rich_is_found(tmp_path):
+    source = tmp_path / "lib.py"
+    source.write_text("def table():\n    from rich.table import Table\n    return Table()\n")
+    assert _console_imports(source) == {"rich"}
+
+
+# No function is longer than this (its ``def`` line to its last, decorators left out): one that
+# is does more than one thing.
+MAX_FUNCTION_LINES = 80
+
+
+def _long_functions(path: Path, module: str, limit: int = MAX_FUNCTION_LINES) -> dict[str, int]:
+    """``module.qualified_name`` -> lines of each function or method of ``path`` over ``limit``."""
+    found: dict[str, int] = {}
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = (child.end_lineno or child.lineno) - child.lineno + 1
+                if lines > limit:
+                    found[f"{module}.{prefix}{child.name}"] = lines
+                visit(child, f"{prefix}{child.name}.")
+            elif isinstance(child, ast.ClassDef):
+                visit(child, f"{prefix}{child.name}.")
+            else:
+                visit(child, prefix)
+
+    visit(ast.parse(path.read_text()), "")
+    return found
+
+
+def test_no_function_is_over_80_lines():
+    long = sorted(f"{name} ({lines} lines)" for module, path in PATHS.items()
+                  for name, lines in _long_functions(path, module).items())
+    assert long == [], "split it where it does more than one thing"
+
+
+def test_the_function_length_counts_from_def_to_the_last_line(tmp_path):
+    """80 lines from ``def`` (the decorator not counted) pass; 81 do not."""
+    body = "".join(f"x{i} = {i}\n" for i in range(79))
+    source = tmp_path / "lib.py"
+    source.write_text("@staticmethod\ndef short():\n" + textwrap.indent(body, " " * 4)
+                      + "\n\nclass C:\n    def long(self):\n" + textwrap.indent(body, " " * 8)
+                      + "        return 1\n")
+    assert _long_functions(source, "lib") == {"lib.C.long": 81}
 
 
 def test_the_command_line_starts_without_torch():
