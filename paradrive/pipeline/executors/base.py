@@ -14,6 +14,7 @@ makes every stage's up-to-date check read its outputs' sha256, not only their si
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ from dataclasses import dataclass, field
 from paradrive.contracts.specs import ResolvedConfig
 from paradrive.pipeline.locks import LockOptions
 from paradrive.pipeline.progress import ProgressSink
-from paradrive.pipeline.runner import StageResult
+from paradrive.pipeline.runner import StageResult, run_scene_stage
 from paradrive.storage import DataRoot
 
 ResultCallback = Callable[[StageResult], None]
@@ -44,6 +45,18 @@ class RunOptions:
     locks: LockOptions | None = None
     on_progress: ProgressSink | None = None
     verify_outputs: bool = False
+
+    def for_worker(self) -> RunOptions:
+        """These options without the driver's callbacks: what a task sent to another process
+        takes along (its progress reaches the driver another way)."""
+        return dataclasses.replace(self, on_start=None, on_result=None, on_progress=None)
+
+
+def run_stage(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
+              options: RunOptions) -> StageResult:
+    """One (scene, stage) with a run's options, wherever an executor runs it."""
+    return run_scene_stage(config, stage, scene_uri, data_dir, force=options.force, locks=options.locks,
+                           on_progress=options.on_progress, verify_outputs=options.verify_outputs)
 
 
 def blocked_result(result: StageResult, stage: str) -> StageResult:

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 from paradrive.contracts.specs import ResolvedConfig
-from paradrive.pipeline.executors.base import Completion, Executor, RunOptions, SceneTask
-from paradrive.pipeline.runner import run_scene_stage
+from paradrive.pipeline.executors.base import Completion, Executor, RunOptions, SceneTask, run_stage
 from paradrive.storage import DataRoot
 
 
@@ -20,8 +19,6 @@ class LocalExecutor(Executor):
             for index, stage in enumerate(task.stages):
                 if options.on_start:
                     options.on_start(task.scene_uri, stage)
-                result = run_scene_stage(config, stage, task.scene_uri, data_dir, force=options.force,
-                                         locks=options.locks, on_progress=options.on_progress,
-                                         verify_outputs=options.verify_outputs)
+                result = run_stage(config, stage, task.scene_uri, data_dir, options)
                 if not done.stage_done(task, index, result):
                     break

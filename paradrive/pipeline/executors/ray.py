@@ -40,6 +40,7 @@ local cluster started here, the driver's checkout (put on the workers' ``PYTHONP
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 import time
@@ -50,10 +51,9 @@ from pathlib import Path
 from typing import Any
 
 from paradrive.errors import ConfigError
-from paradrive.pipeline.executors.base import Completion, Executor, RunOptions, SceneTask
-from paradrive.pipeline.locks import LockOptions
+from paradrive.pipeline.executors.base import Completion, Executor, RunOptions, SceneTask, run_stage
 from paradrive.pipeline.progress import Snapshot
-from paradrive.pipeline.runner import StageResult, run_scene_stage
+from paradrive.pipeline.runner import StageResult
 from paradrive.contracts.specs import ResolvedConfig, Resources
 from paradrive.storage import DataRoot
 from paradrive.uri import parse_uri
@@ -118,13 +118,12 @@ def task_resources(stage: str, declared: Resources, capacity: Capacity,
 
 
 def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
-              force: bool, locks: LockOptions | None = None,
-              board: Any = None, verify_outputs: bool = False) -> tuple[StageResult, dict]:
-    """The body of one Ray task (runs on a worker); its progress goes to ``board``."""
+              options: RunOptions, board: Any = None) -> tuple[StageResult, dict]:
+    """The body of one Ray task (runs on a worker; ``options`` without the driver's callbacks);
+    its progress goes to ``board``."""
     started = time.time()
     relay = _Relay(board) if board is not None else None
-    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force, locks=locks,
-                             on_progress=relay, verify_outputs=verify_outputs)
+    result = run_stage(config, stage, scene_uri, data_dir, dataclasses.replace(options, on_progress=relay))
     return result, {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
 
 
@@ -277,7 +276,7 @@ class RayExecutor(Executor):
         window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
         board = ray.remote(num_cpus=0)(ProgressBoard).remote() if options.on_progress else None
         dispatch = _Dispatch(self, ray, self.plan(config, all_stages, capacity), ray.put(config),
-                             (data_dir, options.force, options.locks, board, options.verify_outputs),
+                             (data_dir, options.for_worker(), board),
                              options, done)
         queue = deque(tasks)
         try:
@@ -353,8 +352,9 @@ class _Dispatch:
         except Exception as exc:  # the task was lost: worker died, node gone, ...
             if attempt <= retries:
                 self.executor.log.warning("%s of %s lost (%s: %s); try %d of %d", stage,
-                            _scene_id(task.scene_uri), type(exc).__name__,
-                            (str(exc).strip().splitlines() or [""])[0], attempt + 1, retries + 1)
+                                          _scene_id(task.scene_uri), type(exc).__name__,
+                                          (str(exc).strip().splitlines() or [""])[0], attempt + 1,
+                                          retries + 1)
                 self.submit(task, index, attempt + 1)
                 return
             result = lost_result(task.scene_uri, stage, exc, retries)
