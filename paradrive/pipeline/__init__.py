@@ -1,4 +1,5 @@
-"""Stage specs, the runner and the executors."""
+"""Running stages over scenes: the runner, the build and the executors (and, re-exported from
+the contracts, the stage registry a build runs with)."""
 
 from paradrive.pipeline.build import BuildReport, run_build
 from paradrive.pipeline.runner import StageResult, run_scene_stage
