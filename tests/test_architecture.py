@@ -187,6 +187,12 @@ def test_no_stage_imports_a_later_stage(graph):
         assert not graph[f"paradrive.stages.{stage}"] & later, stage
 
 
+def test_the_inference_sets_import_no_stage(graph):
+    """inference sits beside the stages: what it reads of a scene (the ingest parameters it was
+    made with) comes from the contracts, not from the ingest stage."""
+    assert sorted(m for m in graph["paradrive.inference"] if m.startswith("paradrive.stages")) == []
+
+
 @pytest.mark.parametrize("stage", STAGE_ORDER)
 def test_each_stage_params_match_its_yaml_exactly(stage):
     spec = StageRegistry().specs[stage]
