@@ -36,6 +36,9 @@ def _secs(value: float | None) -> str:
 
 
 def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -> None:
+    """The summary of :func:`paradrive.pipeline.status.build_status` on ``console``: the last
+    run, the counts, the stages, the slowest scenes (every scene's states with ``all_scenes``),
+    the failures, the locks held and taken over, and the build stages."""
     counts = summary["counts"]
     run = summary["last_run"]
     if run:
@@ -47,22 +50,7 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
     console.print(f"[bold]{summary['scenes']}[/] scenes: [green]{counts['done']} done[/], "
                   f"[red]{counts['failed']} failed[/], [cyan]{counts['running']} running[/], "
                   f"{counts['pending']} pending")
-
-    stages = Table(title="stages [dim](skip: up to date; block: an earlier stage failed; "
-                         "MB: peak memory)[/]", title_justify="left", box=box.SIMPLE_HEAD,
-                   collapse_padding=True, pad_edge=False)
-    stages.add_column("stage", no_wrap=True)
-    for col in ("done", "skip", "fail", "block", "run", "wait", "mean", "max", "total", "MB"):
-        stages.add_column(col, justify="right", no_wrap=True,
-                          min_width=6 if col in ("mean", "max", "total", "MB") else None)
-    for st in summary["stages"]:
-        stages.add_row(st["stage"], str(st["done"]), str(st["skipped"]),
-                       f"[red]{st['failed']}" if st["failed"] else "0",
-                       f"[yellow]{st['blocked']}" if st["blocked"] else "0",
-                       str(st["running"]), str(st["pending"]), _secs(st["seconds_mean"]),
-                       _secs(st["seconds_max"]), _secs(st["seconds_total"]),
-                       f"{st['peak_rss_mb_max']:.0f}" if st["peak_rss_mb_max"] else "-")
-    console.print(stages)
+    console.print(_stage_table(summary))
 
     slow = [s for s in summary["slowest"] if s["seconds"] > 0][:5]
     if slow:
@@ -76,17 +64,7 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
         console.print(table)
 
     if all_scenes:
-        table = Table(title="scenes", title_justify="left", box=box.SIMPLE_HEAD)
-        table.add_column("scene")
-        names = [st["stage"] for st in summary["stages"] if not _is_build_stage(summary, st["stage"])]
-        for name in names:
-            table.add_column(name)
-        table.add_column("time", justify="right")
-        for sc in summary["scene_table"]:
-            cells = [sc["stages"].get(n, "") for n in names]
-            table.add_row(escape(sc["scene_id"]), *[f"[{STATE_STYLE.get(c, 'dim')}]{c}" for c in cells],
-                          _secs(sc["seconds"]))
-        console.print(table)
+        console.print(_scene_table(summary))
 
     if summary["failures"]:
         table = Table(title="failures", title_justify="left", box=box.SIMPLE_HEAD)
@@ -113,6 +91,40 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
         style = STATE_STYLE.get(b["state"], "dim")
         console.print(f"{b['stage']}: [{style}]{b['state']}[/]"
                       + (f" — {escape(b['error'])}" if b["error"] else ""))
+
+
+def _stage_table(summary: dict) -> Table:
+    """Per stage: its states' counts, its seconds (mean, max, total) and peak memory."""
+    stages = Table(title="stages [dim](skip: up to date; block: an earlier stage failed; "
+                         "MB: peak memory)[/]", title_justify="left", box=box.SIMPLE_HEAD,
+                   collapse_padding=True, pad_edge=False)
+    stages.add_column("stage", no_wrap=True)
+    for col in ("done", "skip", "fail", "block", "run", "wait", "mean", "max", "total", "MB"):
+        stages.add_column(col, justify="right", no_wrap=True,
+                          min_width=6 if col in ("mean", "max", "total", "MB") else None)
+    for st in summary["stages"]:
+        stages.add_row(st["stage"], str(st["done"]), str(st["skipped"]),
+                       f"[red]{st['failed']}" if st["failed"] else "0",
+                       f"[yellow]{st['blocked']}" if st["blocked"] else "0",
+                       str(st["running"]), str(st["pending"]), _secs(st["seconds_mean"]),
+                       _secs(st["seconds_max"]), _secs(st["seconds_total"]),
+                       f"{st['peak_rss_mb_max']:.0f}" if st["peak_rss_mb_max"] else "-")
+    return stages
+
+
+def _scene_table(summary: dict) -> Table:
+    """Every scene's state in each scene stage, and its time."""
+    table = Table(title="scenes", title_justify="left", box=box.SIMPLE_HEAD)
+    table.add_column("scene")
+    names = [st["stage"] for st in summary["stages"] if not _is_build_stage(summary, st["stage"])]
+    for name in names:
+        table.add_column(name)
+    table.add_column("time", justify="right")
+    for sc in summary["scene_table"]:
+        cells = [sc["stages"].get(n, "") for n in names]
+        table.add_row(escape(sc["scene_id"]), *[f"[{STATE_STYLE.get(c, 'dim')}]{c}" for c in cells],
+                      _secs(sc["seconds"]))
+    return table
 
 
 def _is_build_stage(summary: dict, stage: str) -> bool:
