@@ -26,8 +26,8 @@ Parts (all by default; ``memory`` and ``heldout`` take longest):
   video``) ingested: scale error against the street's truth and the reported uncertainty.
 * ``heldout``: the clip and the street ingested and fitted with the smoke profile and every 8th
   frame held out (``fit.holdout_every=8``): PSNR on the held-out frames.
-* ``masks``: the share of frames' pixels the ego and moving-traffic masks cover, once the video
-  ingest writes them (:func:`mask_coverage`; None before).
+* ``masks``: the moving masks against the clip's two cars boxed by hand, and the masks' shares
+  and seconds (:func:`mask_coverage`; ``bench_masks.py`` times the masks alone).
 * ``memory``: a 130-frame 3840x2160 video made by upscaling the clip 3x (in a temporary folder,
   never kept) ingested: its peak resident MB against the ingest stage's declared ``memory_gb``.
 
@@ -385,19 +385,19 @@ def part_heldout(uris: dict[str, str], workdir: Path) -> dict:
     return out
 
 
-def mask_coverage(scene_dir: Path) -> dict | None:
-    """The share of the frames' pixels under the ego mask and under the moving-traffic masks
-    of a video scene, once the video ingest writes them (``masks/`` of the scene); None until
-    then."""
-    masks = scene_dir / "masks"
-    found = {kind: sorted((masks / kind).rglob("*.png")) for kind in ("ego", "dynamic")
-             if (masks / kind).is_dir()}
-    if not found:
+def mask_coverage(scene_dir: Path, clip: Path) -> dict | None:
+    """The clip's moving masks against its two cars boxed by hand on eleven frames
+    (tests/udacity_freeway_cars.json): the share of the box pixels masked, pooled and per car,
+    and of the static road; with what ``scene.json`` records of the masks (the ego mask's and the
+    moving masks' shares, their seconds). None where the scene has no masks."""
+    if not (scene_dir / "masks" / "motion").is_dir():
         return None
-    from paradrive.scene import read_image
+    from paradrive.ingest.videomasks import labelled_scores
 
-    return {kind: float(np.mean([read_image(p).astype(bool).mean() for p in files]))
-            for kind, files in found.items() if files}
+    s = labelled_scores(scene_dir, REPO / "tests" / "udacity_freeway_cars.json", clip / "calibration.json")
+    recorded = json.loads((scene_dir / "scene.json").read_text())["video"].get("masks", {})
+    return {"coverage": s.coverage, "named": s.named, "worst_frame_coverage": s.worst_coverage,
+            "road_masked": s.road_masked, "worst_frame_road_masked": s.worst_road_masked, **recorded}
 
 
 def part_memory(clip: Path, workdir: Path) -> dict:
@@ -472,7 +472,7 @@ def main() -> None:
             args.write_ruler.write_text(json.dumps(ruler, indent=1) + "\n")
         if "ingest" in parts:
             result["ingest"] = part_ingest(args.clip, args.height_m, ruler, workdir)
-            result["masks"] = mask_coverage(workdir / "clip")
+            result["masks"] = mask_coverage(workdir / "clip", args.clip)
         if "sizes" in parts:
             result["sizes"] = part_sizes(args.clip, workdir)
         if "synthetic" in parts:

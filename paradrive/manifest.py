@@ -144,7 +144,7 @@ def _base_row(doc: ClipsRecord, clip: ClipRecord) -> dict:
         "fps": doc.fps, "width": doc.width, "height": doc.height,
         "intrinsics": doc.cameras[clip.camera].intrinsics,
         "fit_iteration": fit.iteration, "fit_train_psnr": fit.train_psnr,
-        "fit_train_ssim": fit.train_ssim,
+        "fit_train_ssim": fit.train_ssim, "dynamic_fraction": clip.dynamic_fraction,
     }
 
 
@@ -256,6 +256,17 @@ def video_quality(condition: Path, target: Path) -> tuple[float, float]:
     from paradrive.video import decode_frames
 
     return frames_quality(decode_frames(condition), decode_frames(target))
+
+
+def dynamic_filter(rows: list[dict], max_fraction: float | None) -> tuple[list[dict], dict | None]:
+    """The rows whose ``dynamic_fraction`` is at most ``max_fraction`` (a row without one stays),
+    and what index.json records of the filter (None when there is no threshold)."""
+    if max_fraction is None:
+        return rows, None
+    kept = [r for r in rows if r["dynamic_fraction"] is None or r["dynamic_fraction"] <= max_fraction]
+    dropped = sorted({(r["scene_id"], r["camera"], r["clip"]) for r in rows if r not in kept})
+    return kept, {"max_fraction": float(max_fraction), "dropped_rows": len(rows) - len(kept),
+                  "dropped_clips": [{"scene_id": s, "camera": c, "clip": k} for s, c, k in dropped]}
 
 
 # --------------------------------------------------------------------------- shards
@@ -532,7 +543,8 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
             scenes: list[dict], skipped: list[dict], params: ManifestParams, fingerprint: str = "",
             build: str | None = None, log=None, selection: dict | None = None,
             data_root: str | Path | None = None, staging: Path | None = None,
-            heldout_filter: dict | None = None) -> IndexRecord:
+            heldout_filter: dict | None = None,
+            dynamic_filter: dict | None = None) -> IndexRecord:
     """Write shards, media and index as a new version of the build; returns the index.
 
     ``staging`` is a folder from :func:`staging_version` that may already hold files (truth
@@ -540,13 +552,15 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
     records which split files left which scenes out of the build. ``data_root`` is the data
     folder the scenes live in: a ``symlink`` build's links may only lead there.
     ``heldout_filter`` ({min_psnr, dropped}): the held-out PSNR threshold and the scenes it left
-    out, recorded in the index when set."""
+    out, recorded in the index when set; ``dynamic_filter`` ({max_fraction, dropped_rows,
+    dropped_clips}, :func:`dynamic_filter`) likewise."""
     build = build or Path(build_dir).name
     if staging is None:
         with staging_version(build_dir, build) as fresh:
             return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
                            fingerprint=fingerprint, build=build, log=log, selection=selection,
-                           data_root=data_root, staging=fresh, heldout_filter=heldout_filter)
+                           data_root=data_root, staging=fresh, heldout_filter=heldout_filter,
+                           dynamic_filter=dynamic_filter)
     layout = BuildLayout(Path(build_dir))
     table = rows_to_table(rows)
     ids = table.column("pair_id").to_pylist()
@@ -573,7 +587,8 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
                   else None},
         "scenes": scenes, "skipped_scenes": skipped,
         **(selection or {"exclude_splits": [], "excluded_scenes": []}),
-        **({"heldout_filter": heldout_filter} if heldout_filter is not None else {})}
+        **({"heldout_filter": heldout_filter} if heldout_filter is not None else {}),
+        **({"dynamic_filter": dynamic_filter} if dynamic_filter is not None else {})}
     version = _land(layout, staging, index, params.keep_versions_seconds)
     if log is not None:
         log.info("manifest: %d rows in %d shards, %d media files (%s) in %s", table.num_rows,
@@ -581,6 +596,6 @@ def publish(build_dir: str | Path, rows: list[dict], media: list[MediaFile], *,
     return read_index(layout.root)
 
 
-__all__ = ["MediaFile", "claim_build_folder", "expire_versions", "kept_versions", "published_at",
+__all__ = ["MediaFile", "claim_build_folder", "dynamic_filter", "expire_versions", "kept_versions", "published_at",
            "publish", "read_clips", "scene_rows", "place_file",
            "rows_to_table", "split_rows", "staging_version", "video_quality"]

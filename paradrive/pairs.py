@@ -68,6 +68,7 @@ SCHEMA = pa.schema([
     ("fit_iteration", pa.int32()),
     ("fit_train_psnr", pa.float64()),
     ("fit_train_ssim", pa.float64()),
+    ("dynamic_fraction", pa.float64()),
 ])
 
 COLUMNS = tuple(SCHEMA.names)

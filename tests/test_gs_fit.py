@@ -541,3 +541,47 @@ def test_the_gs_library_returns_its_record_and_the_fit_stage_writes_fit_json(tin
     from paradrive.contracts.records import FitRecord
 
     assert FitRecord.load(stage / "gs" / "fit.json") == written
+
+
+def test_masked_pixels_neither_cost_nor_pull(tiny_scene, tmp_path):
+    """A video's ego mask (masks/ego) and a frame's moving mask (masks/motion) leave their
+    pixels out of the fit: repainting them changes neither the loss nor any gradient, while
+    repainting one pixel outside them does."""
+    import logging
+
+    from paradrive.contracts.layout import SceneLayout
+    from paradrive.gs.fit import _Fit
+    from paradrive.scene import load_scene, write_image
+
+    scene_dir = _copy_scene(tiny_scene, tmp_path / "masked")
+    layout = SceneLayout(scene_dir)
+    scene = load_scene(scene_dir)
+    cam = scene.cameras["front"]
+    hood = np.zeros((cam.height, cam.width), dtype=np.uint8)
+    hood[-8:] = 255
+    car = np.zeros_like(hood)
+    car[10:30, 20:50] = 255
+    write_image(layout.ego_mask("front"), hood[..., None])
+    write_image(layout.motion_mask("front", scene.frames[3].index), car[..., None])
+    fit = _Fit(load_scene(scene_dir), layout, fit_params("smoke", **TINY_FIT), torch.device("cpu"),
+               logging.getLogger("test"))
+    vi = next(i for i, v in enumerate(fit.views) if v.camera == "front" and v.frame == 3)
+
+    def loss_and_gradients() -> tuple[float, dict[str, torch.Tensor]]:
+        for value in fit.params.values():
+            value.grad = None
+        loss, _ = fit._loss(vi, 0)
+        loss.backward()
+        return float(loss.detach()), {k: v.grad.clone() for k, v in fit.params.items() if v.grad is not None}
+
+    masked = fit.loss_masks[vi]
+    assert masked is not None and masked[-4:].all() and masked[5:15, 10:25].all()   # both, at the view's size
+    assert not masked[:4].any()
+    before, grads = loss_and_gradients()
+    image = fit.views[vi].image
+    image[masked] = 255 - image[masked]
+    after, again = loss_and_gradients()
+    assert after == before and grads.keys() == again.keys()
+    assert all(torch.equal(grads[k], again[k]) for k in grads)
+    image[2, 2] = 255 - image[2, 2]
+    assert loss_and_gradients()[0] != before

@@ -272,3 +272,35 @@ def test_short_scene_skips_its_clips_with_a_reason(rendered, copy_tree):
     assert summary["skipped_clips"] == 1 and cam["windows"] == [] and cam["streams"] == {}
     assert cam["skipped"] == [{"clip": "middle", "reason": "scene has 24 frames, a clip needs 30"}]
     assert not (scene_dir / "renders" / "front").exists()
+
+
+def test_the_ego_mask_shows_the_recorded_pixels_in_every_stream(rendered, copy_tree):
+    """A video's hood moves with the camera: under the ego mask every stream (sources at any
+    offset, conditions) shows the recorded frame's pixels, as the target does. Here a magenta
+    band painted into the recorded frames after the fit, which no checkpoint has seen."""
+    from paradrive.contracts.layout import SceneLayout
+    from paradrive.scene import write_image
+
+    scene_dir = copy_tree(rendered["dir"])
+    scene = load_scene(scene_dir)
+    cam = scene.cameras["front"]
+    band = np.zeros((cam.height, cam.width), dtype=bool)
+    band[-12:] = True
+    for pos in range(len(scene.frames)):
+        pixels = scene.load_image(pos, "front").copy()
+        pixels[band] = (230, 20, 230)
+        write_image(scene.image_path(pos, "front"), pixels)
+    write_image(SceneLayout(scene_dir).ego_mask("front"), band.astype(np.uint8)[..., None] * 255)
+    render_scene(scene_dir, stage_params("render", rendered["params"]))
+    doc = json.loads((scene_dir / "renders" / "renders.json").read_text())
+    cam_doc = doc["cameras"]["front"]
+    scene = load_scene(scene_dir)
+    for pos in cam_doc["frames"][::3]:
+        recorded = scene.load_image(pos, "front")
+        for name in cam_doc["streams"]:
+            png = read_image(scene_dir / "renders" / "front" / name / f"{pos:06d}.png")
+            assert np.abs(png[band].astype(int) - recorded[band]).max() <= 1, (name, pos)
+            # above the band the model's own picture, which never saw magenta
+            if name != "target":
+                above = png[-20:-12].astype(int)
+                assert np.abs(above - (230, 20, 230)).sum(-1).min() > 60, (name, pos)

@@ -7,6 +7,8 @@ A scene lives at ``<data>/scenes/<scene_id>/``::
     lidar/<frame:06d>.npy                         world points (optional)
     masks/sky/<camera>/<frame:06d>.png            sky masks (optional)
     masks/dynamic/<camera>/<frame:06d>.png        moving actors' boxes (optional)
+    masks/ego/<camera>.png                        what moves with the camera: a hood (video)
+    masks/motion/<camera>/<frame:06d>.png         moving things seen in the image motion (video)
     gs/ckpt_<iteration:06d>.ply  gs/fit.json  gs/state.pt      the fit (background and sky)
     gs/actors/ckpt_<iteration:06d>/<actor>.ply    a scene-graph fit's actor nodes, box frame
     renders/renders.json  renders/<camera>/<stream>/<frame:06d>.png  (+ depth/, alpha/)
@@ -86,6 +88,12 @@ class SceneLayout:
 
     def dynamic_mask(self, camera: str, frame: int) -> Path:
         return self.root / "masks" / "dynamic" / camera / f"{int(frame):06d}.png"
+
+    def ego_mask(self, camera: str) -> Path:
+        return self.root / "masks" / "ego" / f"{camera}.png"
+
+    def motion_mask(self, camera: str, frame: int) -> Path:
+        return self.root / "masks" / "motion" / camera / f"{int(frame):06d}.png"
 
     # -- fit
     @property

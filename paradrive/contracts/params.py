@@ -156,6 +156,7 @@ class ManifestParams(StageParams):
     kind: str
     exclude_splits: list[str]
     min_heldout_psnr: float | None
+    max_dynamic_fraction: float | None
     keep_versions_for: str
 
     @field_validator("keep_versions_for")

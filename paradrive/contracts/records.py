@@ -200,6 +200,7 @@ class RenderedCamera(Part):
     frames: list[int]
     c2w: list[Pose]
     streams: dict[str, RenderedStream]
+    moving: list[float] | None = None   # per frame, the share of the target masked as moving
 
 
 class SkyDomeRecord(Part):
@@ -262,6 +263,7 @@ class ClipRecord(Part):
     c2w: list[Pose]
     streams: dict[str, ClipStream]
     quality: dict[str, Quality]
+    dynamic_fraction: float | None = None   # the target's share masked as moving, over the clip
 
 
 class CameraIntrinsics(Part):
@@ -392,6 +394,22 @@ class HeldoutFilter(BaseModel):
     dropped: list[SkippedScene]
 
 
+class DroppedClip(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    scene_id: str
+    camera: str
+    clip: str
+
+
+class DynamicFilter(BaseModel):
+    """``manifest.max_dynamic_fraction`` at publish time, the rows it left out and their clips."""
+
+    model_config = ConfigDict(extra="forbid")
+    max_fraction: float
+    dropped_rows: int
+    dropped_clips: list[DroppedClip]
+
+
 class IndexRecord(BaseModel):
     """A published build's ``index.json``: its shards, media, scenes and how it was made."""
 
@@ -415,6 +433,7 @@ class IndexRecord(BaseModel):
     exclude_splits: list[SplitFile]
     excluded_scenes: list[ExcludedScene]
     heldout_filter: HeldoutFilter | None = None   # manifest.min_heldout_psnr, when it was set
+    dynamic_filter: DynamicFilter | None = None   # manifest.max_dynamic_fraction, when it was set
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.model_dump())

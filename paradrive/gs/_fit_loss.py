@@ -131,10 +131,13 @@ def fit_loss_torch(out: Tensor, gt: Tensor, sky: Tensor | None, target: DepthTar
     """The same loss as torch operations, on any device: out (1, H, W, D) the render with the
     expected depth (not the accumulated one) as its 4th channel when there is a sky or depth
     term; ``inverse`` False takes the depth term in metres; ``masked`` (H, W) bool pixels (moving
-    actors without a node) cost nothing."""
+    actors without a node, a video's ego and moving masks) cost nothing."""
     pred = out[0, ..., :3]
-    if masked is not None:
-        pred = torch.where(masked[..., None], gt, pred)
+    if masked is not None:  # zero on both sides: no pull, and SSIM windows across the edge see
+        # the same whatever was recorded there
+        blank = torch.zeros((), dtype=pred.dtype, device=pred.device)
+        pred = torch.where(masked[..., None], blank, pred)
+        gt = torch.where(masked[..., None], blank.to(gt.dtype), gt)
     lam = terms.ssim_lambda
     loss = (1.0 - lam) * (pred - gt).abs().mean() + lam * (1.0 - ssim(pred, gt))
     if sky is not None and sky.any():

@@ -20,7 +20,9 @@ sky masks, sky pixels whose rendered depth is nearer than half the dome radius a
 which removes floaters in front of the sky. Geometry terms (:mod:`paradrive.gs.losses`): L1
 between the rendered expected depth and the frame's LiDAR where the scene has it
 (``depth_weight``), a flattening term on each Gaussian's smallest axis (``flatten_weight``) and
-a sharp-shape term on its axis ratio (``shape_ratio_weight``).
+a sharp-shape term on its axis ratio (``shape_ratio_weight``). Pixels of moving actors without
+a node of their own, and a video scene's ego mask (the hood) and moving masks (``masks/ego``,
+``masks/motion``) are left out of every term: the photometric ones and the depth term.
 """
 
 from __future__ import annotations
@@ -271,17 +273,43 @@ def lidar_depth_targets(scene, views: Sequence[View],
     return targets
 
 
-def _loss_masks(actors: list[Actor], views: Sequence[View],
-                device: torch.device) -> list[torch.Tensor | None]:
-    """Per view, the pixels of ``actors`` (moving, no node of their own) the loss leaves out."""
+def _loss_masks(actors: list[Actor], views: Sequence[View], device: torch.device,
+                layout: SceneLayout | None = None) -> list[torch.Tensor | None]:
+    """Per view, the pixels the loss leaves out: those of ``actors`` (moving, no node of their
+    own), and a video scene's ego mask (``masks/ego``: the hood) and moving masks
+    (``masks/motion``), scaled to the view."""
     masks: list[torch.Tensor | None] = []
     for v in views:
-        m = None
+        hit = np.zeros((v.height, v.width), dtype=bool)
         if actors and v.frame_index is not None:
-            hit = dynamic_mask(actors, v.frame_index, v.c2w.numpy(), v.K.double().numpy(), v.width, v.height)
-            m = torch.from_numpy(hit).to(device) if hit.any() else None
-        masks.append(m)
+            hit |= dynamic_mask(actors, v.frame_index, v.c2w.numpy(), v.K.double().numpy(), v.width, v.height)
+        if layout is not None:
+            hit |= _saved_mask(layout.ego_mask(v.camera), v) | _saved_mask(
+                layout.motion_mask(v.camera, v.frame_index if v.frame_index is not None else v.frame), v)
+        masks.append(torch.from_numpy(hit).to(device) if hit.any() else None)
     return masks
+
+
+def _saved_mask(path: Path, view: View) -> np.ndarray:
+    """A mask PNG (255 = left out) at the view's size; none where the file is absent."""
+    from paradrive.scene import read_image
+
+    if not path.is_file():
+        return np.zeros((view.height, view.width), dtype=bool)
+    mask = torch.from_numpy(read_image(path)[..., :1].astype(np.float32) / 255.0)
+    return (_resize(mask, view.height, view.width)[..., 0] > 0.0).numpy()
+
+
+def _unmasked_depth(targets: Sequence[DepthTarget | None], masks: list[torch.Tensor | None]
+                    ) -> list[DepthTarget | None]:
+    """The depth targets less their pixels the loss leaves out."""
+    out: list[DepthTarget | None] = []
+    for target, mask in zip(targets, masks):
+        if target is not None and mask is not None:
+            keep = ~mask.reshape(-1)[target.pixels]
+            target = DepthTarget(target.pixels[keep], target.depth[keep]) if keep.any() else None
+        out.append(target)
+    return out
 
 
 # Devices where Adam takes torch's fused step (one kernel per parameter instead of a dozen tensor
@@ -511,7 +539,8 @@ class _Fit:
                         and any(v.sky is not None for v in views))
         self.depth_targets = (lidar_depth_targets(scene, views, device) if p.depth_weight > 0
                               else [None] * len(views))
-        self.loss_masks = _loss_masks(graph.masked, views, device)
+        self.loss_masks = _loss_masks(graph.masked, views, device, layout)
+        self.depth_targets = _unmasked_depth(self.depth_targets, self.loss_masks)
         self.loss_terms = FitLossTerms(p.ssim_lambda, p.sky_depth_weight, 0.5 * p.sky_radius,
                                        p.depth_weight)
         self.eval_idx = _eval_indices(len(views), p.eval_views)

@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from paradrive import geometry
+from paradrive.ingest.egomask import blur
 from paradrive.ingest.sfm import level_with_path
 
 __all__ = ["RoadMotion", "road_motion_height", "still_pixels"]
@@ -226,18 +227,6 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
-    """Separable Gaussian blur with edge replication."""
-    r = max(1, int(np.ceil(3 * sigma)))
-    taps = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    taps = (taps / taps.sum()).astype(np.float32)
-    h, w = img.shape
-    padded = np.pad(img, ((0, 0), (r, r)), mode="edge")
-    rows = sum(t * padded[:, k:k + w] for k, t in enumerate(taps))
-    padded = np.pad(rows, ((r, r), (0, 0)), mode="edge")
-    return sum(t * padded[k:k + h] for k, t in enumerate(taps))
-
-
 @functools.lru_cache(maxsize=4)
 def _pixel_rays(shape: tuple[int, ...], kinv: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Every pixel centre of an image of ``shape`` (N, 3 homogeneous) and its ray ``K^-1 x``,
@@ -303,7 +292,7 @@ def _fit_step(a: np.ndarray, b: np.ndarray, moving: np.ndarray, K: np.ndarray, R
     base = pix @ (K @ R @ Kinv).T       # K R K^-1 x, per pixel
     plane = pix @ (Kinv.T @ down)       # n^T K^-1 x, per pixel
     for sigma in blurs:
-        sa, sb = _blur(a, sigma), _blur(b, sigma)
+        sa, sb = blur(a, sigma), blur(b, sigma)
         ref, _ = _sample(sa, pix[:, 0], pix[:, 1])
         gy, gx = np.gradient(sb)
         for _ in range(iterations):

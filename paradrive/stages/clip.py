@@ -133,7 +133,9 @@ class _ClipWriter:
             num_frames=window.num_frames,
             frame_indices=[int(self.scene.frames[p].index) for p in positions],
             timestamps_us=[int(self.timestamps[p]) for p in positions],
-            c2w=[cam.c2w[r] for r in rows], streams=streams, quality=quality)
+            c2w=[cam.c2w[r] for r in rows], streams=streams, quality=quality,
+            dynamic_fraction=(None if cam.moving is None
+                              else round(float(np.mean([cam.moving[r] for r in rows])), 6)))
 
     def frames(self, stream: RenderedStream, positions: list[int]) -> np.ndarray:
         folder = self.layout.renders_dir / stream.dir

@@ -4,7 +4,10 @@ into the build. The row logic and the publishing are :mod:`paradrive.manifest`.
 
 With ``min_heldout_psnr`` set, a scene whose fit's held-out PSNR (fit.json ``heldout``, written
 when the fit held views out) is below it, or that has none, is left out with its reason, and
-index.json records the threshold and those scenes (``heldout_filter``).
+index.json records the threshold and those scenes (``heldout_filter``). With
+``max_dynamic_fraction`` set, pairs whose target is masked as moving over a larger share of its
+pixels (the ``dynamic_fraction`` column) are left out, and index.json records the threshold, the
+rows and their clips (``dynamic_filter``).
 """
 
 from __future__ import annotations
@@ -13,7 +16,8 @@ import logging
 from pathlib import Path
 
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.manifest import MediaFile, publish, read_clips, scene_rows, staging_version
+from paradrive.manifest import (MediaFile, dynamic_filter, publish, read_clips, scene_rows,
+                                staging_version)
 from paradrive.contracts.base import BuildContext
 from paradrive.contracts.params import ManifestParams as Params
 from paradrive.contracts.layout import SceneLayout
@@ -59,9 +63,15 @@ def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: Params
             raise ParaDriveError(f"build {build}: no usable scene, nothing published ({reasons})")
         held = (None if params.min_heldout_psnr is None else
                 {"min_psnr": float(params.min_heldout_psnr), "dropped": dropped})
+        rows, moving = dynamic_filter(rows, params.max_dynamic_fraction)
+        if not rows:
+            raise ParaDriveError(f"build {build}: every pair's dynamic_fraction is above "
+                                 f"manifest.max_dynamic_fraction={params.max_dynamic_fraction:g}, "
+                                 f"nothing published; raise it or set it to null")
         return publish(build_dir, rows, media, scenes=scenes, skipped=skipped, params=params,
                        fingerprint=fingerprint, build=build, log=log, selection=selection,
-                       data_root=data_root, staging=staging, heldout_filter=held)
+                       data_root=data_root, staging=staging, heldout_filter=held,
+                       dynamic_filter=moving)
 
 
 def heldout_below(entry: dict, min_psnr: float | None) -> SceneError | None:

@@ -34,6 +34,14 @@ remaining opacity is below one half is sky and holds +inf, as the synthetic grou
 Left in, a far dome seen through a half-transparent surface would pull its depth to hundreds of
 metres.
 
+A scene with an ego mask (``masks/ego/<camera>.png``: a video's hood) shows the recorded pixels
+of the same frame there in every rendered stream, sources and conditions alike: the hood moves
+with the camera, so a shifted camera sees the same hood, and the fit never learnt those pixels
+(they are left out of its loss), so an under-fitted condition would show noise where the target
+shows the hood. ``moving`` per camera holds, per rendered frame, the share of the target's
+pixels masked as moving (``masks/dynamic``: moving actors' boxes; ``masks/motion``: a video's
+moving masks), from which the clip stage takes each clip's ``dynamic_fraction``.
+
 The whole ``renders/`` folder is assembled under a temporary name and renamed into place.
 """
 
@@ -52,7 +60,7 @@ from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.exr import write_depth_exr
 from paradrive.io import atomic_path
-from paradrive.scene import Scene, load_scene, write_image
+from paradrive.scene import Scene, load_scene, read_image, write_image
 from paradrive.contracts.base import StageContext, StageParams
 from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
 from paradrive.contracts.records import (FitRecord, RenderedCamera, RenderedStream, RendersRecord,
@@ -236,13 +244,39 @@ class _Renderer:
             windows=[WindowRecord(clip=w.name, frame_start=w.start, num_frames=w.num_frames)
                      for w in plan.windows],
             skipped=[SkippedClip(**s) for s in plan.skipped], frames=frames,
-            c2w=[geometry.as_floats(m) for m in recorded], streams=streams)
+            c2w=[geometry.as_floats(m) for m in recorded], streams=streams,
+            moving=self.moving(plan) if frames else None)
 
     def target(self, plan: CameraPlan, folder: Path) -> None:
         for pos in plan.frames:
             image = self.scene.load_image(pos, plan.name)
             write_image(folder / frame_file(pos), crop_resize(image, plan.out))
             self.tick()
+
+    def moving(self, plan: CameraPlan) -> list[float] | None:
+        """Per rendered frame, the share of the target's pixels (the crop) masked as moving:
+        the moving actors' boxes (``masks/dynamic``) or a video's moving masks (``masks/motion``);
+        None where the scene has neither."""
+        x0, y0, cw, ch = plan.out.crop
+        shares, found = [], False
+        for pos in plan.frames:
+            index = self.scene.frames[pos].index
+            hit = np.zeros((ch, cw), dtype=bool)
+            for path in (self.layout.dynamic_mask(plan.name, index),
+                         self.layout.motion_mask(plan.name, index)):
+                if path.is_file():
+                    found = True
+                    hit |= read_image(path)[y0:y0 + ch, x0:x0 + cw, 0] > 127
+            shares.append(round(float(hit.mean()), 6))
+        return shares if found else None
+
+    def ego(self, plan: CameraPlan) -> np.ndarray | None:
+        """The camera's ego mask (the hood) at the output size as a weight in [0, 1], or None."""
+        path = self.layout.ego_mask(plan.name)
+        if not path.is_file():
+            return None
+        weight = crop_resize(read_image(path)[..., :1], plan.out)[..., 0].astype(np.float32) / 255.0
+        return weight[..., None] if weight.any() else None
 
     def checkpoint(self, iteration: int) -> FittedModel:
         from paradrive.gs.graph import load_model
@@ -258,11 +292,16 @@ class _Renderer:
         assert stream.iteration is not None
         p = self.params
         k = 0
+        ego = self.ego(plan)
         # only the ego moves in a shifted stream: the actors stand where the log saw them
         for result in render_views(self.checkpoint(stream.iteration), c2w, plan.out.K, p.width,
                                    p.height, frames=plan.frames, depth=p.depth, batch_frames=p.batch_frames,
                                    sky=self.sky, device=p.device, backend=p.backend):
             for j in range(len(result["rgb"])):
+                if ego is not None:  # the hood moves with the camera: the recorded one, put back
+                    recorded = crop_resize(self.scene.load_image(plan.frames[k], plan.name), plan.out)
+                    blend = (1.0 - ego) * result["rgb"][j] + ego * recorded
+                    result["rgb"][j] = np.clip(np.round(blend), 0, 255).astype(np.uint8)
                 self.write_frame(folder, plan.frames[k], result, j)
                 k += 1
             self.tick(len(result["rgb"]))
