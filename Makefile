@@ -15,7 +15,7 @@ build_args = --scene '$(SCENE)' $(profile_flag) --data $(DATA) --manifests $(MAN
 .PHONY: setup setup-test setup-wan ingest fit render clip manifest build demo inspect eval status train train-wan encode lint test bench clean
 
 # setup.py compiles the CPU kernels at install: an edited kernel source reinstalls
-KERNEL_SOURCES = setup.py MANIFEST.in $(wildcard paradrive/gs/*.cpp)
+KERNEL_SOURCES = setup.py MANIFEST.in $(wildcard paradrive/kernels/*.cpp)
 .venv/.installed: pyproject.toml scripts/setup.sh $(KERNEL_SOURCES)
 	scripts/setup.sh build
 	touch $@

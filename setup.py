@@ -1,6 +1,6 @@
-"""Builds the CPU rasterizer's kernels (paradrive/gs/_composite.cpp) at install, once per
+"""Builds the CPU rasterizer's kernels (paradrive/kernels/_composite.cpp) at install, once per
 instruction set: ``_kernels_base`` (the platform's baseline: SSE2 on x86-64, NEON on arm64),
-and on x86-64 ``_kernels_avx2`` (AVX2 + FMA) and ``_kernels_avx512``. ``paradrive.gs._native``
+and on x86-64 ``_kernels_avx2`` (AVX2 + FMA) and ``_kernels_avx512``. ``paradrive.kernels``
 imports the widest one the CPU runs. Each is optional: where no C++ compiler builds them the
 package still installs, and the torch-op rasterizer runs instead (with a warning naming the fix).
 Everything else about the package is in pyproject.toml.
@@ -16,7 +16,7 @@ try:
 except ImportError:  # a build without its requirements (--no-build-isolation, no pybind11)
     Pybind11Extension = None
 
-SOURCES = ["paradrive/gs/_bindings.cpp"]  # includes _composite.cpp
+SOURCES = ["paradrive/kernels/_bindings.cpp"]  # includes _composite.cpp
 # -ffp-contract=off: no fused multiply-adds the source does not write, so the arithmetic is the
 # source's at any optimisation level; -std=c++17 is an ISO mode, which also implies it.
 FLAGS = ["-O3", "-fno-math-errno", "-ffp-contract=off", "-pthread"]
@@ -32,9 +32,9 @@ def extensions() -> list:
     if Pybind11Extension is None:
         print("paradrive: pybind11 is not installed; the CPU kernels are not built")
         return []
-    return [Pybind11Extension(f"paradrive.gs._kernels_{name}", SOURCES, cxx_std=17,
+    return [Pybind11Extension(f"paradrive.kernels._kernels_{name}", SOURCES, cxx_std=17,
                               define_macros=[("PD_MODULE", f"_kernels_{name}")],
-                              depends=["paradrive/gs/_composite.cpp"],
+                              depends=["paradrive/kernels/_composite.cpp"],
                               extra_compile_args=FLAGS + flags, extra_link_args=["-pthread"],
                               optional=True)
             for name, flags in VARIANTS.items()]

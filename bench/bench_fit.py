@@ -86,7 +86,7 @@ def bench(profile: str, iterations: int, threads: int | None, backends: list[str
           root: Path) -> dict:
     import torch
 
-    from paradrive.gs import _native
+    from paradrive import kernels
 
     first = {b: first_call_seconds(b) for b in backends}
     scene_dir, params = ingest(profile, root)
@@ -101,7 +101,7 @@ def bench(profile: str, iterations: int, threads: int | None, backends: list[str
     out = {"profile": profile, "iterations": iterations, "frames": len(scene["frames"]),
            "image_resolution": [cam["width"], cam["height"]], "threads": params["threads"],
            "torch": torch.__version__, "load_average": [round(x, 2) for x in os.getloadavg()],
-           "kernels": getattr(_native.load(), "__name__", None),
+           "kernels": getattr(kernels.load(), "__name__", None),
            "first_call_seconds": first, "runs": runs}
     if len(runs) > 1:
         rate = (runs[0]["iterations_per_second"] + runs[-1]["iterations_per_second"]) / 2

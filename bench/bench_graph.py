@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=200)
     ap.add_argument("--threads", type=int, default=None, help="override the profile's fit threads")
     args = ap.parse_args()
-    from paradrive.stages.ingest import params_of
+    from paradrive.contracts.params import params_of
 
     with tempfile.TemporaryDirectory() as tmp:
         first_call_seconds("cpu")

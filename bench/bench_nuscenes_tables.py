@@ -276,7 +276,7 @@ def scene_lookup(root: Path, scene: int, tables=None) -> dict:
     (``rows_seconds`` of them in the tables' own calls, opening the index included) and counts."""
     from paradrive.ingest import nuscenes
     from paradrive.ingest.nuscenes_tables import open_tables
-    from paradrive.stages.ingest import params_of
+    from paradrive.contracts.params import params_of
     from paradrive.uri import parse_uri
 
     params = params_of({})

@@ -328,7 +328,7 @@ def op_ray(work: Path) -> dict:
     import ray
 
     from paradrive.pipeline import StageRegistry, run_build
-    from paradrive.pipeline.ray_executor import RayExecutor
+    from paradrive.pipeline.executors.ray import RayExecutor
 
     uris = (work / "scenes.txt").read_text().split()
     cfg = StageRegistry().resolve(None)

@@ -85,7 +85,7 @@ def train_steps(device, sizes: dict, stage: int, steps: int, tiny: bool) -> dict
     from paradrive.train.flow import flow_matching_loss
     from paradrive.wan.recam import (ReCamDrivingWan, make_tiny_transformer, trainable_parameters,
                                      wan21_t2v_1_3b_config)
-    from paradrive.wan.train import latent_frame_indices
+    from paradrive.train.wan import latent_frame_indices
 
     with torch.device(device):
         transformer = make_tiny_transformer(0) if tiny else WanTransformer3DModel(**wan21_t2v_1_3b_config())

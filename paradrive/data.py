@@ -56,7 +56,7 @@ from paradrive.io import PathEscapeError, check_relative, sha256_file
 from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, current_version,
                              iter_shard, read_index, shard_paths)
 from paradrive.video import each_frame
-from paradrive.wan.latents import LatentReader
+from paradrive.latents import LatentReader
 
 __all__ = ["FramePool", "PairDataset", "PairIterableDataset", "epoch_order", "frame_array", "output_geometry",
            "per_rank", "plane_sink",
@@ -365,7 +365,7 @@ class PairDataset(Dataset):
             between samples: 3.5 GB in float32 at 480 x 832). False allocates every sample anew.
         latents: samples from the build's Wan2.1 latent cache (``paradrive encode``) instead of
             videos: ``target_latents``, ``source_latents``, ``condition_latents`` (C, T', h, w) in
-            ``dtype``, ``camera``, ``rel_pose``, ``text_embedding`` (:class:`paradrive.wan.latents.LatentReader`);
+            ``dtype``, ``camera``, ``rel_pose``, ``text_embedding`` (:class:`paradrive.latents.LatentReader`);
             the frame options (num_frames, frame_stride, frame_offset, output_size) are refused,
             since the cache fixed frames and size when it was encoded, and so is a prompt.
         version: the version folder to read (``v-<nnnnnn>``, while a publish keeps it); None
@@ -409,7 +409,7 @@ class PairDataset(Dataset):
         self._files: dict[int, Any] = {}
         self._group_cache: dict[tuple[int, int], dict] = {}
         self._verified: set[str] = set()
-        # latents=True: samples from the build's latent cache (paradrive.wan.latents), no video
+        # latents=True: samples from the build's latent cache (paradrive.latents), no video
         self.latents = LatentReader(self.build, self.index, self.pair_ids, self.dtype) if latents else None
 
     def _checked_pair_ids(self, path: Path, rows: int) -> pa.Array:

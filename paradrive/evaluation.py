@@ -1,4 +1,5 @@
-"""Ground-truth evaluation of a fitted synthetic scene: ``paradrive eval``.
+"""Ground-truth evaluation of a fitted synthetic scene (``paradrive eval`` prints it,
+:mod:`paradrive.commands.eval`).
 
 Only a synthetic scene knows what a laterally shifted camera really sees: the procedural street
 renders any pose exactly. For one scene this measures
@@ -45,14 +46,14 @@ import numpy as np
 from paradrive.actors import views_mask
 from paradrive.streams import (condition_stream, frames_needed, source_clip_windows, source_poses,
                                source_stream)
-from paradrive.errors import ConfigError, SceneError
+from paradrive.errors import SceneError
 from paradrive.io import atomic_path, write_json
 from paradrive.contracts.layout import SceneLayout
 from paradrive.contracts.records import FitRecord, RendersRecord
 from paradrive.streams import OutputCamera, output_camera
 
 __all__ = ["evaluate_scene", "image_quality", "depth_abs_rel", "depth_signed_rel", "depth_errors",
-           "plot_eval", "register"]
+           "plot_eval"]
 
 EVAL_SCHEMA_VERSION = 1
 if TYPE_CHECKING:  # the gs modules (torch) are imported where eval runs, not by the CLI's start-up
@@ -371,7 +372,7 @@ def _evaluate_scene(scene_dir, render_params: RenderParams, *, ingest_params, ca
     from paradrive.inference import scene_ingest_params
     from paradrive.ingest.synthetic import street_from_uri
     from paradrive.scene import load_scene
-    from paradrive.stages.ingest import params_of
+    from paradrive.contracts.params import params_of
     from paradrive.uri import parse_uri
 
     log = log or log_default
@@ -472,144 +473,3 @@ def plot_eval(doc: dict, path: str | os.PathLike) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
     plt.close(fig)
-
-
-# --------------------------------------------------------------------------- CLI
-
-def eval_table(doc: dict):
-    """A rich Table of one eval document."""
-    from rich.table import Table
-
-    table = Table(title=f"eval {doc['scene_id']}", title_justify="left",
-                  caption="vs: recorded = the recorded frames, truth = the street's true shifted "
-                          "view; depth = median |relative| z-depth error (non-sky), signed = "
-                          "median signed one (< 0: too near)")
-    numeric = ("iter", "PSNR", "SSIM", "depth", "signed")
-    for col in ("camera", "stream") + numeric[:1] + ("vs",) + numeric[1:]:
-        table.add_column(col, justify="right" if col in numeric else "left", no_wrap=True)
-
-    def fmt(x, spec):
-        return "-" if x is None else format(x, spec)
-
-    def row(cam, stream, r, vs):
-        table.add_row(cam, stream, str(r["iteration"]), vs, fmt(r["psnr"], ".2f"),
-                      fmt(r["ssim"], ".4f"), fmt(r.get("depth_abs_rel"), ".3f"),
-                      fmt(r.get("depth_signed_rel"), "+.3f"))
-
-    for cam, c in doc["cameras"].items():
-        for r in c["conditions"]:
-            row(cam, r["stream"], r, "recorded")
-        row(cam, "recorded", c["recorded"], "recorded")
-        for r in sorted(c["shifted"], key=lambda r: (abs(r["offset_m"]), -r["offset_m"])):
-            row(cam, r["stream"], r, "truth")
-    for cam, c in doc.get("heldout", {}).get("per_camera", {}).items():
-        for r in c["checkpoints"]:
-            row(cam, f"heldout {c['kind']}", r, "held out")
-    return table
-
-
-def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | None) -> None:
-    """``paradrive eval --build B --videos V``: exit 0 all scored, 3 some missing, 2 none/usage."""
-    import typer
-    from rich.console import Console
-    from rich.markup import escape
-    from rich.table import Table
-
-    from paradrive.errors import ParaDriveError
-    from paradrive.inference import plot_scores, score_videos
-
-    console, err = Console(), Console(stderr=True)
-    if build is None or videos is None or not videos.is_dir():
-        err.print("[bold red]error:[/] --build takes an inference set and --videos a folder of "
-                  "generated videos named by pair_id")
-        raise typer.Exit(2)
-    try:
-        doc = score_videos(build, videos)
-    except ParaDriveError as exc:
-        err.print(f"[bold red]error:[/] {escape(str(exc))}")
-        raise typer.Exit(2)
-    if not doc["rows"]:
-        err.print(f"[bold red]error:[/] no video in {escape(str(videos))} matches a row with a target "
-                  f"({len(doc['missing'])} missing, {doc['rows_without_target']} rows without "
-                  f"a true view)")
-        raise typer.Exit(2)
-    folder = Path(out_dir) if out_dir is not None else videos
-    folder.mkdir(parents=True, exist_ok=True)
-    plot_scores(doc, folder / "scores.png")
-    write_json(folder / "scores.json", doc)
-    table = Table(title=escape(f"{videos} against {build}"), title_justify="left")
-    for col in ("offset", "videos", "PSNR", "SSIM"):
-        table.add_column(col, justify="right")
-    for r in doc["by_offset"]:
-        table.add_row(f"{r['offset_m']:+g} m", str(r["videos"]), f"{r['psnr']:.2f}",
-                      f"{r['ssim']:.4f}")
-    console.print(table)
-    console.print(f"wrote {folder / 'scores.json'} and {folder / 'scores.png'}", markup=False)
-    if doc["missing"]:
-        err.print(f"[yellow]{len(doc['missing'])} row(s) have no video[/], e.g. "
-                  f"{escape(str(doc['missing'][0]))}")
-        raise typer.Exit(3)
-
-
-def register(app) -> None:
-    """Add the ``eval`` command to the typer ``app``."""
-
-    import typer
-
-    @app.command("eval")
-    def eval_cmd(
-        scene: list[str] = typer.Option([], "--scene", help="Scene URI, e.g. 'synthetic:demo?seed=7'; a real log's scene is measured on the views its fit held out. Repeatable."),
-        data: str = typer.Option("data", "--data", help="Where scenes live (<data>/scenes/<scene_id>): a folder, or the URL a build wrote to (the scene is copied to the cache first)."),
-        profile: str | None = typer.Option(None, "--profile", "-p", help="Parameter profile the scene was built with."),
-        set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
-        out_dir: Path | None = typer.Option(None, "--out", help="Write eval.json / eval.png here (default <scene>/eval; one scene)."),
-        camera: str | None = typer.Option(None, "--camera", help="Comma-separated cameras (default: render.cameras)."),
-        frames: int = typer.Option(16, "--frames", help="Evaluate at most this many evenly spaced clip frames (0 = all)."),
-        build: Path | None = typer.Option(None, "--build", help="Score generated videos against an inference set's true views instead (with --videos)."),
-        videos: Path | None = typer.Option(None, "--videos", help="With --build: a folder of generated videos, one per row, <pair_id>.mp4 (a pair id's '/' are folders)."),
-    ) -> None:
-        """Measure shifted renders against the synthetic street's true views, the condition renders against the recorded frames, and every checkpoint on the views the fit held out (any dataset).
-
-        With --build and --videos: score generated novel-trajectory videos against the true
-        views of a synthetic inference set (PSNR / SSIM per offset, scores.json and scores.png).
-        """
-        from rich.console import Console
-        from rich.markup import escape
-
-        if build is not None or videos is not None:
-            score_build_cmd(build, videos, out_dir)
-            return
-
-        from paradrive.pipeline import StageRegistry, parse_overrides
-        from paradrive.storage import DataRoot, local_scene
-        from paradrive.uri import parse_uri
-
-        console, err = Console(), Console(stderr=True)
-        uris = list(scene) or ["synthetic:demo?seed=7"]
-        try:
-            config = StageRegistry().resolve(profile, parse_overrides(set_))
-            parsed = [parse_uri(u) for u in uris]
-        except ConfigError as exc:
-            err.print(f"[bold red]error:[/] {escape(str(exc))}")
-            raise typer.Exit(2)
-        if out_dir is not None and len(uris) > 1:
-            err.print("[bold red]error:[/] --out takes one --scene")
-            raise typer.Exit(2)
-        failed = 0
-        for uri in parsed:
-            try:
-                scene_dir = local_scene(DataRoot.of(data), uri.scene_id)
-                doc = evaluate_scene(scene_dir, config.typed("render"),
-                                     ingest_params=config.params["ingest"],
-                                     cameras=[c.strip() for c in camera.split(",")] if camera else None,
-                                     max_frames=frames or None, out_dir=out_dir,
-                                     fit_params=config.typed("fit"))
-            except (SceneError, ConfigError) as exc:
-                err.print(f"[bold red]error:[/] {escape(str(exc))}")
-                failed += 1
-                continue
-            console.print(eval_table(doc))
-            where = Path(out_dir) if out_dir else scene_dir / "eval"
-            console.print(f"wrote {where / 'eval.json'} and {where / 'eval.png'}", markup=False)
-        if failed:
-            raise typer.Exit(2 if failed == len(parsed) else 3)

@@ -40,7 +40,7 @@ def no_truth(clip: ClipRecord, offset_m: float, novel_c2w: np.ndarray) -> None:
 def scene_ingest_params(scene_dir: Path, fallback: dict | None) -> dict:
     """The parameters the scene was ingested with (its stage marker), else ``fallback``."""
     from paradrive.contracts.layout import SceneLayout
-    from paradrive.stages.ingest import recorded_values
+    from paradrive.contracts.params import recorded_values
 
     recorded = recorded_values(SceneLayout.at(scene_dir))
     return recorded if recorded is not None else dict(fallback or {})
@@ -56,7 +56,7 @@ def truth_renderer(scene_dir: str | Path, version_dir: str | Path, clips: ClipsR
     from paradrive.uri import parse_uri
     from paradrive.video import encode_video
 
-    from paradrive.stages.ingest import params_of
+    from paradrive.contracts.params import params_of
 
     street = street_from_uri(parse_uri(clips.source),
                              params_of(scene_ingest_params(Path(scene_dir), None)))

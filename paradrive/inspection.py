@@ -1,4 +1,5 @@
-"""``paradrive inspect BUILD``: what a data engineer asks of a published build.
+"""What a data engineer asks of a published build (``paradrive inspect BUILD`` prints it,
+:mod:`paradrive.commands.inspect`).
 
 Counts by dataset / scene / camera / clip / offset / checkpoint, per-scene quality, checksum
 verification of the shards and every referenced video (``--verify``), a machine-readable summary
@@ -9,7 +10,6 @@ in 3D; :mod:`paradrive.trajectories`).
 
 from __future__ import annotations
 
-import json
 import os
 from collections import Counter, defaultdict, deque
 from collections.abc import Callable, Iterable, Iterator
@@ -26,7 +26,7 @@ from paradrive.pairs import build_file, iter_shard, read_index, read_pairs, shar
 from paradrive.streams import format_offset, stream_transform
 from paradrive.trajectories import rig_picture, trajectories_picture
 
-__all__ = ["summarize", "verify_build", "default_jobs", "contact_sheet", "trajectories_picture", "rig_picture", "register"]
+__all__ = ["summarize", "verify_build", "default_jobs", "contact_sheet", "trajectories_picture", "rig_picture"]
 
 ROLES = ("source", "condition", "target")
 T = TypeVar("T")
@@ -96,7 +96,6 @@ def summarize(build_dir: str | Path, index: IndexRecord | None = None) -> dict:
         "exclude_splits": [s.model_dump() for s in index.exclude_splits],
         "excluded_scenes": [s.model_dump() for s in index.excluded_scenes],
         "heldout_filter": index.heldout_filter.model_dump() if index.heldout_filter else None,
-        "dynamic_filter": index.dynamic_filter.model_dump() if index.dynamic_filter else None,
     }
 
 
@@ -152,7 +151,7 @@ def verify_build(build_dir: str | Path, jobs: int | None = None,
         problems += [p for p in _ordered(_check, media.items(shards), jobs) if p]
     except ParaDriveError as exc:  # a shard whose checksum matches yet does not parse
         problems.append(str(exc))
-    from paradrive.wan.latents import verify_latents  # torch: only when verifying
+    from paradrive.latents import verify_latents  # torch: only when verifying
 
     latents = verify_latents(build_dir)   # the Wan2.1 latent cache, when the build has one
     problems += latents["problems"]
@@ -320,137 +319,3 @@ def contact_sheet(build_dir: str | Path, out: str | Path, *, pairs: int = 3, fra
     with atomic_path(out) as tmp:
         sheet.save(tmp, format="PNG")
     return out
-
-
-# --------------------------------------------------------------------------- CLI
-
-def _print_tables(summary: dict, console) -> None:
-    from rich.markup import escape
-    from rich.table import Table
-
-    console.print(f"[bold]{escape(summary['build'])}[/]: {summary['rows']} pairs in {summary['shards']} "
-                  f"shards (fingerprint {summary['config_fingerprint']}, paradrive "
-                  f"{(summary.get('software') or {}).get('paradrive', '?')}, "
-                  f"{escape(' and '.join(summary.get('transform') or ['lateral']))} sources)")
-    titles = {"dataset": "dataset", "scene": "scene", "camera": "camera", "clip": "clip",
-              "offset": "offset", "checkpoint": "condition checkpoint"}
-    grid = Table.grid(padding=(0, 2))
-    small = []
-    for key, title in titles.items():
-        t = Table(title=f"pairs by {title}", title_justify="left")
-        t.add_column(title)
-        t.add_column("pairs", justify="right")
-        for k, v in summary["counts"][key].items():
-            t.add_row(escape(str(k)), str(v))
-        small.append(t)
-    grid.add_row(*small[:3])
-    grid.add_row(*small[3:])
-    console.print(grid)
-    its = list(summary["quality"]["by_checkpoint"])
-    q = Table(title="quality: condition vs target (mean over pairs), fit on training views",
-              title_justify="left")
-    q.add_column("scene")
-    q.add_column("fit PSNR", justify="right")
-    q.add_column("held-out PSNR", justify="right")
-    for it in its:
-        q.add_column(f"cond {it} PSNR / SSIM", justify="right")
-
-    def fmt(v, digits):
-        return "-" if v is None else f"{v:.{digits}f}"
-
-    for sid, s in summary["quality"]["scenes"].items():
-        q.add_row(escape(sid), fmt(s["fit_train_psnr"], 2), fmt(s.get("heldout_psnr"), 2),
-                  *[f"{fmt(s['condition'].get(it, {}).get('psnr'), 2)} / "
-                    f"{fmt(s['condition'].get(it, {}).get('ssim'), 3)}" for it in its])
-    allq = summary["quality"]["by_checkpoint"]
-    q.add_row("[bold]all", "", "", *[f"{fmt(allq[it]['psnr'], 2)} / {fmt(allq[it]['ssim'], 3)}"
-                                  for it in its])
-    console.print(q)
-    for s in summary["skipped_scenes"]:
-        console.print(f"[yellow]skipped scene[/] {escape(s['scene_id'])}: {escape(s['reason'])}")
-    if summary.get("heldout_filter"):
-        f = summary["heldout_filter"]
-        console.print(f"held-out PSNR filter: at least {f['min_psnr']:g} dB, "
-                      f"{len(f['dropped'])} scene(s) left out", markup=False)
-    if summary.get("dynamic_filter"):
-        f = summary["dynamic_filter"]
-        console.print(f"moving-pixels filter: dynamic_fraction at most {f['max_fraction']:g}, "
-                      f"{f['dropped_rows']} pair(s) of {len(f['dropped_clips'])} clip(s) left out",
-                      markup=False)
-    splits = ", ".join(f"{s['name']} (sha256 {s['sha256'][:12]}…, {s['scenes']} scenes)"
-                       for s in summary["exclude_splits"]) or "none"
-    console.print(f"{summary['kind']} build; excluded splits: {splits}", markup=False)
-    for s in summary["excluded_scenes"]:
-        console.print("[yellow]excluded scene[/] "
-                      + escape(f"{s['scene_id']} (split {s['split']}: {s['line']})"))
-
-
-def _verify(build: Path, err, jobs: int | None = None, index: IndexRecord | None = None) -> dict:
-    """Verify ``build``, printing each problem and the verdict on ``err``."""
-    from rich.markup import escape
-
-    result = verify_build(build, jobs, index)
-    for p in result["problems"]:
-        err.print(f"[red]{escape(p)}[/]", soft_wrap=True)
-    if result["ok"]:
-        err.print(f"[green]verified[/] {result['checked_files']} files")
-    else:
-        err.print(f"[bold red]{len(result['problems'])} of {result['checked_files']} files "
-                  f"missing, corrupt or unsafe[/]")
-    return result
-
-
-def register(app) -> None:
-    import typer
-
-    @app.command("inspect")
-    def inspect_cmd(
-        build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
-        verify: bool = typer.Option(False, "--verify", help="Re-hash every shard and referenced video; exit 1 naming each missing, corrupt or unsafe (leading out of the build) one."),
-        as_json: bool = typer.Option(False, "--json", help="Print a machine-readable summary instead of tables."),
-        sheet: Path | None = typer.Option(None, "--sheet", help="Write a contact sheet PNG here (and next to it <name>_trajectories.png, the camera paths from above, and <name>_rig.png, the rig and its shifted cameras in 3D)."),
-        pairs: int = typer.Option(3, "--pairs", help="Pairs on the contact sheet."),
-        data: Path | None = typer.Option(None, "--data", help="Data folder to find the scene's LiDAR in (default: the scene folders index.json records)."),
-        jobs: int | None = typer.Option(None, "--jobs", min=1, help="With --verify: files hashed at once (default: the CPUs, at most 8)."),
-    ) -> None:
-        """Counts, quality, checksum verification and pictures of a published build."""
-        from rich.console import Console
-        from rich.markup import escape
-
-        out, err = Console(), Console(stderr=True)
-        try:
-            index = read_index(build)   # one version for everything below, however long it takes
-            result = _verify(build, err, jobs, index) if verify else None
-            code = 0 if result is None or result["ok"] else 1
-            try:
-                summary = summarize(build, index)
-            except ParaDriveError:
-                if code:  # a shard that cannot be read: already reported as corrupt
-                    raise typer.Exit(code) from None
-                raise
-        except ParaDriveError as exc:
-            err.print(f"[bold red]error:[/] {escape(str(exc))}")
-            raise typer.Exit(2) from None
-        if result is not None:
-            summary["verify"] = result
-        if sheet is not None:
-            try:
-                summary["sheet"] = str(contact_sheet(build, sheet, pairs=pairs, index=index))
-                traj = sheet.with_name(f"{sheet.stem}_trajectories.png")
-                summary["trajectories"] = str(trajectories_picture(build, traj, data_dir=data))
-                rig = sheet.with_name(f"{sheet.stem}_rig.png")
-                summary["rig"] = str(rig_picture(build, rig, data_dir=data))
-            except ParaDriveError as exc:
-                err.print(f"[bold red]error:[/] {escape(str(exc))}")
-                code = code or 1
-        if as_json:
-            typer.echo(json.dumps(summary, indent=2))
-        else:
-            from paradrive.wan.latents import latents_summary  # torch: not at every command's start
-
-            _print_tables(summary, out)
-            out.print(latents_summary(build), markup=False)
-            for key in ("sheet", "trajectories", "rig"):
-                if key in summary:
-                    out.print(f"wrote {summary[key]}", markup=False)
-        raise typer.Exit(code)

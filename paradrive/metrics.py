@@ -2,7 +2,7 @@
 
 Images are float tensors in [0, 1], shaped ``(H, W, 3)`` or ``(B, H, W, 3)`` (channels last,
 as renders come out of the rasterizer). Both functions are differentiable; ``ssim`` is also the
-D-SSIM term of the fit loss. Its mean runs in the native kernels of ``paradrive.gs`` for float32
+D-SSIM term of the fit loss. Its mean runs in the native kernels (``paradrive.kernels``) for float32
 images on the CPU (where the library builds; ``PARADRIVE_KERNELS``), in torch operations
 elsewhere.
 """
@@ -101,7 +101,7 @@ class _MeanSSIM(torch.autograd.Function):
 
 
 class _NativeMeanSSIM(torch.autograd.Function):
-    """:class:`_MeanSSIM` in the native kernels of ``paradrive.gs`` (CPU float32 images): one
+    """:class:`_MeanSSIM` in the native kernels (``paradrive.kernels``) (CPU float32 images): one
     pass over each row computes the moments, the map and its derivatives; the backward blurs
     those back. x, y are (B, H, W, C) contiguous; the bytes do not depend on the thread count."""
 
@@ -136,9 +136,9 @@ def _native_kernels(x: torch.Tensor):
     else None: the torch operations run."""
     if x.device.type != "cpu" or x.dtype != torch.float32:
         return None
-    from paradrive.gs import _native
+    from paradrive import kernels
 
-    return _native.load()
+    return kernels.load()
 
 
 def ssim_window(window: int = 11, sigma: float = 1.5,

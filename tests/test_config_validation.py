@@ -18,7 +18,7 @@ import yaml
 
 from paradrive.errors import EXIT_USAGE, ConfigError
 from paradrive.pipeline import StageRegistry, parse_overrides
-from paradrive.pipeline.specs import default_stages_dir
+from paradrive.contracts.specs import default_stages_dir
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = "synthetic:p1?seed=3"
@@ -185,8 +185,9 @@ def test_paradrive_stages_shows_what_each_parameter_may_be(monkeypatch):
     from typer.testing import CliRunner
 
     from paradrive import cli
+    from paradrive.commands import common
 
-    monkeypatch.setattr(cli.out, "width", 250)  # one table row a line, whatever the terminal
+    monkeypatch.setattr(common.out, "width", 250)  # one table row a line, whatever the terminal
     result = CliRunner().invoke(cli.app, ["stages", "manifest"])
     assert result.exit_code == 0, result.output
     spec = StageRegistry().specs["manifest"]
@@ -197,7 +198,7 @@ def test_paradrive_stages_shows_what_each_parameter_may_be(monkeypatch):
 
 
 def _train_settings(tree, where=""):
-    from paradrive.pipeline.specs import Param
+    from paradrive.contracts.specs import Param
 
     for key, node in tree.items():
         if isinstance(node, Param):

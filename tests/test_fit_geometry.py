@@ -24,7 +24,7 @@ SHORT_FIT = {"checkpoints": [60], "threads": 1, "init_points": 2000, "sky_points
 
 
 def fit_params(**overrides) -> dict:
-    from paradrive.pipeline.specs import StageRegistry
+    from paradrive.contracts.specs import StageRegistry
 
     return StageRegistry().resolve("smoke", {"fit": {**SHORT_FIT, **overrides}}).typed("fit")
 

@@ -42,9 +42,9 @@ def test_footprint_of_a_url_root_is_listed_remotely(tmp_path):
 
 def test_build_prints_each_scene_footprint(tmp_path, monkeypatch):
     import pipeline_stages
-    from paradrive import cli
+    from paradrive.commands import common
 
-    monkeypatch.setattr(cli.out, "width", 200)   # one line a row, as on a wide terminal
+    monkeypatch.setattr(common.out, "width", 200)   # one line a row, as on a wide terminal
     monkeypatch.setenv("PARADRIVE_STAGES", str(pipeline_stages.write_stages(tmp_path / "stages")))
     args = ["build", "--scene", "synthetic:demo?seed=7", "--scene", "synthetic:demo?seed=8",
             "--data", str(tmp_path / "data"), "--manifests", str(tmp_path / "m"),

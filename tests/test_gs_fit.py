@@ -33,7 +33,7 @@ TINY_FIT = {
 
 
 def fit_params(profile: str | None = None, **overrides):
-    from paradrive.pipeline.specs import StageRegistry
+    from paradrive.contracts.specs import StageRegistry
 
     return StageRegistry().resolve(profile, {"fit": overrides} if overrides else None).typed("fit")
 

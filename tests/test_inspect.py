@@ -13,7 +13,8 @@ from conftest import stage_params
 import typer
 from typer.testing import CliRunner
 
-from paradrive.inspection import register, sheet_labels, summarize, verify_build
+from paradrive.commands.inspect import register
+from paradrive.inspection import sheet_labels, summarize, verify_build
 from paradrive.stages.manifest import build_manifest
 from paradrive.pairs import read_index
 from test_manifest import scenes_entry, write_clip_scene
@@ -34,7 +35,7 @@ def build(tmp_path_factory):
 
 
 def invoke(*args):
-    # The command on an app of its own, as cli.py registers it.
+    # The command on an app of its own, as paradrive.cli registers it.
     app = typer.Typer()
     app.callback()(lambda: None)
     register(app)

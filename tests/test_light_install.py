@@ -27,8 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 BUILDER_IMPORTS = ("ray", "open3d", "pyvista", "OpenImageIO", "OpenEXR", "numba", "typer", "rich",
                    "plyfile", "psutil", "yaml", "PIL", "google_crc32c", "matplotlib", "gsplat")
 BUILDER_MODULES = ("paradrive.pipeline", "paradrive.gs", "paradrive.stages", "paradrive.ingest",
-                   "paradrive.synthetic", "paradrive.cli", "paradrive.train", "paradrive.evaluation",
-                   "paradrive.inspection")
+                   "paradrive.synthetic", "paradrive.cli", "paradrive.commands", "paradrive.train",
+                   "paradrive.evaluation", "paradrive.inspection")
 
 PROBE = r"""
 import importlib.abc, json, sys

@@ -30,7 +30,7 @@ import torch
 from test_rasterize import H, W, make_cameras, make_scene
 
 from paradrive.contracts.layout import SceneLayout
-from paradrive.gs import _native
+from paradrive import kernels as loader
 from paradrive.gs.rasterize import rasterize
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 def fresh_loader():
     """The loader with its memory cleared (restored afterwards)."""
     def clear():
-        for f in (_native._import, _native._widest, _native._fallback_warning):
+        for f in (loader._import, loader._widest, loader._fallback_warning):
             f.cache_clear()
     clear()
     yield
@@ -53,7 +53,7 @@ def _render(scene):
 
 
 def _kernels():
-    kernels = _native.load()
+    kernels = loader.load()
     assert kernels is not None, "the kernels were not built at install"
     return kernels
 
@@ -63,15 +63,15 @@ def test_each_instruction_set_this_cpu_runs_was_built_into_the_package():
     register of its unit: 16 float32 lanes with AVX-512, 8 with AVX2, 4 on the baseline; load()
     takes the widest."""
     lanes = {"avx512": 16, "avx2": 8, "base": 4}
-    runnable = _native.runnable()
+    runnable = loader.runnable()
     assert runnable[-1] == "base"
     for name in runnable:
-        kernels = _native.variant(name)
+        kernels = loader.variant(name)
         assert kernels.lanes == lanes[name]
-        assert Path(kernels.__file__).parent == Path(_native.__file__).parent
-    assert _native.load() is _native.variant(runnable[0])
-    with pytest.raises(_native.NativeUnavailable, match="no kernel variant 'sse9'"):
-        _native.variant("sse9")
+        assert Path(kernels.__file__).parent == Path(loader.__file__).parent
+    assert loader.load() is loader.variant(runnable[0])
+    with pytest.raises(loader.NativeUnavailable, match="no kernel variant 'sse9'"):
+        loader.variant("sse9")
 
 
 def test_a_cpu_of_a_lower_capability_gets_the_narrower_kernels():
@@ -79,9 +79,9 @@ def test_a_cpu_of_a_lower_capability_gets_the_narrower_kernels():
     machine without AVX-512 or AVX2): a fresh process then loads the narrower kernels."""
     expected = {"default": 4, "avx2": 8}
     for capability, lanes in expected.items():
-        if capability == "avx2" and "avx2" not in _native.runnable():
+        if capability == "avx2" and "avx2" not in loader.runnable():
             continue
-        code = "from paradrive.gs import _native; print(_native.load().lanes)"
+        code = "from paradrive import kernels; print(kernels.load().lanes)"
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,
                              env={**os.environ, "ATEN_CPU_CAPABILITY": capability}, check=True)
         assert out.stdout.split() == [str(lanes)], (capability, out.stderr)
@@ -94,10 +94,10 @@ def test_without_the_kernels_the_torch_op_path_renders_with_one_warning_naming_t
     native says how to fix it."""
     scene = make_scene(n=120, seed=5)
     reference = rasterize(*scene, *make_cameras(), W, H, backend="torch")
-    for name in _native.VARIANTS:
-        monkeypatch.setitem(sys.modules, f"paradrive.gs._kernels_{name}", None)  # import fails
-    with caplog.at_level(logging.WARNING, logger="paradrive.gs._native"):
-        assert _native.load() is None
+    for name in loader.VARIANTS:
+        monkeypatch.setitem(sys.modules, f"paradrive.kernels._kernels_{name}", None)  # import fails
+    with caplog.at_level(logging.WARNING, logger="paradrive.kernels"):
+        assert loader.load() is None
         out, alphas = _render(scene)
         _render(scene)
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
@@ -105,14 +105,14 @@ def test_without_the_kernels_the_torch_op_path_renders_with_one_warning_naming_t
     torch.testing.assert_close(out, reference[0], atol=1e-5, rtol=0)
     torch.testing.assert_close(alphas, reference[1], atol=1e-5, rtol=0)
     monkeypatch.setenv("PARADRIVE_KERNELS", "native")
-    with pytest.raises(_native.NativeUnavailable, match="not built at install.*reinstall"):
-        _native.load()
+    with pytest.raises(loader.NativeUnavailable, match="not built at install.*reinstall"):
+        loader.load()
 
 
 def test_an_unknown_kernel_choice_is_refused(monkeypatch):
     monkeypatch.setenv("PARADRIVE_KERNELS", "numba")
     with pytest.raises(ValueError, match="auto, native, torch"):
-        _native.load()
+        loader.load()
 
 
 def test_arrays_of_the_wrong_dtype_layout_or_size_never_reach_the_kernels():
@@ -331,11 +331,11 @@ def test_the_fit_loss_node_matches_the_torch_expression(terms):
 
 _FIT_CODE = """\
 import json, sys
-from paradrive.gs import _native
+from paradrive import kernels as loader
 from paradrive.stages.fit import fit_scene
 from paradrive.stages.fit import Params
 fit_scene(sys.argv[1], Params.of('fit', json.load(open(sys.argv[2]))))
-print('kernels', _native.load().__name__)
+print('kernels', loader.load().__name__)
 """
 
 
@@ -369,7 +369,7 @@ def test_four_fits_started_at_once_with_no_compiler_and_an_unwritable_cache_agre
     outs = [p.communicate(timeout=600)[0].decode() for p in procs]
     for p, out in zip(procs, outs, strict=True):
         assert p.returncode == 0, out
-        assert f"kernels paradrive.gs._kernels_{_native.runnable()[0]}" in out, out
+        assert f"kernels paradrive.kernels._kernels_{loader.runnable()[0]}" in out, out
     ckpts = [SceneLayout.at(d).checkpoint(4).read_bytes() for d in scenes]
     assert all(c == ckpts[0] for c in ckpts[1:])
     assert blocker.read_text() == ""

@@ -233,11 +233,12 @@ def test_the_build_command_shows_per_stage_counts_on_a_terminal(tmp_path, monkey
     from typer.testing import CliRunner
 
     import paradrive.cli as cli
+    import paradrive.commands.build as build_command
     import pipeline_stages
 
     monkeypatch.setenv("PARADRIVE_STAGES", str(pipeline_stages.write_stages(tmp_path / "stages")))
     screen = io.StringIO()
-    monkeypatch.setattr(cli, "console", Console(file=screen, force_terminal=True, width=200))
+    monkeypatch.setattr(build_command, "console", Console(file=screen, force_terminal=True, width=200))
     args = ["build", "--scene", "synthetic:street?seed=1", "--scene", "synthetic:street?seed=2",
             "--data", str(tmp_path / "data"), "--manifests", str(tmp_path / "manifests")]
     result = CliRunner().invoke(cli.app, args)

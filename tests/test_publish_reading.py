@@ -19,7 +19,8 @@ from typer.testing import CliRunner
 from conftest import stage_params
 from paradrive.data import PairDataset
 from paradrive.errors import ParaDriveError
-from paradrive.inspection import register, verify_build
+from paradrive.commands.inspect import register
+from paradrive.inspection import verify_build
 from paradrive.io import PathEscapeError
 from paradrive.pairs import read_index, version_dir
 from paradrive.stages.manifest import build_manifest

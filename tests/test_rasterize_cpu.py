@@ -20,23 +20,23 @@ from test_rasterize import (
     make_scene,
 )
 
-from paradrive.gs import _native
+from paradrive import kernels as loader
 from paradrive.gs.rasterize import rasterize
 
 
-@pytest.fixture(autouse=True, params=[*_native.VARIANTS, "torch"])
+@pytest.fixture(autouse=True, params=[*loader.VARIANTS, "torch"])
 def kernels(request, monkeypatch):
     """Each test once per kernel variant this CPU runs (it fails where one was not built at
     install), and once with PARADRIVE_KERNELS=torch: no kernels, the torch-op stages."""
     choice = request.param
     if choice == "torch":
         monkeypatch.setenv("PARADRIVE_KERNELS", "torch")
-        assert _native.load() is None
+        assert loader.load() is None
         return choice
-    if choice not in _native.runnable():
+    if choice not in loader.runnable():
         pytest.skip(f"this CPU does not run the {choice} kernels")
-    built = _native.variant(choice)
-    monkeypatch.setattr(_native, "load", lambda: built)
+    built = loader.variant(choice)
+    monkeypatch.setattr(loader, "load", lambda: built)
     return choice
 
 

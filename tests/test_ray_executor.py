@@ -15,12 +15,12 @@ import pytest
 
 from paradrive.errors import ConfigError
 from paradrive.pipeline import StageRegistry, run_build
-from paradrive.pipeline.choose import make_executor
+from paradrive.pipeline.executors import make_executor
 from paradrive.pipeline.executors import LocalExecutor
 from paradrive.pipeline.ledger import Ledger
-from paradrive.pipeline.ray_executor import Capacity, RayExecutor, task_resources
+from paradrive.pipeline.executors.ray import Capacity, RayExecutor, task_resources
 from paradrive.pipeline.runner import scene_dir_for
-from paradrive.pipeline.specs import Resources
+from paradrive.contracts.specs import Resources
 
 import pipeline_stages
 

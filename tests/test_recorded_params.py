@@ -6,8 +6,9 @@ from __future__ import annotations
 
 from paradrive.contracts.layout import SceneLayout
 from paradrive.contracts.records import StageMarker
-from paradrive.pipeline import StageRegistry, specs
-from paradrive.stages.ingest import params_of, recorded_params
+from paradrive.contracts import specs
+from paradrive.pipeline import StageRegistry
+from paradrive.contracts.params import params_of, recorded_params
 
 
 def _old_marker(tmp_path, dropped: tuple[str, ...]) -> SceneLayout:

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from paradrive.cli import app
 from paradrive.pipeline import StageRegistry, run_build, run_scene_stage
-from paradrive.pipeline.specs import default_stages_dir
+from paradrive.contracts.specs import default_stages_dir
 from paradrive.scene import load_scene
 
 URI = "synthetic:demo?seed=7&frames=6&width=64&height=48"

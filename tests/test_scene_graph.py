@@ -95,7 +95,7 @@ def test_native_placement_matches_the_torch_expressions(threads):
     where torch fuses or orders the sums otherwise), and the same bytes on 1 and 2 threads;
     rows outside the nodes keep their inputs and gradients exactly."""
     from paradrive.devices import set_cpu_kernel_threads
-    from paradrive.gs import _native
+    from paradrive import kernels
     from paradrive.gs import graph
 
     gen = torch.Generator().manual_seed(3)
@@ -115,7 +115,7 @@ def test_native_placement_matches_the_torch_expressions(threads):
     for g in outputs:
         g.view(-1)[::7] = -0.0
     inputs = [params[key] for key in ("means", "quats", "opacities")]
-    assert graph._place_kernels(params, poses, None) is _native.load() is not None
+    assert graph._place_kernels(params, poses, None) is kernels.load() is not None
     keys, free = ("means", "quats", "opacities"), node < 0
     runs = []
     old = set_cpu_kernel_threads(threads)

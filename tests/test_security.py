@@ -44,7 +44,7 @@ def test_the_crafted_file_runs_its_code_when_unpickled(tmp_path):
 # --------------------------------------------------------------------------- pickle: fit state
 
 def _fit_params() -> dict:
-    from paradrive.pipeline.specs import StageRegistry
+    from paradrive.contracts.specs import StageRegistry
 
     return StageRegistry().resolve("smoke", {"fit": {
         "checkpoints": [2, 4], "threads": 1, "init_points": 500, "sky_points": 100,
@@ -206,7 +206,7 @@ def test_inspect_verify_exits_1_naming_the_row_of_an_escaping_uri(clip_build, tm
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.inspection import register
+    from paradrive.commands.inspect import register
 
     build = tmp_path / "b"
     pair_id = tampered(clip_build, build, 0, "source_uri", "/etc/hostname")
@@ -276,7 +276,7 @@ def test_a_shard_listed_outside_the_build_is_refused(clip_build, tmp_path):
 def test_eval_refuses_a_scene_whose_image_path_leads_out(tiny_scene, tmp_path):
     from paradrive.errors import SceneError
     from paradrive.evaluation import evaluate_scene
-    from paradrive.pipeline.specs import StageRegistry
+    from paradrive.contracts.specs import StageRegistry
 
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)

@@ -7,7 +7,7 @@ import yaml
 
 from paradrive.errors import ConfigError
 from paradrive.pipeline import StageRegistry, parse_overrides
-from paradrive.pipeline.specs import default_stages_dir
+from paradrive.contracts.specs import default_stages_dir
 
 
 def test_paper_defaults_live_in_the_stage_files():

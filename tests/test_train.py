@@ -431,7 +431,7 @@ def test_train_command_runs_both_stages_on_a_smoke_build_and_samples(smoke_build
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.train.cli import register
+    from paradrive.commands.train import register
 
     app = typer.Typer()  # the command as paradrive.cli registers it, without the other commands
     register(app)

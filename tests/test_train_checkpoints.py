@@ -13,7 +13,7 @@ import torch
 from paradrive.io import UnsafeFileError
 from paradrive.train.trainer import PREVIOUS, DamagedCheckpoint, Trainer
 from paradrive.wan.recam import ReCamDrivingWan, checkpoint_size, make_tiny_transformer, stage_parameter_names
-from paradrive.wan.train import WanTrainer, load_wan_config
+from paradrive.train.wan import WanTrainer, load_wan_config
 from test_train import PairTensors, tiny_config
 from test_wan_train import LatentPairs
 

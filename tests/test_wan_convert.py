@@ -18,16 +18,17 @@ import pytest
 import torch
 
 from paradrive.data import PairDataset
-from paradrive.wan.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
+from paradrive.train.convert import collate_pixels, read_pixel_pair, recammaster_matrix, recammaster_text
 
 
 def convert(*args: str, code: int = 0) -> str:
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.wan.cli import register
+    from paradrive.commands.convert import register
 
-    app = typer.Typer()   # the commands as paradrive.cli registers them, without the others
+    app = typer.Typer()   # the command as paradrive.cli registers it, without the others
+    app.callback()(lambda: None)   # keeps "convert" a sub-command, as in paradrive
     register(app)
     result = CliRunner().invoke(app, ["convert", *args])
     assert result.exit_code == code, result.output

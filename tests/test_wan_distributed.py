@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from paradrive.data import PairIterableDataset
 from paradrive.train.distributed import World
-from paradrive.wan.train import WanTrainer, load_wan_config, open_wan_dataset
+from paradrive.train.wan import WanTrainer, load_wan_config, open_wan_dataset
 
 pytestmark = pytest.mark.slow
 

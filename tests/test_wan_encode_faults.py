@@ -19,7 +19,7 @@ pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
 from paradrive.errors import EXIT_FAILED, EXIT_OK, EXIT_USAGE  # noqa: E402
-from paradrive.wan import latents as cache  # noqa: E402
+from paradrive import latents as cache  # noqa: E402
 from test_exit_codes import _mount_namespaces  # noqa: E402
 from test_wan_latents import CLI_SETS, ROOT  # noqa: E402
 

@@ -19,7 +19,7 @@ pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
 from paradrive.errors import ConfigError  # noqa: E402
-from paradrive.wan import latents as cache  # noqa: E402
+from paradrive import latents as cache  # noqa: E402
 from paradrive.wan.encode import EncodeSettings, encode_build  # noqa: E402
 from paradrive.wan.text import empty_prompt_embedding  # noqa: E402
 from paradrive.wan.vae import (decode_latents, encode_video, latent_frames, load_vae,  # noqa: E402
@@ -301,7 +301,7 @@ def test_on_ray_the_encode_stage_is_a_task_asking_for_its_gpu(smoke_build, wan_f
     """A Ray build hands the encode (the stage declares a GPU) to a task with that request, capped
     to the cluster: this one has no GPU, so the task runs on a worker's CPU, with the warning."""
     from paradrive.pipeline import StageRegistry, run_build
-    from paradrive.pipeline.ray_executor import RayExecutor
+    from paradrive.pipeline.executors.ray import RayExecutor
 
     asked = StageRegistry().resolve("smoke", {"encode": {"vae": str(wan_folder), "size": [8, 16],
                                                          "num_frames": 1, "batch": 8}})

@@ -13,7 +13,7 @@ from simulated_device import DEVICE, simulated_device
 from paradrive.errors import ConfigError
 from paradrive.train.trainer import collate
 from paradrive.wan.recam import stage_parameter_names
-from paradrive.wan.train import WanTrainer, latent_frame_indices, load_wan_config, relative_camera
+from paradrive.train.wan import WanTrainer, latent_frame_indices, load_wan_config, relative_camera
 
 C, T, H, W = 16, 2, 6, 10
 
@@ -142,7 +142,7 @@ def test_train_command_runs_both_wan_stages_on_a_smoke_build_and_samples(smoke_b
     import typer
     from typer.testing import CliRunner
 
-    from paradrive.train.cli import register
+    from paradrive.commands.train import register
 
     app = typer.Typer()  # the command as paradrive.cli registers it, without the other commands
     register(app)
@@ -175,7 +175,7 @@ def test_train_command_runs_both_wan_stages_on_a_smoke_build_and_samples(smoke_b
 
 def test_training_reads_a_builds_cached_latents_without_the_vae(wan_builds, wan_folder, copy_tree, tmp_path):
     from paradrive.wan.encode import EncodeSettings, encode_build
-    from paradrive.wan.train import open_wan_dataset
+    from paradrive.train.wan import open_wan_dataset
 
     build = copy_tree(wan_builds["train"], "train")   # one scene of 5-frame clips: half the smoke build's videos
     encode_build(build, EncodeSettings(vae=str(wan_folder), text_encoder=None, device="cpu",

@@ -2,15 +2,23 @@
 readers (:mod:`paradrive.ingest`), the fit (:mod:`paradrive.gs.fit`) and the manifest writer
 (:mod:`paradrive.manifest`) take them, and the stage modules run with them. Their fields are
 exactly the parameters of ``stages/<name>.yaml``, with no defaults: the values live only there.
+
+The ingest parameters a scene was made with are read back here too (:func:`recorded_params`,
+from its ingest stage marker): the later stages, the inference sets and eval all import them
+from this module, none from the ingest stage.
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
+from typing import Any
 
 from pydantic import field_validator
 
 from paradrive.contracts.base import StageParams
+from paradrive.contracts.layout import SceneLayout
+from paradrive.contracts.records import StageMarker
 
 
 class IngestParams(StageParams):
@@ -32,6 +40,33 @@ class IngestParams(StageParams):
     video_sfm_width: int
     video_max_scale_uncertainty: float
 
+
+
+def params_of(values: Mapping[str, Any] | None = None,
+              defaults: Mapping[str, Any] | None = None) -> IngestParams:
+    """Ingest parameters from a recorded mapping (a scene's ingest marker). What an older
+    marker lacks comes from ``defaults``: the build's own ingest parameters (its profile and
+    ``--set``), or where none are given the stage file's defaults (read once, not per call);
+    keys the stage no longer has are left out."""
+    if defaults is None:
+        from paradrive.contracts.specs import cached_registry
+
+        defaults = cached_registry().specs["ingest"].defaults()
+    known = {k: v for k, v in (values or {}).items() if k in IngestParams.model_fields}
+    return IngestParams.of("ingest", {**defaults, **known})
+
+
+def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
+    """The parameter mapping the scene at ``layout`` was ingested with (its stage marker), or
+    None where it has no readable marker (a scene folder made without the runner)."""
+    marker = StageMarker.read(layout.marker("ingest"))
+    return marker.params if marker is not None else None
+
+
+def recorded_params(layout: SceneLayout, defaults: Mapping[str, Any] | None = None) -> IngestParams:
+    """The parameters the scene at ``layout`` was ingested with, typed; ``defaults`` (the
+    build's ingest parameters) where its marker lacks one or it has none (:func:`params_of`)."""
+    return params_of(recorded_values(layout), defaults)
 
 class FitParams(StageParams):
     checkpoints: list[int]

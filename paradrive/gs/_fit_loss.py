@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from paradrive.devices import cpu_kernel_threads
-from paradrive.gs import _native
+from paradrive import kernels
 from paradrive.gs.losses import DepthTarget, depth_loss
 from paradrive import metrics
 from paradrive.metrics import ssim
@@ -46,7 +46,7 @@ class FitLossTerms:
     depth_weight: float
 
 
-def fit_loss_kernels(render: Tensor) -> _native.Kernels | None:
+def fit_loss_kernels(render: Tensor) -> kernels.Kernels | None:
     """The native kernels where the node takes this render: where metrics.ssim runs natively
     (float32 on the CPU, the library built), as the node computes its SSIM term there; else
     None, and the torch expression runs."""
@@ -109,7 +109,7 @@ _NO_DEPTHS = np.zeros(0, np.float32)
 
 def fit_loss(render: Tensor, alphas: Tensor, gt: Tensor, sky: Tensor | None,
              target: DepthTarget | None, terms: FitLossTerms,
-             kernels: _native.Kernels) -> Tensor:
+             kernels: kernels.Kernels) -> Tensor:
     """The fit's loss (see ``_Fit._loss``) of a render (1, H, W, D) with the accumulated depth
     as its 4th channel when there is a sky or depth term, its alphas (1, H, W, 1) and the
     target image gt (H, W, 3); sky (H, W) bool selects the sky term's pixels (None or none

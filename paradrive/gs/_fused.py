@@ -1,7 +1,7 @@
 """Torch side of the fused CPU rasterizer: autograd functions whose work runs in the vectorised
-kernels of ``_composite.cpp`` (built at install, loaded by ``_native``), on
+kernels of ``_composite.cpp`` (built at install, loaded by ``paradrive.kernels``), on
 ``devices.cpu_kernel_threads()`` threads (torch's count unless set). ``rasterize`` takes them
-only where ``_native.load()`` finds the kernels; elsewhere the torch-op stages run.
+only where ``kernels.load()`` finds the kernels; elsewhere the torch-op stages run.
 
 Same interface as ``_tiles.bin_gaussians`` / ``_tiles.composite`` and ``rasterize._project``,
 so the stages are interchangeable behind ``rasterize``.
@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from paradrive.devices import cpu_kernel_threads
-from paradrive.gs import _native
+from paradrive import kernels
 from paradrive.gs._tiles import TileBins, composite
 from paradrive.gs.sh import shade
 
@@ -28,11 +28,11 @@ __all__ = ["bin_gaussians_fused", "composite_fused", "project_fused", "rasterize
 MAX_CHANNELS = 4
 
 
-def _kernels() -> _native.Kernels:
-    native = _native.load()
+def _kernels() -> kernels.Kernels:
+    native = kernels.load()
     if native is None:
         raise RuntimeError("the fused CPU stages need the native kernels (rasterize checks "
-                           "_native.load() first)")
+                           "kernels.load() first)")
     return native
 
 

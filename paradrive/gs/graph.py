@@ -213,9 +213,9 @@ def _place_kernels(params: Gaussians, poses: NodePoses, correction: torch.Tensor
     if correction is not None or any(t.device.type != "cpu" or t.dtype != torch.float32
                                      for t in tensors):
         return None
-    from paradrive.gs import _native
+    from paradrive import kernels
 
-    return _native.load()
+    return kernels.load()
 
 
 class _Place(torch.autograd.Function):

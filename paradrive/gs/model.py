@@ -145,12 +145,12 @@ def deterministic_torch(threads: int, backend: str = "torch"):
     cores: 45 ms with both on two threads, 37 ms so).
     """
     from paradrive.devices import set_cpu_kernel_threads
-    from paradrive.gs import _native
+    from paradrive import kernels
 
     old_threads = torch.get_num_threads()
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
-    fused = backend == "cpu" and _native.load() is not None  # else the torch-op stages run
+    fused = backend == "cpu" and kernels.load() is not None  # else the torch-op stages run
     old_kernels = set_cpu_kernel_threads(threads if fused and threads > 0 else 0)
     if threads > 0:
         torch.set_num_threads(1 if fused else threads)

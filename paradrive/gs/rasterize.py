@@ -165,7 +165,7 @@ def _expected_depth(renders: Tensor, alphas: Tensor, render_mode: str) -> Tensor
 def _fit_case(means: Tensor, colors, sh_degree, render_mode: str) -> bool:
     """Whether the fused kernels run this render as one node (``_fused.rasterize_fit``): SH
     coefficients (in two parts or (N, K, 3)), an RGB mode, float32 and the native library."""
-    from paradrive.gs import _native
+    from paradrive import kernels
 
     if sh_degree is None or render_mode not in ("RGB", "RGB+D", "RGB+ED"):
         return False
@@ -174,15 +174,15 @@ def _fit_case(means: Tensor, colors, sh_degree, render_mode: str) -> bool:
         return False
     if means.dtype != torch.float32 or any(t.dtype != torch.float32 for t in parts):
         return False
-    return _native.load() is not None
+    return kernels.load() is not None
 
 
 def _stages(backend: str):
     """(projection, SH colour, binning, compositing) of a CPU-capable backend: the torch-op
     reference, or the fused kernels where they were built."""
-    from paradrive.gs import _native
+    from paradrive import kernels
 
-    if backend == "torch" or _native.load() is None:
+    if backend == "torch" or kernels.load() is None:
         return _project, _shade_all, bin_gaussians, composite
     from paradrive.gs._fused import bin_gaussians_fused, composite_fused, project_fused, shade_fused
 
@@ -266,8 +266,8 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
             sh_degree, backgrounds, near_plane, far_plane, render_mode, eps2d,
             radius_clip, tile_size)
     if backend in ("torch", "cpu"):
-        from paradrive.gs import _native
+        from paradrive import kernels
 
-        ts = CPU_TILE_SIZE if backend == "cpu" and _native.load() is not None else TORCH_TILE_SIZE
+        ts = CPU_TILE_SIZE if backend == "cpu" and kernels.load() is not None else TORCH_TILE_SIZE
         return _torch_rasterize(*args[:-1], ts, backend)
     return _gsplat_rasterize(*args)

@@ -116,7 +116,7 @@ def _native_sums(grads: torch.Tensor, scale: tuple[float, float], radii: torch.T
     nothing done, where the library is missing or the tensors are not float32 CPU ones (radii
     int32 (C, N)) in the layouts it reads."""
     from paradrive.devices import cpu_kernel_threads
-    from paradrive.gs import _native
+    from paradrive import kernels
 
     grad2d, count = state["grad2d"], state["count"]
     tensors = (grads, radii, grad2d, count)
@@ -125,7 +125,7 @@ def _native_sums(grads: torch.Tensor, scale: tuple[float, float], radii: torch.T
             or any(t.dtype != torch.float32 for t in (grads, grad2d, count))
             or not (grad2d.is_contiguous() and count.is_contiguous())):
         return False
-    native = _native.load()
+    native = kernels.load()
     if native is None:
         return False
     try:

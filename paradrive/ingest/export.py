@@ -371,76 +371,104 @@ def export_nuscenes(street_or_scene, dataroot: str | Path, *, cameras=None,
                          f"{', '.join(NUSCENES_CHANNELS)}")
     log_token = _token("log", scene_name)
     scene_token = _token("scene", scene_name)
-    stamps = [int(time_origin_us + t) for t in src.timestamps_us]
-    key_idx = list(range(0, src.frames, keyframe_every))
-    sample_tokens = [_token("sample", scene_name, i) for i in key_idx]
-    samples = [{"token": tok, "timestamp": stamps[i],
-                "prev": sample_tokens[k - 1] if k else "",
-                "next": sample_tokens[k + 1] if k + 1 < len(key_idx) else "",
-                "scene_token": scene_token} for k, (i, tok) in enumerate(zip(key_idx, sample_tokens))]
-
-    def sample_of(i):  # a sweep belongs to the next keyframe (the last one at the end)
-        k = min(-(-i // keyframe_every), len(key_idx) - 1)
-        return sample_tokens[k]
-
-    sensors, calibrated, ego_poses, sample_data = [], [], [], []
+    log = _NuscenesLog(src, root, scene_name, [int(time_origin_us + t) for t in src.timestamps_us],
+                       keyframe_every, image_format, jpeg_quality, global_from_world)
+    samples = [{"token": tok, "timestamp": log.stamps[i],
+                "prev": log.sample_tokens[k - 1] if k else "",
+                "next": log.sample_tokens[k + 1] if k + 1 < len(log.key_idx) else "",
+                "scene_token": scene_token} for k, (i, tok) in enumerate(zip(log.key_idx, log.sample_tokens))]
     channels = {cam: NUSCENES_CHANNELS[cam] for cam in src.cameras}
     if lidar and src.lidar(0) is not None:
         channels["lidar"] = "LIDAR_TOP"
-    lidar_cam2ego = geometry.make_pose(geometry.rotation_about("z", -np.pi / 2), src.lidar_origin)
+    sensors: dict[str, list[dict]] = {"sensor": [], "calibrated_sensor": [], "ego_pose": [], "sample_data": []}
     for key, channel in channels.items():
+        for table, rows in log.channel(key, channel).items():
+            sensors[table] += rows
+    tables: dict[str, list[dict]] = {
+        "log": [{"token": log_token, "logfile": f"n000-{scene_name}", "vehicle": "n000",
+                 "date_captured": "2018-07-18", "location": "synthetic"}],
+        "scene": [{"token": scene_token, "log_token": log_token, "nbr_samples": len(samples),
+                   "first_sample_token": log.sample_tokens[0], "last_sample_token": log.sample_tokens[-1],
+                   "name": scene_name, "description": f"synthetic {src.name}"}],
+        "sample": samples, "sample_data": sensors["sample_data"], "ego_pose": sensors["ego_pose"],
+        "calibrated_sensor": sensors["calibrated_sensor"], "sensor": sensors["sensor"],
+        "attribute": [], "visibility": [], "map": [],
+        **nuscenes_annotations(src.actors, log.key_idx, log.sample_tokens, global_from_world),
+    }
+    for table, rows in tables.items():
+        _write_json(root / version / f"{table}.json", rows)
+    return root
+
+
+@dataclass
+class _NuscenesLog:
+    """What every channel of an exported nuScenes log shares: its frames' timestamps (us), its
+    keyframes and their sample tokens, where and how its files are written."""
+
+    src: LogSource
+    root: Path
+    scene_name: str
+    stamps: list[int]
+    keyframe_every: int
+    image_format: str
+    jpeg_quality: int
+    global_from_world: np.ndarray
+    key_idx: list[int] = field(init=False)
+    sample_tokens: list[str] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.key_idx = list(range(0, self.src.frames, self.keyframe_every))
+        self.sample_tokens = [_token("sample", self.scene_name, i) for i in self.key_idx]
+
+    def sample_of(self, i: int) -> str:
+        """The sample of frame ``i``: its own keyframe's, or a sweep's next keyframe (the last
+        one at the end)."""
+        k = min(-(-i // self.keyframe_every), len(self.key_idx) - 1)
+        return self.sample_tokens[k]
+
+    def channel(self, key: str, channel: str) -> dict[str, list[dict]]:
+        """Write every frame of one channel (a camera, or ``lidar``); its sensor, calibrated
+        sensor, ego pose and sample data rows."""
+        src, scene_name = self.src, self.scene_name
+        lidar_cam2ego = geometry.make_pose(geometry.rotation_about("z", -np.pi / 2), src.lidar_origin)
         sensor_token = _token("sensor", channel)
         cs_token = _token("calibrated_sensor", scene_name, channel)
-        sensors.append({"token": sensor_token, "channel": channel,
-                        "modality": "lidar" if key == "lidar" else "camera"})
-        if key == "lidar":
-            pose, intrinsic = lidar_cam2ego, []
-        else:
-            c = src.cameras[key]
-            pose, intrinsic = c.cam2ego, c.K().tolist()
-        calibrated.append({"token": cs_token, "sensor_token": sensor_token,
-                           "translation": geometry.as_floats(pose[:3, 3]),
-                           "rotation": geometry.as_floats(geometry.rotation_to_quaternion(pose[:3, :3])),
-                           "camera_intrinsic": intrinsic})
+        pose, intrinsic = (lidar_cam2ego, []) if key == "lidar" else \
+            (src.cameras[key].cam2ego, src.cameras[key].K().tolist())
+        rows: dict[str, list[dict]] = {
+            "sensor": [{"token": sensor_token, "channel": channel,
+                        "modality": "lidar" if key == "lidar" else "camera"}],
+            "calibrated_sensor": [{"token": cs_token, "sensor_token": sensor_token,
+                                   "translation": geometry.as_floats(pose[:3, 3]),
+                                   "rotation": geometry.as_floats(geometry.rotation_to_quaternion(pose[:3, :3])),
+                                   "camera_intrinsic": intrinsic}],
+            "ego_pose": [], "sample_data": []}
         tokens = [_token("sample_data", scene_name, channel, i) for i in range(src.frames)]
         for i in range(src.frames):
-            keyframe = i % keyframe_every == 0
+            keyframe = i % self.keyframe_every == 0
             folder = "samples" if keyframe else "sweeps"
             if key == "lidar":
                 ego = src.ego2world[i]
                 ext, fmt = "pcd.bin", "pcd"
             else:
                 ego = src.c2w[key][i] @ geometry.invert(src.cameras[key].cam2ego)
-                ext, fmt = image_format, image_format
-            ego_global = global_from_world @ ego
+                ext, fmt = self.image_format, self.image_format
+            ego_global = self.global_from_world @ ego
             ego_token = _token("ego_pose", scene_name, channel, i)
-            ego_poses.append({"token": ego_token, "timestamp": stamps[i],
-                              "rotation": geometry.as_floats(geometry.rotation_to_quaternion(ego_global[:3, :3])),
-                              "translation": geometry.as_floats(ego_global[:3, 3])})
-            filename = f"{folder}/{channel}/n000-{scene_name}__{channel}__{stamps[i]}.{ext}"
-            target = root / filename
-            width, height = _nuscenes_file(target, src, key, i, ego @ lidar_cam2ego,
-                                           image_format, jpeg_quality)
-            sample_data.append({
-                "token": tokens[i], "sample_token": sample_tokens[i // keyframe_every] if keyframe
-                else sample_of(i), "ego_pose_token": ego_token, "calibrated_sensor_token": cs_token,
-                "timestamp": stamps[i], "fileformat": fmt, "is_key_frame": keyframe,
+            rows["ego_pose"].append({
+                "token": ego_token, "timestamp": self.stamps[i],
+                "rotation": geometry.as_floats(geometry.rotation_to_quaternion(ego_global[:3, :3])),
+                "translation": geometry.as_floats(ego_global[:3, 3])})
+            filename = f"{folder}/{channel}/n000-{scene_name}__{channel}__{self.stamps[i]}.{ext}"
+            width, height = _nuscenes_file(self.root / filename, src, key, i, ego @ lidar_cam2ego,
+                                           self.image_format, self.jpeg_quality)
+            rows["sample_data"].append({
+                "token": tokens[i], "sample_token": self.sample_tokens[i // self.keyframe_every] if keyframe
+                else self.sample_of(i), "ego_pose_token": ego_token, "calibrated_sensor_token": cs_token,
+                "timestamp": self.stamps[i], "fileformat": fmt, "is_key_frame": keyframe,
                 "height": height, "width": width, "filename": filename,
                 "prev": tokens[i - 1] if i else "", "next": tokens[i + 1] if i + 1 < src.frames else ""})
-    tables = {
-        "log": [{"token": log_token, "logfile": f"n000-{scene_name}", "vehicle": "n000",
-                 "date_captured": "2018-07-18", "location": "synthetic"}],
-        "scene": [{"token": scene_token, "log_token": log_token, "nbr_samples": len(samples),
-                   "first_sample_token": sample_tokens[0], "last_sample_token": sample_tokens[-1],
-                   "name": scene_name, "description": f"synthetic {src.name}"}],
-        "sample": samples, "sample_data": sample_data, "ego_pose": ego_poses,
-        "calibrated_sensor": calibrated, "sensor": sensors,
-        "attribute": [], "visibility": [], "map": [],
-        **nuscenes_annotations(src.actors, key_idx, sample_tokens, global_from_world),
-    }
-    for table, rows in tables.items():
-        _write_json(root / version / f"{table}.json", rows)
-    return root
+        return rows
 
 
 # --------------------------------------------------------------------------- DriveStudio

@@ -277,15 +277,7 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
                                     where=segment)
             for name in chosen:
                 cameras[name] = _camera(name, calibs[name], scene_id=scene_id, where=where)
-        if not msg.has("timestamp_micros"):
-            raise SceneError("frame has no timestamp_micros", scene_id=scene_id, path=where,
-                             fix="the segment is incomplete; re-download it")
-        stamp = int(msg.timestamp_micros)
-        if stamps and stamp <= stamps[-1]:
-            raise SceneError(f"frame {len(frames)} timestamp {stamp} us is not after the previous "
-                             f"frame's {stamps[-1]} us (non-monotonic timestamps)",
-                             scene_id=scene_id, path=where,
-                             fix="sort the segment's frames by time or drop the duplicate")
+        stamp = _timestamp(msg, stamps, scene_id=scene_id, where=where)
         pose = transform_of(msg.pose, scene_id=scene_id, where=where,
                             what=f"frame {len(frames)} vehicle pose")
         if world_from_global is None:
@@ -295,26 +287,10 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
         frame = Frame(index=index, timestamp_us=stamp, ego2world=world_from_global @ pose,
                       cameras={})
         for name in chosen:
-            im = images.get(name)
-            if im is None or not len(im.image):
-                raise SceneError(f"frame {index} has no image for camera {name}",
-                                 scene_id=scene_id, path=where,
-                                 fix="drop the camera with ingest.cameras or use a complete segment")
-            calib = calibs[name]
-            image_pose = (transform_of(im.pose, scene_id=scene_id, where=where,
-                                       what=f"frame {index} camera {name} image pose")
-                          if im.pose is not None else pose)
-            pixels = decode_jpeg(im.image, scene_id=scene_id, where=f"{where} camera {name}")
-            check_size(pixels, calib.width, calib.height, scene_id=scene_id,
-                       where=f"{where} camera {name}", what=f"camera {name} image")
             rel = f"images/{name}/{index:06d}.{ext}"
-            intr = list(calib.intrinsic) + [0.0] * 9
-            store_image(out_dir, rel, pixels, K=cameras[name].K(), dist=intr[4:9],
-                        quality=quality, original=im.image)
-            extrinsic = transform_of(calib.extrinsic, scene_id=scene_id, where=where,
-                                     what=f"camera {name} extrinsic")
-            frame.cameras[name] = FrameCamera(
-                image=rel, c2w=world_from_global @ image_pose @ extrinsic @ OPENCV_TO_FLU)
+            c2w = _store_image(out_dir, rel, images.get(name), calibs[name], cameras[name], pose,
+                               world_from_global, index, quality, scene_id=scene_id, where=where)
+            frame.cameras[name] = FrameCamera(image=rel, c2w=c2w)
         if want_lidar:
             pts = top_lidar_points(msg, context, pose, world_from_global, scene_id=scene_id,
                                    where=where)
@@ -332,6 +308,45 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
                                      where=f"{segment} laser_labels"),
                  extra={"waymo": {"segment": segment_name or segment_stem(segment.name),
                                   "file": segment.name}})
+
+
+def _timestamp(msg, stamps: list[int], *, scene_id: str, where: str) -> int:
+    """The frame's timestamp (us), after the previous frame's (``stamps[-1]``)."""
+    if not msg.has("timestamp_micros"):
+        raise SceneError("frame has no timestamp_micros", scene_id=scene_id, path=where,
+                         fix="the segment is incomplete; re-download it")
+    stamp = int(msg.timestamp_micros)
+    if stamps and stamp <= stamps[-1]:
+        raise SceneError(f"frame {len(stamps)} timestamp {stamp} us is not after the previous "
+                         f"frame's {stamps[-1]} us (non-monotonic timestamps)",
+                         scene_id=scene_id, path=where,
+                         fix="sort the segment's frames by time or drop the duplicate")
+    return stamp
+
+
+def _store_image(out_dir: Path, rel: str, im, calib, camera: Camera, pose: np.ndarray,
+                 world_from_global: np.ndarray, index: int, quality: int, *, scene_id: str,
+                 where: str) -> np.ndarray:
+    """Check and store frame ``index``'s image of ``camera`` (``im``, None when the frame has
+    none) at ``rel``; returns the camera's c2w (OpenCV) in the scene's world, from the image's
+    own pose where it has one, else the frame's vehicle ``pose``."""
+    name = camera.name
+    if im is None or not len(im.image):
+        raise SceneError(f"frame {index} has no image for camera {name}",
+                         scene_id=scene_id, path=where,
+                         fix="drop the camera with ingest.cameras or use a complete segment")
+    image_pose = (transform_of(im.pose, scene_id=scene_id, where=where,
+                               what=f"frame {index} camera {name} image pose")
+                  if im.pose is not None else pose)
+    pixels = decode_jpeg(im.image, scene_id=scene_id, where=f"{where} camera {name}")
+    check_size(pixels, calib.width, calib.height, scene_id=scene_id,
+               where=f"{where} camera {name}", what=f"camera {name} image")
+    intr = list(calib.intrinsic) + [0.0] * 9
+    store_image(out_dir, rel, pixels, K=camera.K(), dist=intr[4:9], quality=quality,
+                original=im.image)
+    extrinsic = transform_of(calib.extrinsic, scene_id=scene_id, where=where,
+                             what=f"camera {name} extrinsic")
+    return world_from_global @ image_pose @ extrinsic @ OPENCV_TO_FLU
 
 
 def _camera(name: str, calib, *, scene_id: str, where) -> Camera:

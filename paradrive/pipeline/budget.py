@@ -2,7 +2,7 @@
 
 ``scene_footprint`` sums a scene folder's bytes by its top folders (``images``, ``lidar``,
 ``masks``, ``gs``, ``renders``, ``clips``; the rest is ``other``); ``paradrive build`` prints it
-per scene at the end.
+per scene at the end (:mod:`paradrive.commands.build`).
 
 ``plan_build`` projects, before anything runs, a scene list's pairs, media bytes (the clips),
 intermediate bytes (everything else, at their peak and after the retention switches) and the
@@ -12,7 +12,7 @@ rates: measured on the finished scenes of the data root (the seconds in each sta
 the bytes of its recorded outputs) when there are any, else the documented defaults of
 ``stages/budget/rates.yaml``. A scene already ingested gives its own frames and cameras; one
 not yet ingested is read from its URI (synthetic) or takes the dataset's typical log
-(``rates.yaml``: ``logs``).
+(``rates.yaml``: ``logs``). ``paradrive plan`` prints the plan (:mod:`paradrive.commands.plan`).
 """
 
 from __future__ import annotations
@@ -25,16 +25,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import typer
 import yaml
-from rich.console import Console
-from rich.markup import escape
-from rich.table import Table
 
-from paradrive.errors import ConfigError, ParaDriveError
+from paradrive.errors import ConfigError
 from paradrive.io import is_temporary
 from paradrive.pipeline.runner import read_marker
-from paradrive.pipeline.specs import ResolvedConfig
+from paradrive.contracts.specs import ResolvedConfig
 from paradrive.contracts.layout import SCENE_FOLDERS, SCENES_DIR, SceneLayout
 from paradrive.storage import DataRoot
 from paradrive.streams import (ClipWindow, clip_shortfall, clip_windows, frames_needed,
@@ -90,23 +86,6 @@ def by_folder(sizes: dict[str, int]) -> dict[str, int]:
         top = rel.split("/", 1)[0] if "/" in rel else OTHER
         out[top if top in SCENE_FOLDERS else OTHER] += size
     return out
-
-
-def footprint_table(footprints: dict[str, dict[str, int]], max_rows: int = 20) -> Table:
-    """Scenes by top folder in MB, with a total row (the largest ``max_rows`` scenes shown)."""
-    columns = [*SCENE_FOLDERS, OTHER]
-    table = Table(title="footprint (MB)", title_justify="left")
-    table.add_column("scene")
-    for name in [*columns, "total"]:
-        table.add_column(name, justify="right")
-    ranked = sorted(footprints.items(), key=lambda kv: -sum(kv[1].values()))
-    for sid, sizes in ranked[:max_rows]:
-        table.add_row(sid, *[f"{sizes[c] / MB:.1f}" for c in columns], f"{sum(sizes.values()) / MB:.1f}")
-    if len(footprints) > 1:
-        totals = {c: sum(f[c] for f in footprints.values()) for c in columns}
-        table.add_row(f"all {len(footprints)} scenes", *[f"{totals[c] / MB:.1f}" for c in columns],
-                      f"{sum(totals.values()) / MB:.1f}", style="bold")
-    return table
 
 
 # --------------------------------------------------------------------------- the plan
@@ -405,78 +384,3 @@ def plan_build(config: ResolvedConfig, uris: list[str], data_dir: Path | None) -
             if kind == "bytes":
                 plan.kept[name] = plan.kept.get(name, 0.0) + (0.0 if name in released else value)
     return plan
-
-
-# --------------------------------------------------------------------------- CLI
-
-def _size(value: float) -> str:
-    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
-        if value >= scale:
-            return f"{value / scale:.2f} {unit}"
-    return f"{value / 1e3:.1f} kB"
-
-
-def print_plan(plan: Plan, config: ResolvedConfig, data_dir: Path, console: Console) -> None:
-    summary = plan.as_json()
-    known = ", ".join(f"{n} {how}" for how, n in sorted(plan.shapes.items()))
-    console.print(f"plan: {plan.scenes} scene(s) ({known}), profile {config.profile}; rates measured "
-                  f"on the finished scenes of {data_dir} where there are any, else stages/budget/rates.yaml",
-                  markup=False)
-    console.print(f"pairs         {plan.pairs:,}")
-    console.print(f"media         {_size(summary['media_bytes'])} (the clips)")
-    if summary["latent_bytes"]:
-        console.print(f"latents       {_size(summary['latent_bytes'])} (encode: Wan2.1 VAE latents)")
-    console.print(f"intermediate  {_size(summary['intermediate_bytes'])} at most, "
-                  f"{_size(summary['intermediate_bytes_kept'])} kept after retention")
-    console.print(f"compute       {summary['cpu_hours']:.2f} CPU-hours, "
-                  f"{summary['gpu_hours']:.2f} GPU-hours")
-    for scene_id, why in plan.unfit.items():
-        console.print(f"no clip       scene {scene_id}: {why} (the build fails it after its ingest)",
-                      markup=False)
-    table = Table(title="rates", title_justify="left")
-    for name in ("what", "total", "kept", "rate", "per", "source"):
-        table.add_column(name, overflow="fold", justify="right" if name in ("total", "kept", "rate") else "left")
-    for key, rate in plan.rates.items():
-        kind, name = key.split(":", 1)
-        if kind == "compute":
-            table.add_row(f"{name} ({rate.device}-hours)", f"{plan.seconds[name] / 3600:.3f}", "",
-                          f"{rate.value:.4g} s", rate.unit, escape(rate.source))
-        else:
-            table.add_row(name, _size(plan.bytes[name]), _size(plan.kept[name]),
-                          f"{rate.value:.4g} B", rate.unit, escape(rate.source))
-    console.print(table)
-
-
-def register(app: typer.Typer) -> None:
-    @app.command("plan")
-    def plan_cmd(
-        scene: list[str] = typer.Option([], "--scene", help="Scene URI. Repeatable."),
-        scenes: list[str] = typer.Option([], "--scenes", help="A scene list file, a folder of logs, or "
-                                                              "URIs (as for build). Repeatable."),
-        profile: str | None = typer.Option(None, "--profile", "-p", help="Profile (stages/profiles/"
-                                                                         "NAME.yaml); default: the paper's."),
-        set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
-        data: Path = typer.Option(Path("data"), "--data", help="Data folder: its finished scenes give "
-                                                               "measured rates, its ingested scenes their frames."),
-        as_json: bool = typer.Option(False, "--json", help="Print the plan as JSON."),
-    ) -> None:
-        """Project pairs, media and intermediate bytes and CPU / GPU hours of a build, before it runs."""
-        from paradrive.pipeline import StageRegistry, parse_overrides
-        from paradrive.pipeline.build import default_selection
-        from paradrive.pipeline.scenes import check_present, scene_uris
-
-        try:
-            config = StageRegistry().resolve(profile, parse_overrides(set_))
-            given = scene_uris(scene, scenes)
-            check_present(given)   # a plan of logs that are not there projects nothing real
-            uris = default_selection(config, given).uris
-            if not uris:
-                raise ConfigError("no scenes to plan: give --scene or --scenes")
-            plan = plan_build(config, uris, data if data.is_dir() else None)
-        except (ConfigError, ParaDriveError, ValueError) as exc:
-            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
-            raise typer.Exit(2) from exc
-        if as_json:
-            print(json.dumps(plan.as_json(), indent=2))
-        else:
-            print_plan(plan, config, data, Console())

@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from paradrive import splits
 from paradrive.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE,
                               ConfigError, ParaDriveError, StageNotImplemented)
-from paradrive.pipeline.executors import Executor, LocalExecutor, SceneTask
+from paradrive.pipeline.executors import Executor, LocalExecutor, RunOptions, SceneTask
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, HeldLock, LockOptions, scene_lock
 from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.scenes import SceneInput, check_present, distinct_scenes
@@ -33,7 +33,7 @@ from paradrive.pipeline.runner import (
     typed_params, written_outputs,
 )
 from paradrive.pipeline.ledger import LEDGER_FILE
-from paradrive.pipeline.specs import ResolvedConfig, StageSpec
+from paradrive.contracts.specs import ResolvedConfig, StageSpec
 from paradrive.splits import Selection
 from paradrive.contracts.base import BuildContext
 from paradrive.contracts.layout import BuildLayout
@@ -377,11 +377,9 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     report = BuildReport(excluded=list(selection.excluded))
     if scene_stages:
         tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
-        report.results.extend(executor.run(config, tasks, data_dir, force=force,
-                                           on_start=on_start, on_result=on_result,
-                                           locks=LockOptions(build, lock_timeout),
-                                           on_progress=on_progress,
-                                           verify_outputs=verify_outputs))
+        report.results.extend(executor.run(config, tasks, data_dir, RunOptions(
+            force=force, on_start=on_start, on_result=on_result, locks=LockOptions(build, lock_timeout),
+            on_progress=on_progress, verify_outputs=verify_outputs)))
     for stage in build_stages:
         if on_start:
             on_start(f"build:{build}", stage)

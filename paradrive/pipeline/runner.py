@@ -44,7 +44,7 @@ from paradrive.errors import (ConfigError, ParaDriveError, SceneError, StageNotI
 from paradrive.io import remove_stale_temporaries, sha256_file
 from paradrive.pipeline.locks import HeldLock, LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
-from paradrive.pipeline.specs import ResolvedConfig, StageSpec, typed_params
+from paradrive.contracts.specs import ResolvedConfig, StageSpec, typed_params
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.layout import MARKER_DIR, DataLayout, SceneLayout
 from paradrive.contracts.records import DroppedOutputs, OutputFile, StageMarker
@@ -522,11 +522,9 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
     is lost (:class:`~paradrive.pipeline.locks.LeaseLost`): it is called at every progress
     report of the stage and before the marker and the upload, so a stage whose lease another
     build took stops before it writes anything more."""
-    data_dir = root.local
-    spec = config.registry().specs[stage]
-    scene_dir = scene_dir_for(data_dir, scene_id)
-    with scene_logger(scene_id, DataLayout(data_dir).log(scene_id), root.storage_options) as log:
-        params = config.params[stage]
+    scene_dir = scene_dir_for(root.local, scene_id)
+    with scene_logger(scene_id, DataLayout(root.local).log(scene_id), root.storage_options) as log:
+        run = _StageRun(config, stage, scene_uri, scene_id, root, mirror, scene_dir, log)
         t0 = time.time()
         made = not scene_dir.exists()  # a first stage that fails leaves no empty scene folder
         try:
@@ -545,71 +543,113 @@ def _run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_i
                                    summary=dict((marker.summary if marker else None) or {}))
             log.info("%s: to run: %s", stage, reason)
             check_inputs(scene_id, stage, upstream, size_of)
-            func = load_entry(spec)
+            func = load_entry(run.spec)
             admit_scene(config, stage, scene_dir)
-            scene_dir.mkdir(parents=True, exist_ok=True)
-            marker_path(scene_dir, stage).unlink(missing_ok=True)
-            marker_rel = marker_path(Path(), stage).as_posix()
-            if mirror:
-                mirror.withdraw(marker_rel)
-                pulled = mirror.pull(spec.reads)
-                log.info("%s: %d file(s) brought from %s", stage, pulled, root.scene_location(scene_id))
-            # A stage may resume from what it finds (a fit's state.pt), never from a damaged
-            # output, nor, on a URL root, a cached copy of one the remote lost. Whether a stage
-            # is done is decided here only, never by the stage itself.
-            for rel in damaged_outputs(marker, size_of):
-                (scene_dir / rel).unlink(missing_ok=True)
-            remove_stale_temporaries(scene_dir)
-            before = file_stats(scene_dir)
-            log.info("%s: started (fingerprint %s)", stage, fp)
-            ctx = StageContext(stage=stage, scene_uri=scene_uri, scene_id=scene_id,
-                               layout=SceneLayout(scene_dir), data_dir=data_dir,
-                               params=typed_params(spec, params), log=log, upstream=upstream,
-                               build_params=config.params,
-                               progress=StageProgress(scene_id, stage, log, on_progress, guard=guard))
-            summary = summary_of(func(ctx))
-            missing = outputs_present(scene_dir, spec, params)
-            if missing:
-                raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
-                                          f"outputs: {', '.join(missing[:5])}")
-            seconds = time.time() - t0
-            guard()
-            StageMarker(stage=stage, scene_id=scene_id, scene_uri=scene_uri, fingerprint=fp,
-                        params=params, inputs={k: v.fingerprint for k, v in upstream.items()},
-                        version=paradrive.__version__, seconds=round(seconds, 3),
-                        finished_at=time.strftime("%Y-%m-%dT%H:%M:%S"), summary=summary,
-                        run=uuid.uuid4().hex, upstream_runs={k: v.run for k, v in upstream.items()},
-                        outputs=written_outputs(scene_dir, before, expand_outputs(spec.outputs, params),
-                                                ctx.hashes)).save(marker_path(scene_dir, stage))
-            if mirror:
-                _upload(mirror, before, marker_rel, guard, log, f"{stage}: %d file(s) uploaded to "
-                        f"{root.scene_location(scene_id)}, %d removed there")
-            release_outputs(config, stage, scene_dir, mirror, log)
-            log.info("%s: done in %.1f s", stage, seconds)
-            return StageResult(scene_id, stage, "done", seconds=seconds, fingerprint=fp,
-                               peak_rss_mb=peak_rss_mb(), summary=summary)
+            before = run.make_room(marker, size_of)
+            return run.execute(func, fp, upstream, before, t0, on_progress, guard)
         except (SceneError, ConfigError, StageNotImplemented, OSError, ValueError) as exc:
+            return run.failed(exc, t0, made)
+        except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
+            return run.crashed(exc, t0, made)
+
+
+@dataclass
+class _StageRun:
+    """One (scene, stage) that runs under its lock: the folder made ready for it, the stage
+    called, its outputs checked and its marker written (and, on a URL root, uploaded), or its
+    failure reported in one line."""
+
+    config: ResolvedConfig
+    stage: str
+    scene_uri: str
+    scene_id: str
+    root: DataRoot
+    mirror: SceneMirror | None
+    scene_dir: Path
+    log: logging.Logger
+    spec: StageSpec = field(init=False)
+    marker_rel: str = field(init=False)   # the marker's path in the scene folder
+
+    def __post_init__(self) -> None:
+        self.spec = self.config.registry().specs[self.stage]
+        self.marker_rel = marker_path(Path(), self.stage).as_posix()
+
+    def make_room(self, marker: StageMarker | None, size_of: Callable[[str], int | None]) -> dict:
+        """The scene folder ready for the stage: its marker gone (here and on the remote), what it
+        reads brought from a URL root, damaged outputs and stale temporaries removed. Returns the
+        files there before it runs."""
+        self.scene_dir.mkdir(parents=True, exist_ok=True)
+        marker_path(self.scene_dir, self.stage).unlink(missing_ok=True)
+        if self.mirror:
+            self.mirror.withdraw(self.marker_rel)
+            pulled = self.mirror.pull(self.spec.reads)
+            self.log.info("%s: %d file(s) brought from %s", self.stage, pulled,
+                          self.root.scene_location(self.scene_id))
+        # A stage may resume from what it finds (a fit's state.pt), never from a damaged
+        # output, nor, on a URL root, a cached copy of one the remote lost. Whether a stage
+        # is done is decided here only, never by the stage itself.
+        for rel in damaged_outputs(marker, size_of):
+            (self.scene_dir / rel).unlink(missing_ok=True)
+        remove_stale_temporaries(self.scene_dir)
+        return file_stats(self.scene_dir)
+
+    def execute(self, func: Callable[[StageContext], Any], fp: str, upstream: dict, before: dict,
+                t0: float, on_progress: ProgressSink | None, guard: Callable[[], None]) -> StageResult:
+        """Call the stage; check its declared outputs are there; write its marker (the lock
+        checked first) and upload on a URL root; let go of what retention releases."""
+        stage, scene_dir, params = self.stage, self.scene_dir, self.config.params[self.stage]
+        self.log.info("%s: started (fingerprint %s)", stage, fp)
+        ctx = StageContext(stage=stage, scene_uri=self.scene_uri, scene_id=self.scene_id,
+                           layout=SceneLayout(scene_dir), data_dir=self.root.local,
+                           params=typed_params(self.spec, params), log=self.log, upstream=upstream,
+                           build_params=self.config.params,
+                           progress=StageProgress(self.scene_id, stage, self.log, on_progress, guard=guard))
+        summary = summary_of(func(ctx))
+        missing = outputs_present(scene_dir, self.spec, params)
+        if missing:
+            raise StageNotImplemented(f"stage '{stage}' finished without writing its declared "
+                                      f"outputs: {', '.join(missing[:5])}")
+        seconds = time.time() - t0
+        guard()
+        StageMarker(stage=stage, scene_id=self.scene_id, scene_uri=self.scene_uri, fingerprint=fp,
+                    params=params, inputs={k: v.fingerprint for k, v in upstream.items()},
+                    version=paradrive.__version__, seconds=round(seconds, 3),
+                    finished_at=time.strftime("%Y-%m-%dT%H:%M:%S"), summary=summary,
+                    run=uuid.uuid4().hex, upstream_runs={k: v.run for k, v in upstream.items()},
+                    outputs=written_outputs(scene_dir, before, expand_outputs(self.spec.outputs, params),
+                                            ctx.hashes)).save(marker_path(scene_dir, stage))
+        if self.mirror:
+            _upload(self.mirror, before, self.marker_rel, guard, self.log, f"{stage}: %d file(s) "
+                    f"uploaded to {self.root.scene_location(self.scene_id)}, %d removed there")
+        release_outputs(self.config, stage, scene_dir, self.mirror, self.log)
+        self.log.info("%s: done in %.1f s", stage, seconds)
+        return StageResult(self.scene_id, stage, "done", seconds=seconds, fingerprint=fp,
+                           peak_rss_mb=peak_rss_mb(), summary=summary)
+
+    def failed(self, exc: Exception, t0: float, made: bool, message: str | None = None) -> StageResult:
+        """The failed result of bad input or a failed write: one line naming the scene (an
+        error that does not name it gets its type and the fix an OSError calls for)."""
+        if message is None:
             message = str(exc)
             if not isinstance(exc, ParaDriveError):
-                message = (f"scene {scene_id}: {stage} failed: {type(exc).__name__}: {exc}"
-                           f"{os_error_fix(exc, scene_dir)}")
-            message = redact(message, root.storage_options)
-            log.error("%s: failed: %s", stage, message)
-            _remove_if_empty(scene_dir, made)
-            return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
-                               peak_rss_mb=peak_rss_mb())
-        except Exception as exc:  # a bug or an unexpected library error: still never stop other scenes
-            extra = missing_extra(exc) if isinstance(exc, ModuleNotFoundError) else None
-            if extra is not None:  # an optional package this scene needs (pycolmap for video:)
-                message = f"scene {scene_id}: {stage}: {extra}"
-                log.error("%s: failed: %s", stage, message)
-                _remove_if_empty(scene_dir, made)
-                return StageResult(scene_id, stage, "failed", seconds=time.time() - t0, error=message,
-                                   peak_rss_mb=peak_rss_mb())
-            log.error("%s: crashed:\n%s", stage, traceback.format_exc())
-            _remove_if_empty(scene_dir, made)
-            return StageResult(scene_id, stage, "failed", seconds=time.time() - t0,
-                               error=redact(f"scene {scene_id}: {stage} crashed: {type(exc).__name__}: "
-                                            f"{exc} (traceback in {root}/logs/{scene_id}.log)",
-                                            root.storage_options),
-                               peak_rss_mb=peak_rss_mb())
+                message = (f"scene {self.scene_id}: {self.stage} failed: {type(exc).__name__}: {exc}"
+                           f"{os_error_fix(exc, self.scene_dir)}")
+            message = redact(message, self.root.storage_options)
+        self.log.error("%s: failed: %s", self.stage, message)
+        _remove_if_empty(self.scene_dir, made)
+        return StageResult(self.scene_id, self.stage, "failed", seconds=time.time() - t0,
+                           error=message, peak_rss_mb=peak_rss_mb())
+
+    def crashed(self, exc: Exception, t0: float, made: bool) -> StageResult:
+        """The failed result of anything else: an optional package the scene needs is named with
+        its extra; a bug's traceback goes to the scene's log."""
+        extra = missing_extra(exc) if isinstance(exc, ModuleNotFoundError) else None
+        if extra is not None:  # an optional package this scene needs (pycolmap for video:)
+            return self.failed(exc, t0, made, f"scene {self.scene_id}: {self.stage}: {extra}")
+        self.log.error("%s: crashed:\n%s", self.stage, traceback.format_exc())
+        _remove_if_empty(self.scene_dir, made)
+        return StageResult(self.scene_id, self.stage, "failed", seconds=time.time() - t0,
+                           error=redact(f"scene {self.scene_id}: {self.stage} crashed: "
+                                        f"{type(exc).__name__}: {exc} (traceback in "
+                                        f"{self.root}/logs/{self.scene_id}.log)", self.root.storage_options),
+                           peak_rss_mb=peak_rss_mb())

@@ -34,7 +34,7 @@ def fit_scene(scene: SceneLayout | str | Path, params: Params, *, log: logging.L
 
 def run(ctx: StageContext[Params]) -> FitRecord:
     from paradrive.gs.init import Holdout
-    from paradrive.stages.ingest import recorded_params
+    from paradrive.contracts.params import recorded_params
 
     threshold = recorded_params(ctx.layout, ctx.build_params.get("ingest")).moving_threshold_m
     record = fit_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress,

@@ -16,7 +16,6 @@ import importlib
 import os
 import shutil
 from pathlib import Path
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -26,8 +25,9 @@ from paradrive.io import temporary_name
 from paradrive.scene import Scene, load_scene, write_image, write_scene
 from paradrive.contracts.base import StageContext
 from paradrive.contracts.params import IngestParams as Params
+# read back by later stages and eval from contracts; named here too, as the ingest stage's own
+from paradrive.contracts.params import params_of, recorded_params, recorded_values  # noqa: F401
 from paradrive.contracts.layout import SceneLayout
-from paradrive.contracts.records import StageMarker
 from paradrive.uri import parse_uri
 
 READERS = {
@@ -39,33 +39,6 @@ READERS = {
 }
 # What ingest owns inside a scene folder; later stages' outputs are left alone.
 INGEST_ENTRIES = ("scene.json", "images", "masks", "lidar")
-
-
-def params_of(values: Mapping[str, Any] | None = None,
-              defaults: Mapping[str, Any] | None = None) -> Params:
-    """Ingest parameters from a recorded mapping (a scene's ingest marker). What an older
-    marker lacks comes from ``defaults``: the build's own ingest parameters (its profile and
-    ``--set``), or where none are given the stage file's defaults (read once, not per call);
-    keys the stage no longer has are left out."""
-    if defaults is None:
-        from paradrive.pipeline.specs import cached_registry
-
-        defaults = cached_registry().specs["ingest"].defaults()
-    known = {k: v for k, v in (values or {}).items() if k in Params.model_fields}
-    return Params.of("ingest", {**defaults, **known})
-
-
-def recorded_values(layout: SceneLayout) -> dict[str, Any] | None:
-    """The parameter mapping the scene at ``layout`` was ingested with (its stage marker), or
-    None where it has no readable marker (a scene folder made without the runner)."""
-    marker = StageMarker.read(layout.marker("ingest"))
-    return marker.params if marker is not None else None
-
-
-def recorded_params(layout: SceneLayout, defaults: Mapping[str, Any] | None = None) -> Params:
-    """The parameters the scene at ``layout`` was ingested with, typed; ``defaults`` (the
-    build's ingest parameters) where its marker lacks one or it has none (:func:`params_of`)."""
-    return params_of(recorded_values(layout), defaults)
 
 
 class IngestSummary(dict[str, Any]):

@@ -33,7 +33,7 @@ from paradrive.data import PairDataset, epoch_order, per_rank, to_unit_range
 from paradrive.devices import resolve_device
 from paradrive.io import UnsafeFileError, atomic_path, load_tensors, stop_point, write_text
 from paradrive.errors import ConfigError
-from paradrive.pipeline.specs import Param, coerce, default_stages_dir
+from paradrive.contracts.specs import Param, coerce, default_stages_dir
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.distributed import all_agree, barrier, device_for, join, mean_over_ranks
 from paradrive.train.flow import Generators, euler_sample, flow_matching_loss
@@ -48,7 +48,7 @@ CHECKPOINT_FORMAT = "paradrive-train/2"
 # -- configs -------------------------------------------------------------------------------------
 # One config system with the stages: every setting of a base file is a ``Param`` ({default, doc}),
 # an ``extends:`` file is a profile of plain values, and every override is type-checked against
-# the setting's default as stage parameters are (paradrive.pipeline.specs).
+# the setting's default as stage parameters are (paradrive.contracts.specs).
 
 def _params(tree: Mapping[str, Any], where: str) -> dict:
     """{key: {default, doc}} leaves (nested in sections) -> {key: Param}."""

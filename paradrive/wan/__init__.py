@@ -1,2 +1,4 @@
-"""Wan2.1 on a ParaDrive build: VAE latents and the text embedding as build outputs, the
-ReCamDriving model on diffusers' classes, and hand-offs to the trainers users run."""
+"""Wan2.1's model pieces on a ParaDrive build: the VAE and the text encoder, VAE latents and the
+text embedding as build outputs (``encode``), and the ReCamDriving model on diffusers' classes
+(``recam``). Training on them, conversion for other trainers and generation are applications:
+:mod:`paradrive.train`."""

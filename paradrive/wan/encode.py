@@ -1,4 +1,4 @@
-"""Encoding a published build into its latent cache (:mod:`paradrive.wan.latents`): what the
+"""Encoding a published build into its latent cache (:mod:`paradrive.latents`): what the
 ``encode`` stage and ``paradrive encode`` both run.
 
 Every pair's target, source and condition videos are decoded (frames 0..F-1 at the encode size,
@@ -33,7 +33,7 @@ from paradrive.io import stop_point
 from paradrive.pairs import build_file, read_index, read_pairs
 from paradrive.contracts.records import IndexRecord
 from paradrive.video import each_frame
-from paradrive.wan import latents as cache
+from paradrive import latents as cache
 from paradrive.wan.text import EMBEDDING_FORM, empty_prompt_embedding, text_encoder_folders
 from paradrive.wan.vae import (LATENT_CONVENTION, TEMPORAL_FACTOR, encode_video, folder_checksum, latent_frames,
                                latent_shape, load_vae, vae_folder)

@@ -62,7 +62,7 @@ def _import(name: str) -> Kernels | NativeUnavailable:
         return NativeUnavailable(f"the {name} kernels do not run on this CPU "
                                  f"({torch.backends.cpu.get_cpu_capability()})")
     try:
-        return importlib.import_module(f"paradrive.gs._kernels_{name}")
+        return importlib.import_module(f"paradrive.kernels._kernels_{name}")
     except ImportError as exc:
         return NativeUnavailable(f"the {name} kernels were not built at install ({exc}); {FIX}")
 

@@ -40,7 +40,7 @@ local cluster started here, the driver's checkout (put on the workers' ``PYTHONP
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 import os
 import socket
 import time
@@ -51,17 +51,12 @@ from pathlib import Path
 from typing import Any
 
 from paradrive.errors import ConfigError
-from paradrive.pipeline.executors import (
-    ResultCallback, SceneTask, StartCallback, blocked_result,
-)
-from paradrive.pipeline.locks import LockOptions
-from paradrive.pipeline.progress import ProgressSink, Snapshot
-from paradrive.pipeline.runner import StageResult, run_scene_stage
-from paradrive.pipeline.specs import ResolvedConfig, Resources
+from paradrive.pipeline.executors.base import Completion, Executor, RunOptions, SceneTask, run_stage
+from paradrive.pipeline.progress import Snapshot
+from paradrive.pipeline.runner import StageResult
+from paradrive.contracts.specs import ResolvedConfig, Resources
 from paradrive.storage import DataRoot
 from paradrive.uri import parse_uri
-
-log = logging.getLogger("paradrive.ray")
 
 GPU_POLICIES = ("auto", "require", "cpu")
 GIB = 1024 ** 3
@@ -123,13 +118,12 @@ def task_resources(stage: str, declared: Resources, capacity: Capacity,
 
 
 def _run_task(config: ResolvedConfig, stage: str, scene_uri: str, data_dir: DataRoot,
-              force: bool, locks: LockOptions | None = None,
-              board: Any = None, verify_outputs: bool = False) -> tuple[StageResult, dict]:
-    """The body of one Ray task (runs on a worker); its progress goes to ``board``."""
+              options: RunOptions, board: Any = None) -> tuple[StageResult, dict]:
+    """The body of one Ray task (runs on a worker; ``options`` without the driver's callbacks);
+    its progress goes to ``board``."""
     started = time.time()
     relay = _Relay(board) if board is not None else None
-    result = run_scene_stage(config, stage, scene_uri, data_dir, force=force, locks=locks,
-                             on_progress=relay, verify_outputs=verify_outputs)
+    result = run_stage(config, stage, scene_uri, data_dir, dataclasses.replace(options, on_progress=relay))
     return result, {"host": socket.gethostname(), "pid": os.getpid(), "started_at": started}
 
 
@@ -174,7 +168,7 @@ def _checkout_root() -> str:
     return str(Path(paradrive.__file__).resolve().parents[1])
 
 
-class RayExecutor:
+class RayExecutor(Executor):
     name = "ray"
 
     def __init__(self, address: str | None = None, *, gpu_policy: str = "auto",
@@ -183,6 +177,7 @@ class RayExecutor:
                  init_options: dict | None = None):
         if gpu_policy not in GPU_POLICIES:
             raise ConfigError(f"--gpu-policy {gpu_policy!r}: use one of {', '.join(GPU_POLICIES)}")
+        super().__init__()
         self.address = address
         self.gpu_policy = gpu_policy
         self.max_in_flight = max_in_flight
@@ -237,23 +232,16 @@ class RayExecutor:
             for w in warnings:
                 if w not in self.warnings:
                     self.warnings.append(w)
-                    log.warning(w)
+                    self.log.warning(w)
         return options
 
     # -- running ------------------------------------------------------------------------------
 
-    def run(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot, *,
-            force: bool = False, on_start: StartCallback | None = None,
-            on_result: ResultCallback | None = None,
-            locks: LockOptions | None = None,
-            on_progress: ProgressSink | None = None,
-            verify_outputs: bool = False) -> list[StageResult]:
-        if not tasks:
-            return []
+    def run_tasks(self, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot,
+                  options: RunOptions, done: Completion) -> None:
         ray, started_here = self._connect()
         try:
-            return self._run(ray, config, tasks, DataRoot.of(data_dir), force, on_start, on_result,
-                             locks, on_progress, verify_outputs)
+            self._run(ray, config, tasks, data_dir, options, done)
         finally:
             if started_here:
                 ray.shutdown()
@@ -280,25 +268,26 @@ class RayExecutor:
         result.summary["worker"] = {**where, "num_gpus": options["num_gpus"]}
         return result
 
-    def _run(self, ray, config, tasks, data_dir, force, on_start, on_result,
-             locks, on_progress=None, verify_outputs=False) -> list[StageResult]:
+    def _run(self, ray, config: ResolvedConfig, tasks: list[SceneTask], data_dir: DataRoot,
+             options: RunOptions, done: Completion) -> None:
         capacity = Capacity.of_nodes(ray.nodes())
         all_stages = sorted({s for t in tasks for s in t.stages})
         total = ray.cluster_resources()  # the whole cluster: enough queued to keep every node busy
         window = self.max_in_flight or max(2, int(2 * (total.get("CPU", 0) + total.get("GPU", 0))))
-        board = ray.remote(num_cpus=0)(ProgressBoard).remote() if on_progress else None
+        board = ray.remote(num_cpus=0)(ProgressBoard).remote() if options.on_progress else None
         dispatch = _Dispatch(self, ray, self.plan(config, all_stages, capacity), ray.put(config),
-                             (data_dir, force, locks, board, verify_outputs), on_start, on_result)
-        queue = deque(t for t in tasks if t.stages)
+                             (data_dir, options.for_worker(), board),
+                             options, done)
+        queue = deque(tasks)
         try:
             while queue or dispatch.in_flight:
                 while queue and len(dispatch.in_flight) < window:
                     dispatch.submit(queue.popleft(), 0)
                 ready, _ = ray.wait(list(dispatch.in_flight), num_returns=1,
                                     timeout=RELAY_EVERY_S if board else None)
-                if board is not None and on_progress is not None:
+                if board is not None and options.on_progress is not None:
                     for snap in ray.get(board.take.remote()):
-                        on_progress(snap)
+                        options.on_progress(snap)
                 for ref in ready:
                     dispatch.collect(ref)
         except BaseException:
@@ -306,7 +295,6 @@ class RayExecutor:
             # a shared cluster does not go on working for nobody. Atomic writes keep outputs whole.
             dispatch.cancel_all()
             raise
-        return dispatch.results
 
 
 def _run_build_task(call: Callable[[], StageResult]) -> tuple[StageResult, dict]:
@@ -337,25 +325,19 @@ class _Dispatch:
     """The tasks a Ray run has in flight: submit a scene's next stage, collect a finished one
     (retrying a lost task, blocking the stages after a failed one)."""
 
-    def __init__(self, executor: RayExecutor, ray, options: dict, config_ref, args: tuple,
-                 on_start, on_result):
-        self.executor, self.ray, self.options, self.config_ref = executor, ray, options, config_ref
-        self.args, self.on_start, self.on_result = args, on_start, on_result
+    def __init__(self, executor: RayExecutor, ray, task_options: dict, config_ref, args: tuple,
+                 options: RunOptions, done: Completion):
+        self.executor, self.ray, self.task_options, self.config_ref = executor, ray, task_options, config_ref
+        self.args, self.on_start, self.done = args, options.on_start, done
         self.remote = ray.remote(_run_task)
-        self.results: list[StageResult] = []
         self.in_flight: dict[Any, tuple[SceneTask, int, int]] = {}  # ref -> (task, stage index, try)
-
-    def emit(self, result: StageResult) -> None:
-        self.results.append(result)
-        if self.on_result:
-            self.on_result(result)
 
     def submit(self, task: SceneTask, index: int, attempt: int = 1) -> None:
         stage = task.stages[index]
         if self.on_start:
             self.on_start(task.scene_uri, stage)
         # Ray does not retry by itself: the driver does, so every try is seen and counted.
-        ref = self.remote.options(**self.options[stage], max_retries=0, retry_exceptions=False,
+        ref = self.remote.options(**self.task_options[stage], max_retries=0, retry_exceptions=False,
                                   name=f"{stage}:{_scene_id(task.scene_uri)}").remote(
             self.config_ref, stage, task.scene_uri, *self.args)
         self.in_flight[ref] = (task, index, attempt)
@@ -369,17 +351,14 @@ class _Dispatch:
             self.executor.placements[(result.scene_id, stage)] = where
         except Exception as exc:  # the task was lost: worker died, node gone, ...
             if attempt <= retries:
-                log.warning("%s of %s lost (%s: %s); try %d of %d", stage,
-                            _scene_id(task.scene_uri), type(exc).__name__,
-                            (str(exc).strip().splitlines() or [""])[0], attempt + 1, retries + 1)
+                self.executor.log.warning("%s of %s lost (%s: %s); try %d of %d", stage,
+                                          _scene_id(task.scene_uri), type(exc).__name__,
+                                          (str(exc).strip().splitlines() or [""])[0], attempt + 1,
+                                          retries + 1)
                 self.submit(task, index, attempt + 1)
                 return
             result = lost_result(task.scene_uri, stage, exc, retries)
-        self.emit(result)
-        if result.status == "failed":
-            for later in task.stages[index + 1:]:
-                self.emit(blocked_result(result, later))
-        elif index + 1 < len(task.stages):
+        if self.done.stage_done(task, index, result):
             self.submit(task, index + 1)  # a started scene goes before a new one
 
     def cancel_all(self) -> None:

@@ -39,7 +39,7 @@ from paradrive.io import load_tensors
 from paradrive.train.flow import Generators, euler_sample, flow_matching_loss
 from paradrive.train.trainer import (CHECKPOINT_KEYS, DamagedCheckpoint, Trainer, collate, frames_on, load_config,
                                      read_checkpoint)
-from paradrive.wan.latents import has_latents, latents_index_path, read_latents_index
+from paradrive.latents import has_latents, latents_index_path, read_latents_index
 from paradrive.wan.recam import (ReCamDrivingWan, checkpoint_parameter_names, config_fingerprint, load_recammaster,
                                  load_trained, load_transformer, make_tiny_transformer, trainable_parameters)
 

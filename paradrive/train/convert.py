@@ -50,7 +50,7 @@ from paradrive.data import PairDataset
 from paradrive.io import atomic_path, path_inside, write_json, write_text
 from paradrive.pairs import build_file
 from paradrive.train.trainer import collate, frames_on
-from paradrive.wan.train import relative_camera, to_channels_first
+from paradrive.train.wan import relative_camera, to_channels_first
 
 FORMATS = ("recammaster", "diffsynth", "pixels")
 SOURCE_CAMERA, TARGET_CAMERA = "cam01", "cam02"
@@ -290,7 +290,7 @@ def _recammaster_encoders(vae: Path | None, text_encoder: Path | None, device: s
     """The VAE and the empty prompt's embedding ReCamMaster's cached tensors need, on ``device``
     in the encode stage's compute dtype; ValueError without ``vae``."""
     from paradrive.devices import resolve_device
-    from paradrive.pipeline.specs import StageRegistry
+    from paradrive.contracts.specs import StageRegistry
     from paradrive.wan.text import empty_prompt_embedding
     from paradrive.wan.vae import load_vae
 

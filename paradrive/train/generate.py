@@ -24,7 +24,7 @@ from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import path_inside
 from paradrive.train.trainer import read_checkpoint, torch_threads, write_video
 from paradrive.wan.recam import checkpoint_parameter_names, load_trained
-from paradrive.wan.train import (CHECKPOINT_FORMAT, WanRunner, base_record, build_wan_model, check_base,
+from paradrive.train.wan import (CHECKPOINT_FORMAT, WanRunner, base_record, build_wan_model, check_base,
                                  generated_frames, open_wan_dataset)
 
 __all__ = ["Generator", "GenerateReport", "checkpoint_file", "load_generator", "generate"]

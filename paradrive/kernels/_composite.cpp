@@ -29,7 +29,7 @@
 // last bits.
 //
 // Built at install (setup.py) once per instruction set, with _bindings.cpp, into the modules
-// _native.py chooses from.
+// paradrive/kernels/__init__.py chooses from.
 
 #include <atomic>
 #include <chrono>

@@ -1,0 +1,49 @@
+"""What the commands share: the two consoles, the one-line error, the defaults of the options
+several commands take."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NoReturn
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from paradrive.errors import EXIT_USAGE
+
+# Made at import: the build's progress and result lines, errors and notes, and what build,
+# stages, export and view report. A command whose tables follow the terminal's width when it
+# runs (inspect, status, eval, plan) makes its own consoles then: a Console takes COLUMNS when
+# it is made.
+console = Console(stderr=True)
+out = Console()
+
+DEFAULT_DATA = Path("data")
+DEFAULT_MANIFESTS = Path("manifests")
+DEFAULT_SCENE = "synthetic:demo?seed=7"
+
+
+def error_line(message: str) -> str:
+    """The markup of an error line; ``message`` is printed verbatim."""
+    return f"[bold red]error:[/] {escape(message)}"
+
+
+def fail(message: str, code: int = EXIT_USAGE, *, err: Console | None = None,
+         soft_wrap: bool = True) -> NoReturn:
+    """Print ``error: message`` on stderr (``err``, default :data:`console`; one line whatever
+    the width, unless ``soft_wrap`` is False) and end the command with exit code ``code``."""
+    (err or console).print(error_line(message), soft_wrap=soft_wrap)
+    raise typer.Exit(code)
+
+
+def note(message: str) -> None:
+    """A ``note:`` line on stderr: what a user should know of how the command went."""
+    console.print(f"[yellow]note:[/] {escape(message)}", soft_wrap=True)
+
+
+def split_csv(value: str | None) -> list[str] | None:
+    """``"a, b,"`` -> ``["a", "b"]``; None for an empty or absent option."""
+    if not value:
+        return None
+    return [v.strip() for v in value.split(",") if v.strip()]
