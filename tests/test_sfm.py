@@ -92,6 +92,24 @@ def test_the_road_is_the_lowest_dense_layer_in_the_ego_lane():
     assert plane.inliers < 150  # the road markings only, none of the layers above or below
 
 
+def test_a_bank_or_a_row_of_roofs_holding_more_points_is_not_the_road():
+    """Sparse lane markings beside (a) an embankment rising 15 degrees sideways, a plane within
+    the tilt a dashcam's pitch allows that holds twice the road's points, and (b) a level row of
+    car roofs 1.2 m up, beside the lane, denser than the road: the road is still found."""
+    street = SyntheticStreet(name="demo", seed=7, frames=30, width=160, height=96)
+    rng = np.random.default_rng(5)
+    road = np.c_[rng.uniform(0, 40, 150), rng.choice([-1.75, 1.75], 150), np.zeros(150)]
+    y = rng.uniform(2.5, 12, 300)
+    bank = np.c_[rng.uniform(0, 40, 300), y, (y - 2.0) * np.tan(np.deg2rad(15))]
+    roofs = np.c_[rng.uniform(0, 40, 400), rng.choice([-1, 1], 400) * rng.uniform(3, 5, 400),
+                  np.full(400, 1.2)]
+    _, s = similarity(0)
+    for beside in (bank, roofs):
+        points = np.concatenate([road, beside])
+        plane = sfm.fit_road_plane(model_of(street.c2w("front"), points + rng.normal(0, 0.02, points.shape)))
+        assert plane.height / s == pytest.approx(1.6, rel=0.02)
+
+
 def test_a_camera_that_sees_no_road_has_no_plane():
     street = SyntheticStreet(name="demo", seed=7, frames=10, width=160, height=96)
     rng = np.random.default_rng(2)

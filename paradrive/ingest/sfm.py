@@ -261,13 +261,16 @@ def _camera_local(rec: Reconstruction) -> np.ndarray:
 def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000,
                    tolerance: float = 0.05, max_tilt_deg: float = 20.0, lane: float = 1.4,
                    min_views: int = 3, scatter: float = 0.08, min_share: float = 0.2,
-                   min_points: int = 12) -> RoadPlane:
+                   min_points: int = 12, max_grade_deg: float = 8.0) -> RoadPlane:
     """The road under the cameras: its normal, and the camera's height above it.
 
     The normal: RANSAC over the points below and ahead of their camera, among planes within
     ``max_tilt_deg`` of the cameras' mean up axis (a dashcam is mounted roughly level, and this
-    keeps facades out), inliers within ``tolerance`` of the points' median depth below the camera,
-    refined by least squares.
+    keeps facades out) and within ``max_grade_deg`` of level along the path and sideways (an
+    embankment beside a plain road can hold more points), inliers within ``tolerance`` of the
+    points' median depth below the camera, refined by least squares. Where that plane is a
+    higher surface beside the lane (a row of car roofs), the lowest layer under the path gives
+    the rough height that picks the lane's points.
 
     The height, from the points of the ego lane only (seen in ``min_views`` frames or more, as
     short tracks triangulate poorly):
@@ -299,15 +302,23 @@ def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000
     cams = rec.c2w[rec.point_frame[below]][:, :3, 3]
     down = rec.c2w[rec.registered][:, :3, 1].mean(axis=0)
     down /= np.linalg.norm(down)
+    centres = rec.c2w[rec.registered][:, :3, 3]
     normal, offset = _level_plane(pts, float(np.median((pts - cams) @ down)) * tolerance, down,
-                                  np.cos(np.deg2rad(max_tilt_deg)), seed, iterations, min_points)
+                                  np.cos(np.deg2rad(max_tilt_deg)), seed, iterations, min_points,
+                                  along=_level_axes(rec, centres, max_grade_deg))
     if normal @ down > 0:  # point it up, towards the cameras
         normal, offset = -normal, -offset
-    centres = rec.c2w[rec.registered][:, :3, 3]
     rough = float(np.median(centres @ normal + offset))
     depth, sideways = _depth_below_overhead_camera(pts, centres, normal)
-    near = ((sideways < lane * rough) & (rec.point_views[below] >= min_views)
-            & (depth > 0.5 * rough))
+    seen = rec.point_views[below] >= min_views
+    near = (sideways < lane * rough) & seen & (depth > 0.5 * rough)
+    under = np.isfinite(sideways) & seen & (depth > 0)
+    if near.sum() < min_points and under.sum() >= min_points:
+        # the level plane with the most points can be a higher surface (kerbs, car roofs) where
+        # the road itself shows few features; the lowest layer under the path is the road then
+        layer = _lowest_layer(depth[under], scatter * float(np.median(depth[under])), min_share)
+        rough = float(depth[under][layer].mean())
+        near = (sideways < lane * rough) & seen & (depth > 0.5 * rough)
     if near.sum() < min_points:
         raise SfmError(f"only {int(near.sum())} well-seen points lie on the road near the camera, "
                        f"{min_points} are needed to measure its height")
@@ -356,10 +367,28 @@ def _lowest_layer(depth: np.ndarray, bandwidth: float, min_share: float) -> np.n
     return dense[0] if dense else max(layers, key=lambda layer: int(layer.sum()))
 
 
+def _level_axes(rec: Reconstruction, centres: np.ndarray,
+                max_grade_deg: float) -> list[tuple[np.ndarray, float]]:
+    """Directions the road runs along, each with the sine of the largest angle the road's plane
+    may make with it: the path from the first camera to the last (the vehicle drives on the road;
+    left out where the path comes back near its start) and the cameras' mean sideways axis (a
+    dashcam is mounted with little roll), both within ``max_grade_deg``."""
+    sine = float(np.sin(np.deg2rad(max_grade_deg)))
+    right = rec.c2w[rec.registered][:, :3, 0].mean(axis=0)
+    axes = [(right / np.linalg.norm(right), sine)]
+    travel = centres[-1] - centres[0]
+    if np.linalg.norm(travel) >= 0.5 * np.linalg.norm(np.diff(centres, axis=0), axis=1).sum():
+        axes.append((travel / np.linalg.norm(travel), sine))
+    return axes
+
+
 def _level_plane(pts: np.ndarray, threshold: float, down: np.ndarray, min_cos: float, seed: int,
-                 iterations: int, min_points: int) -> tuple[np.ndarray, float]:
+                 iterations: int, min_points: int, *,
+                 along: list[tuple[np.ndarray, float]] | None = None) -> tuple[np.ndarray, float]:
     """RANSAC plane with the most inliers among those whose normal is within acos(min_cos) of
-    ``down``, refined by least squares on its inliers."""
+    ``down`` and makes at most each given angle (as its sine) with each direction of ``along``
+    (a kerb and the road beside it, or a row of parked cars, can otherwise hold more points than
+    a plain road), refined by least squares on its inliers."""
     rng = np.random.default_rng(seed)
     best = np.zeros(len(pts), dtype=bool)
     for _ in range(iterations):
@@ -367,6 +396,8 @@ def _level_plane(pts: np.ndarray, threshold: float, down: np.ndarray, min_cos: f
         normal = np.cross(b - a, c - a)
         norm = np.linalg.norm(normal)
         if norm < 1e-12 or abs(normal @ down) < min_cos * norm:
+            continue
+        if any(abs(normal @ axis) > sine * norm for axis, sine in along or ()):
             continue
         inliers = np.abs((pts - a) @ (normal / norm)) < abs(threshold)
         if inliers.sum() > best.sum():
