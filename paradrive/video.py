@@ -7,12 +7,20 @@ Two codecs are supported:
 
 Frames are stamped with ``pts = i`` in a ``1/fps`` time base, so decoding yields them in order
 with no frame dropped or duplicated. Every file is written under a temporary name and renamed.
+
+The same frames and settings give the same bytes at a given encoder thread count: on a CPU with
+AVX-512, x264's AVX-512 functions made the output depend on what the process's heap held before
+(the same frames encoded after other work, or under ``MALLOC_PERTURB_``, came out different), so
+x264 is held to its AVX2 functions there, which give the bytes the AVX-512 ones give on fresh
+memory.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import re
 from collections.abc import Callable, Iterable, Sequence
 from fractions import Fraction
 from typing import Any
@@ -37,6 +45,17 @@ def container_suffix(codec: str) -> str:
     if codec not in CODECS:
         raise ValueError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}")
     return CODECS[codec][0]
+
+
+@functools.cache
+def x264_params() -> dict[str, str]:
+    """libx264's extra options on this CPU: ``asm=AVX2`` where the CPU has AVX-512 (see the
+    module's docstring), none elsewhere."""
+    try:
+        cpu = Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return {}
+    return {"x264-params": "asm=AVX2"} if re.search(r"\bavx512f\b", cpu) else {}
 
 
 def _rate(fps: float) -> Fraction:
@@ -90,7 +109,8 @@ def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: flo
                     if gop:
                         stream.codec_context.gop_size = int(gop)
                     if codec == "libx264":
-                        stream.options = {"crf": str(int(crf)), "preset": str(preset)}
+                        stream.options = {"crf": str(int(crf)), "preset": str(preset),
+                                          **x264_params()}
                         if gop:
                             stream.options = {**stream.options, "keyint_min": str(int(gop))}
                     else:

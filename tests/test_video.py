@@ -52,6 +52,33 @@ def test_encoding_is_deterministic_and_checksummed(tmp_path):
     assert a["bytes"] == (tmp_path / "a.mp4").stat().st_size
 
 
+ENCODE_ONE = """
+import sys, numpy as np
+from paradrive.video import encode_video
+rng = np.random.default_rng(0)
+base = rng.integers(0, 255, (232, 360, 3), dtype=np.uint8)
+frames = [np.ascontiguousarray(base[i:i + 192, i:i + 320]) for i in range(20)]
+print(encode_video(sys.argv[1], frames, 10.0, threads=1)["sha256"])
+"""
+
+
+def test_the_bytes_do_not_depend_on_what_the_heap_held(tmp_path):
+    """The same frames give the same bytes whatever the process's memory held before: glibc fills
+    freed and new blocks with another byte under each MALLOC_PERTURB_ (on a CPU with AVX-512,
+    x264's own AVX-512 functions gave another file under 85 than under 0 and 170)."""
+    import os
+    import subprocess
+    import sys
+
+    digests = set()
+    for k, perturb in enumerate(("0", "85", "170")):
+        env = {**os.environ, "MALLOC_PERTURB_": perturb}
+        done = subprocess.run([sys.executable, "-c", ENCODE_ONE, str(tmp_path / f"{k}.mp4")],
+                              env=env, capture_output=True, text=True, check=True)
+        digests.add(done.stdout.split()[-1])
+    assert len(digests) == 1, digests
+
+
 def test_odd_size_h264_is_refused_and_leaves_no_file(tmp_path):
     frames = [np.zeros((31, 40, 3), np.uint8)] * 3
     with pytest.raises(ValueError, match="even"):

@@ -303,9 +303,12 @@ def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000
     down = rec.c2w[rec.registered][:, :3, 1].mean(axis=0)
     down /= np.linalg.norm(down)
     centres = rec.c2w[rec.registered][:, :3, 3]
-    normal, offset = _level_plane(pts, float(np.median((pts - cams) @ down)) * tolerance, down,
-                                  np.cos(np.deg2rad(max_tilt_deg)), seed, iterations, min_points,
-                                  along=_level_axes(rec, centres, max_grade_deg))
+    threshold, min_cos = float(np.median((pts - cams) @ down)) * tolerance, np.cos(np.deg2rad(max_tilt_deg))
+    try:
+        normal, offset = _level_plane(pts, threshold, down, min_cos, seed, iterations, min_points,
+                                      along=_level_axes(rec, centres, max_grade_deg))
+    except SfmError:  # a path that bends or pitches over its length: the tilt bound alone
+        normal, offset = _level_plane(pts, threshold, down, min_cos, seed, iterations, min_points)
     if normal @ down > 0:  # point it up, towards the cameras
         normal, offset = -normal, -offset
     rough = float(np.median(centres @ normal + offset))
