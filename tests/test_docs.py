@@ -151,3 +151,29 @@ def test_licence_and_citation_are_there_and_agree_with_the_package():
     titles = [ref["title"] for ref in citation["references"]]
     assert any(title.startswith("ReCamDriving") for title in titles)
     assert all(ref.get("authors") and ref.get("type") for ref in citation["references"])
+
+
+# A measured figure: a number with its unit (speed ratios, per cent, seconds, minutes, dB, sizes);
+# sizes such as 320×192 and goals (after "≤" or "within") are not measurements.
+FIGURE = re.compile(r"(?<![\w.×/≤])(?<!≤ )(?<!within )([+−]?\d+(?:\.\d+)?) ?(×(?!\d)|%|s\b|minutes|dB|GB|MB|kB)")
+
+
+def readme_figures(text: str) -> list[str]:
+    return [m.group(0) for m in FIGURE.finditer(text)]
+
+
+def test_the_readme_s_figures_are_those_of_the_performance_page():
+    """Every figure the README quotes is written the same way in docs/performance.md (the current
+    figures), so the front page cannot drift from the measurements."""
+    current = (ROOT / "docs" / "performance.md").read_text(encoding="utf-8")
+    figures = readme_figures((ROOT / "README.md").read_text(encoding="utf-8"))
+    assert len(figures) >= 8
+    missing = [f for f in figures
+               if not re.search(r"(?<![\d.])" + re.escape(f) + r"(?![\d])", current)]
+    assert not missing, f"README figures not in docs/performance.md: {missing}"
+
+
+def test_the_figure_check_sees_a_stale_figure():
+    assert readme_figures("about 9 minutes, 2.97× at 320×192, ≤ 3 %, within 1.5 dB, +0.3 % (0.6 %)") == [
+        "9 minutes", "2.97×", "+0.3 %", "0.6 %"]
+    assert not re.search(r"(?<![\d.])" + re.escape("9 minutes") + r"(?![\d])", "7.9 minutes")
