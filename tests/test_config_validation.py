@@ -220,3 +220,14 @@ def test_every_training_setting_declares_what_it_may_be_and_is_held_to_it():
         assert undeclared == [], path.name
     with pytest.raises(ConfigError, match=r"train.lr = -1.0 is out of range \(allowed: more than 0\)"):
         load_config("smoke", {"train": {"lr": -1}})
+
+
+def test_exponent_numbers_without_a_dot_are_floats_in_every_set():
+    """YAML 1.1 reads 1e-3 as a string: a learning rate given so reached the trainer as text."""
+    from paradrive.train.trainer import parse_set
+
+    assert parse_overrides(["fit.lr=3E-4", "render.offsets_m=[1e0, -2]"]) == {
+        "fit": {"lr": 3e-4}, "render": {"offsets_m": [1.0, -2]}}
+    assert parse_set(["train.lr=1e30", "train.name='1e3'", "train.n=12"]) == {
+        "train": {"lr": 1e30, "name": "1e3", "n": 12}}
+    assert isinstance(parse_set(["train.n=12"])["train"]["n"], int)

@@ -278,6 +278,27 @@ def test_the_encode_stage_runs_only_when_asked(smoke_build, wan_folder, copy_tre
     assert cache.read_latents_index(root / "manifests" / "smoke")["totals"]["pairs"] > 0
 
 
+def test_a_republish_between_reading_the_index_and_the_rows_changes_nothing(
+        smoke_build, wan_folder, copy_tree, monkeypatch):
+    """The encode reads its rows from the version whose index it read: a publish that switches
+    index.json in between (here to a version whose shards are not there yet) is not seen."""
+    import paradrive.wan.encode as encode
+
+    build = copy_tree(smoke_build["build_dir"], "republished")
+    real = encode.read_index
+
+    def read_then_republish(build_dir):
+        index = real(build_dir)
+        doc = json.loads((build / "index.json").read_text())
+        (build / "index.json").write_text(json.dumps({**doc, "version": "v-000999"}))
+        return index
+
+    monkeypatch.setattr(encode, "read_index", read_then_republish)
+    small = {**SETTINGS, "num_frames": 1, "size": (8, 16), "shard_pairs": 72, "batch": 8}
+    doc = encode_build(build, EncodeSettings(vae=str(wan_folder), **small))
+    assert doc["pairs"]["version"] == real(smoke_build["build_dir"]).version != "v-000999"
+
+
 def test_encode_on_a_device_computes_what_it_computes_on_the_cpu(smoke_build, wan_folder, copy_tree):
     """On the stand-in device (tests/simulated_device.py) a CPU tensor meeting a device tensor
     fails as on CUDA; the encode (decode, VAE, text encoder) runs there and gives the CPU's latents."""

@@ -523,6 +523,23 @@ def typed_params(spec: StageSpec, values: dict[str, Any]) -> Any:
     return dict(values)
 
 
+class _ValueLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading ``1e-3`` and ``3E8`` as floats: YAML 1.1 takes a float only
+    with a dot, so they would stay strings (YAML 1.2 reads them as numbers)."""
+
+
+_ValueLoader.add_implicit_resolver("tag:yaml.org,2002:float",
+                                   re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"),
+                                   list("-+0123456789."))
+
+
+def yaml_value(raw: str) -> Any:
+    """A ``--set`` value read as YAML (safe: a tag such as ``!!python/object`` raises), with
+    exponent numbers written without a dot read as floats. Raises yaml.YAMLError where ``raw``
+    is not plain YAML."""
+    return yaml.load(raw, Loader=_ValueLoader)  # a SafeLoader: no tag constructs an object
+
+
 def parse_overrides(items: list[str] | None) -> dict[str, dict[str, Any]]:
     """``["fit.iterations=200", "render.offsets=[1,-1]"]`` -> {"fit": {"iterations": 200}, ...}."""
     out: dict[str, dict[str, Any]] = {}
@@ -532,7 +549,7 @@ def parse_overrides(items: list[str] | None) -> dict[str, dict[str, Any]]:
         if not sep or not dot or not stage or not name:
             raise ConfigError(f"override {item!r} must read 'stage.param=value', e.g. fit.iterations=200")
         try:
-            value = yaml.safe_load(raw)
+            value = yaml_value(raw)
         except yaml.YAMLError as exc:
             problem = getattr(exc, "problem", None) or "unreadable"
             raise ConfigError(f"--set {item!r}: the value is not valid YAML ({problem}); write it "

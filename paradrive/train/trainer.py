@@ -33,7 +33,7 @@ from paradrive.data import PairDataset, epoch_order, per_rank, to_unit_range
 from paradrive.devices import resolve_device
 from paradrive.io import UnsafeFileError, atomic_path, load_tensors, stop_point, write_text
 from paradrive.errors import ConfigError
-from paradrive.contracts.specs import Param, coerce, default_stages_dir
+from paradrive.contracts.specs import Param, coerce, default_stages_dir, yaml_value
 from paradrive.train.autoencoder import VideoEncoder, make_autoencoder
 from paradrive.train.distributed import all_agree, barrier, device_for, join, mean_over_ranks
 from paradrive.train.flow import Generators, euler_sample, flow_matching_loss
@@ -123,7 +123,7 @@ def parse_set(items: Sequence[str]) -> dict:
         for part in parents:
             node = node.setdefault(part, {})
         try:
-            node[leaf] = yaml.safe_load(raw)
+            node[leaf] = yaml_value(raw)
         except yaml.YAMLError as exc:   # a tag such as !!python/object is refused, never run
             problem = getattr(exc, "problem", None) or "unreadable"
             raise ValueError(f"--set {item!r}: the value is not plain YAML ({problem}); write a "
