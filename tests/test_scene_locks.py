@@ -124,6 +124,31 @@ def test_status_shows_the_locked_scenes_and_who_holds_them(tmp_path, stand_in, m
     assert after["locks"] == []
 
 
+def test_status_without_object_store_credentials_shows_the_ledger_and_says_why_no_locks(
+        tmp_path, stand_in, s3_bucket):
+    """A real `paradrive status` against the test S3 store with no credentials anywhere (no
+    AWS_* variables, no credentials or config file): the ledger, and one line naming the error."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
+    env.update(PARADRIVE_STAGES=str(stand_in), AWS_SHARED_CREDENTIALS_FILE=str(tmp_path / "none"),
+               AWS_CONFIG_FILE=str(tmp_path / "none"), AWS_EC2_METADATA_DISABLED="true",
+               COLUMNS="250")
+    manifests = tmp_path / "manifests"
+    res = CliRunner().invoke(app, ["build", "--scene", SCENES[0], "--data", str(tmp_path / "data"),
+                                   "--manifests", str(manifests), "--build", "b3"], env=env)
+    assert res.exit_code == 0, res.output
+    command = [sys.executable, "-m", "paradrive.cli", "status", "b3", "--manifests", str(manifests),
+               "--data", "s3://builds/no-credentials", "--storage-option",
+               f"endpoint_url={s3_bucket['endpoint_url']}"]
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stdout + done.stderr
+    assert IDS[0] in done.stdout and "locks not shown:" in done.stdout
+    assert "NoCredentialsError" in done.stdout and "s3://builds/no-credentials" in done.stdout
+    doc = json.loads(subprocess.run(command + ["--json"], env=env, capture_output=True, text=True,
+                                    check=True).stdout)
+    assert doc["locks"] == [] and "NoCredentialsError" in doc["locks_error"]
+
+
 def test_an_expired_lease_is_taken_over_and_a_live_one_is_not(tmp_path, stand_in, monkeypatch):
     monkeypatch.setenv("PARADRIVE_STAGES", str(stand_in))
     url = f"memory://lease-{uuid.uuid4().hex[:8]}/data"

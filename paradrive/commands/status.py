@@ -85,6 +85,8 @@ def print_status(summary: dict, console: Console, *, all_scenes: bool = False) -
         for lock in summary["locks"]:
             table.add_row(escape(lock["scene_id"]), escape(lock["holder"]))
         console.print(table)
+    if summary.get("locks_error"):
+        console.print(f"[yellow]locks not shown:[/] {escape(summary['locks_error'])}")
     for t in summary.get("takeovers", []):
         console.print(f"[yellow]{escape(t['scene_id'])} {t['stage']}[/] at {_when(t['at'])}: {escape(t['error'])}")
     for b in summary["build_stages"]:

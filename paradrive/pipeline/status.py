@@ -30,13 +30,21 @@ def open_ledger(build: str, manifests: Path) -> Ledger:
 
 def scene_locks(ledger: Ledger, data: str | None = None, storage_options: Sequence[str] = ()) -> list[dict]:
     """The build's scenes locked now: scene_id and the holder's build, host, pid, start."""
-    from paradrive.storage import data_root
+    from paradrive.redact import redact
+    from paradrive.storage import StorageError, data_root
 
     location = data or ledger.meta().get("data_root")
     if not location:
         return []
     ids = ledger.scene_ids()
-    held = held_locks(data_root(location, list(storage_options), None, False))
+    root = data_root(location, list(storage_options), None, False)
+    try:
+        held = held_locks(root)
+    except Exception as exc:  # an object store's own errors (botocore, aiohttp…)
+        raise StorageError(redact(f"the scene locks under {location} could not be read "
+                                  f"({type(exc).__name__}: {exc}); check the credentials "
+                                  f"(--storage-option key=… secret=…, or the environment) and "
+                                  f"the network", root.storage_options)) from exc
     return [{"scene_id": sid, "build": h.build, "host": h.host, "pid": h.pid,
              "since": h.started_at, "holder": h.describe()}
             for sid, h in sorted(held.items()) if sid in ids]
@@ -45,12 +53,18 @@ def scene_locks(ledger: Ledger, data: str | None = None, storage_options: Sequen
 def build_status(build: str, manifests: Path, data: str | None = None,
                  storage_options: Sequence[str] = ()) -> dict[str, Any]:
     """The ledger's summary of ``build`` (:meth:`Ledger.summary`), with the locks it took over
-    (``takeovers``) and its scenes locked now (``locks``, :func:`scene_locks`)."""
+    (``takeovers``) and its scenes locked now (``locks``, :func:`scene_locks`; where an object
+    store cannot be read, none and ``locks_error`` saying why)."""
+    from paradrive.storage import StorageError
+
     ledger = open_ledger(build, manifests)
     summary = ledger.summary()
     summary["takeovers"] = [{k: t[k] for k in ("scene_id", "stage", "at", "error")}
                             for t in ledger.takeovers()]
-    summary["locks"] = scene_locks(ledger, data, storage_options)
+    try:
+        summary["locks"] = scene_locks(ledger, data, storage_options)
+    except StorageError as exc:  # the ledger is local: it is shown all the same
+        summary["locks"], summary["locks_error"] = [], str(exc)
     return summary
 
 
