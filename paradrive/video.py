@@ -11,8 +11,8 @@ with no frame dropped or duplicated. Every file is written under a temporary nam
 The same frames and settings give the same bytes at a given encoder thread count: on a CPU with
 AVX-512, x264's AVX-512 functions made the output depend on what the process's heap held before
 (the same frames encoded after other work, or under ``MALLOC_PERTURB_``, came out different), so
-x264 is held to its AVX2 functions there, which give the bytes the AVX-512 ones give on fresh
-memory.
+x264 is held to its AVX2 functions there: a different encode from the AVX-512 functions', and a
+repeatable one.
 """
 
 from __future__ import annotations

@@ -314,14 +314,18 @@ def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000
     rough = float(np.median(centres @ normal + offset))
     depth, sideways = _depth_below_overhead_camera(pts, centres, normal)
     seen = rec.point_views[below] >= min_views
-    near = (sideways < lane * rough) & seen & (depth > 0.5 * rough)
+
+    def in_lane(height: float) -> np.ndarray:
+        return (sideways < lane * height) & seen & (depth > 0.5 * height)
+
+    near = in_lane(rough)
     under = np.isfinite(sideways) & seen & (depth > 0)
     if near.sum() < min_points and under.sum() >= min_points:
         # the level plane with the most points can be a higher surface (kerbs, car roofs) where
         # the road itself shows few features; the lowest layer under the path is the road then
         layer = _lowest_layer(depth[under], scatter * float(np.median(depth[under])), min_share)
         rough = float(depth[under][layer].mean())
-        near = (sideways < lane * rough) & seen & (depth > 0.5 * rough)
+        near = in_lane(rough)
     if near.sum() < min_points:
         raise SfmError(f"only {int(near.sum())} well-seen points lie on the road near the camera, "
                        f"{min_points} are needed to measure its height")

@@ -39,7 +39,7 @@ import io
 import json
 import os
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -114,9 +114,13 @@ def _video(ds: PairDataset, row: Mapping[str, Any], role: str) -> Path:
     return build_file(ds.build, row[f"{role}_uri"], f"{ds.build}: row {row['pair_id']} column {role}_uri", ds.index)
 
 
-def _pair_dir(out: Path, pair_id: str, where: str) -> Path:
-    """``out/<pair_id>``: a pair id from a shared build names a folder, so it must stay inside."""
-    return path_inside(out, pair_id, where)
+def _pair_folders(ds: PairDataset, root: Path, build: str | Path,
+                  limit: int | None) -> Iterator[tuple[int, str, Mapping[str, Any], Path]]:
+    """The first ``limit`` pairs of ``ds``: index, pair id, row and folder ``root/<pair_id>`` (a
+    pair id from a shared build names a folder, so it must stay inside; ``build`` as given names
+    the pair in the refusal)."""
+    for i, pair_id in enumerate(ds.pair_ids[:limit]):
+        yield i, pair_id, ds.row(i), path_inside(root, pair_id, f"{build}: pair {pair_id}")
 
 
 # -- ReCamMaster ------------------------------------------------------------------------------------
@@ -130,9 +134,7 @@ def to_recammaster(build: str | Path, out: str | Path, vae: Any = None,
     ds = PairDataset(build, dtype="uint8")
     out = Path(out)
     names = []
-    for i, pair_id in enumerate(ds.pair_ids[:limit]):
-        row = ds.row(i)
-        folder = _pair_dir(out / "train", pair_id, f"{build}: pair {pair_id}")
+    for i, pair_id, row, folder in _pair_folders(ds, out / "train", build, limit):
         videos = {SOURCE_CAMERA: _video(ds, row, "source"), TARGET_CAMERA: _video(ds, row, "target")}
         for cam, src in videos.items():
             _place(src, folder / "videos" / f"{cam}.mp4")
@@ -161,9 +163,7 @@ def to_diffsynth(build: str | Path, out: str | Path, limit: int | None = None) -
     ds = PairDataset(build, dtype="uint8")
     out = Path(out)
     rows = []
-    for i, pair_id in enumerate(ds.pair_ids[:limit]):
-        row = ds.row(i)
-        folder = _pair_dir(out / "videos", pair_id, f"{build}: pair {pair_id}")
+    for _, pair_id, row, folder in _pair_folders(ds, out / "videos", build, limit):
         paths = {}
         for role in ("target", "source", "condition"):
             _place(_video(ds, row, role), folder / f"{role}.mp4")
