@@ -43,11 +43,9 @@ Usage: python bench/bench_data.py [--pairs 4] [--frames 121] [--sizes 192x320,48
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
 import json
 import math
-import multiprocessing
 import os
 import platform
 import subprocess
@@ -59,6 +57,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from spinners import every_core  # noqa: E402  (bench/, the script's own folder)
 
 from paradrive import geometry  # noqa: E402
 from paradrive.pairs import build_file  # noqa: E402
@@ -121,34 +120,6 @@ def make_build(root: Path, pairs: int, n: int, h: int, w: int, gop: int | None) 
     params = StageRegistry().resolve(None, {"manifest": {"quality": False}}).typed("manifest")
     build_manifest(build, [{"scene_id": "bench", "scene_dir": str(scene)}], params)
     return build
-
-
-def _spin(stop) -> None:
-    """CPU-bound work in numpy (one thread) until ``stop`` is set: another job on the core."""
-    values = np.random.default_rng(os.getpid()).random(1 << 15)
-    while not stop.is_set():
-        for _ in range(50):
-            np.sqrt(np.sin(values, out=values) ** 2 + 1.0, out=values)
-
-
-@contextlib.contextmanager
-def busy_cores(n: int):
-    """``n`` processes spinning numpy while the block runs (forked: they need nothing but numpy);
-    yields how many run."""
-    ctx = multiprocessing.get_context("fork")
-    stop = ctx.Event()
-    spinners = [ctx.Process(target=_spin, args=(stop,), daemon=True) for _ in range(n)]
-    for p in spinners:
-        p.start()
-    try:
-        yield len(spinners)
-    finally:
-        stop.set()
-        for p in spinners:
-            p.join(timeout=10)
-            if p.is_alive():
-                p.kill()
-                p.join()
 
 
 def timed(samples: int, run) -> dict:
@@ -451,7 +422,7 @@ def main() -> None:
             short = make_build(Path(tmp) / size / "gop30", args.pairs, args.frames, h, w, gop=30)
             setup = round(time.perf_counter() - t0, 1)
             cases = size_cases(build, short, args.frames, workers, busy=args.busy)
-            with busy_cores((os.cpu_count() or 1) if args.busy else 0) as spinners:
+            with every_core(args.busy) as spinners:
                 m = best_of(args.rounds, cases)
             out["sizes"][size] = {"setup_seconds": setup, "competing_processes": spinners,
                                   **size_report(m, args.frames, args.step_seconds)}

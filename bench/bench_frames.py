@@ -9,6 +9,9 @@ prints JSON.
   320x192 (the clip stage scores each condition so); synthetic street frames.
 * PNG: ``scene.write_image`` (zlib level 1, the "up" row filter) against OpenImageIO's defaults
   (level 6, every filter tried per row), a 320x192 street frame; bytes next to the time.
+* H.264: ``video.encode_video`` of a 121-frame clip at 320x192 (the clip stage's settings), x264
+  held to its AVX2 functions as it is on a CPU with AVX-512, against x264's own choice; where the
+  CPU has no AVX-512 both are the same encode. ``--busy`` runs a CPU-bound process on every core.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from spinners import every_core  # noqa: E402  (bench/, the script's own folder)
 
 
 def _median_seconds(fn, repeats: int) -> float:
@@ -113,10 +117,33 @@ def bench_png(frames, repeats: int) -> dict:
             "speedup": round(med(t_default) / med(t_ours), 2)}
 
 
+def bench_h264(frames, rounds: int) -> dict:
+    import numpy as np
+
+    import paradrive.video as video
+
+    clip = [np.roll(frames[i % 2], 2 * i, axis=1) for i in range(121)]   # a panning clip
+    held = video.x264_params()
+    times: dict[str, list[float]] = {"held": [], "x264_own": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(rounds):   # interleaved: a busy spell slows both
+            for name, params in (("held", held), ("x264_own", {})):
+                video.x264_params = lambda params=params: params
+                t0 = time.perf_counter()
+                video.encode_video(Path(tmp) / f"{name}.mp4", clip, 10.0, crf=18, gop=30)
+                times[name].append(time.perf_counter() - t0)
+    med = lambda v: sorted(v)[len(v) // 2]  # noqa: E731
+    return {"case": "H.264 encode, 121 frames at 320x192, crf 18, gop 30", "x264_params": held,
+            "s": {k: round(med(v), 3) for k, v in times.items()},
+            "ratio_held_over_own": round(med(times["held"]) / med(times["x264_own"]), 3)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=50)
     ap.add_argument("--threads", type=int, default=2, help="the native kernels' threads")
+    ap.add_argument("--h264-rounds", type=int, default=5)
+    ap.add_argument("--busy", action="store_true", help="a CPU-bound process on every core")
     args = ap.parse_args()
     import torch
 
@@ -127,7 +154,10 @@ def main() -> None:
     frames = street_frames()
     out = {"bench": "frames", "machine": platform.machine(), "threads": args.threads,
            "load_average": [round(x, 2) for x in os.getloadavg()],
-           "ssim": bench_ssim(frames, args.repeats), "png": bench_png(frames, args.repeats)}
+           "busy": args.busy}
+    with every_core(args.busy):
+        out.update(ssim=bench_ssim(frames, args.repeats), png=bench_png(frames, args.repeats),
+                   h264=bench_h264(frames, args.h264_rounds))
     print(json.dumps(out, indent=2))
 
 

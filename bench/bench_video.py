@@ -39,9 +39,7 @@ the CPU seconds are the steadier figure) and its resident peak (``VmHWM``).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import multiprocessing
 import os
 import resource
 import shutil
@@ -55,6 +53,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from spinners import every_core  # noqa: E402  (bench/, the script's own folder)
 
 CLIP = REPO.parent / "shared" / "realdata" / "udacity-freeway"
 VIDEO = "freeway-shadows-1280x720.mp4"
@@ -422,27 +421,6 @@ def part_memory(clip: Path, workdir: Path) -> dict:
             "registered": video.get("registered"), "uncertainty": video.get("scale", {}).get("uncertainty")}
 
 
-@contextlib.contextmanager
-def busy(on: bool):
-    """A CPU-bound process on every core while the block runs."""
-    procs = [multiprocessing.Process(target=_spin, daemon=True)
-             for _ in range(os.cpu_count() or 1)] if on else []
-    for p in procs:
-        p.start()
-    try:
-        yield
-    finally:
-        for p in procs:
-            p.terminate()
-            p.join()
-
-
-def _spin() -> None:
-    x = 0
-    while True:
-        x += 1
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", default=",".join(PARTS))
@@ -465,7 +443,7 @@ def main() -> None:
     if not (args.clip / VIDEO).is_file():   # a clone without the real recordings: the street only
         result["clip"] = f"not found: {args.clip / VIDEO}; its parts are skipped"
         parts = [p for p in parts if p in ("synthetic",)]
-    with busy(args.busy):
+    with every_core(args.busy):
         ruler = measure_ruler(args.clip) if parts != ["synthetic"] else {}
         result["ruler"] = ruler
         if args.write_ruler and ruler:
