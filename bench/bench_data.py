@@ -34,16 +34,19 @@ baseline measured in the same run:
 * construction: the rows of a build (the bench's own, or ``--rows-from``) copied under new scene
   ids up to ``--rows`` (72 pairs x 1,600 scenes), then ``PairIterableDataset`` built in a fresh
   interpreter: seconds, peak resident memory, and the dataset pickled as a DataLoader hands it
-  to a spawned worker.
+  to a spawned worker; opened with each shard's sha256 checked against the index (the default)
+  and without (``verify_shards=False``), and the ratio of the two (``--construction-only``:
+  this case alone).
 
 Usage: python bench/bench_data.py [--pairs 4] [--frames 121] [--sizes 192x320,480x832]
-       [--rows 115200] [--rows-from BUILD] [--busy] [--torch-threads N]
+       [--rows 115200] [--rows-from BUILD] [--busy] [--torch-threads N] [--construction-only]
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import json
 import math
 import os
@@ -248,9 +251,9 @@ def replicate_build(small: Path, dest: Path, rows: int, shard_rows: int = 4096,
     for i, start in enumerate(range(0, rows, shard_rows)):
         shard, name = table.slice(start, shard_rows), f"pairs-{i:05d}.parquet"
         pq.write_table(shard, version / name, compression="zstd", row_group_size=row_group_rows)
-        ids = shard.column("pair_id")
-        shards.append({"file": name, "rows": shard.num_rows, "bytes": (version / name).stat().st_size,
-                       "sha256": "0" * 64, "first_pair_id": ids[0].as_py(),
+        ids, data = shard.column("pair_id"), (version / name).read_bytes()
+        shards.append({"file": name, "rows": shard.num_rows, "bytes": len(data),
+                       "sha256": hashlib.sha256(data).hexdigest(), "first_pair_id": ids[0].as_py(),
                        "last_pair_id": ids[-1].as_py()})
     doc = index.model_dump()
     scenes = [{**doc["scenes"][0], "scene_id": f"{scene}-{k:05d}"} for k in range(math.ceil(rows / 72))]
@@ -275,15 +278,16 @@ import torch
 from paradrive.data import PairIterableDataset
 
 before = peak_mb()
-t0 = time.perf_counter()
-ds = PairIterableDataset({build!r}, num_frames=121, dtype="uint8")
-built = time.perf_counter() - t0
+t0, c0 = time.perf_counter(), time.process_time()
+ds = PairIterableDataset({build!r}, num_frames=121, dtype="uint8", verify_shards={verify!r})
+built, cpu = time.perf_counter() - t0, time.process_time() - c0
 t0 = time.perf_counter()
 blob = pickle.dumps(ds)
 pickled = time.perf_counter() - t0
 with open({blob!r}, "wb") as out:
     out.write(blob)
-print(json.dumps({{"rows": len(ds.dataset), "construct_seconds": round(built, 2),
+print(json.dumps({{"rows": len(ds.dataset), "construct_seconds": round(built, 3),
+                  "construct_cpu_seconds": round(cpu, 3),
                   "peak_rss_mb_before": round(before), "peak_rss_mb": round(peak_mb()),
                   "pickled_mb": round(len(blob) / 2**20, 1), "pickle_seconds": round(pickled, 2)}}))
 """
@@ -306,18 +310,60 @@ print(json.dumps({{"worker_unpickle_seconds": round(unpickled, 2), "worker_peak_
 """
 
 
-def construction(build: Path) -> dict:
+_HASH = """
+import json, sys, time
+sys.path.insert(0, {root!r})
+from paradrive.pairs import check_shards, read_index
+
+index = read_index({build!r})
+t0 = time.perf_counter()
+check_shards({build!r}, index)
+print(json.dumps({{"hash_seconds": round(time.perf_counter() - t0, 3)}}))
+"""
+
+
+def construction(build: Path, rounds: int = 3) -> dict:
     """``PairIterableDataset`` over ``build`` built in a fresh interpreter (seconds, its peak
     resident memory before, with torch imported, and after), then pickled as a DataLoader hands
-    it to a spawned worker, and unpickled in another fresh interpreter: what a worker holds."""
+    it to a spawned worker, and unpickled in another fresh interpreter: what a worker holds.
+
+    Opened ``rounds`` times each with the shards' sha256 checked (the default) and without
+    (``verify_shards=False``), interleaved, in fresh interpreters (each hashes every shard: the
+    check is cached per process); the fastest of each counts, and their ratio is the check's
+    cost. The check alone (``check_shards`` over the build, in a fresh interpreter) gives the
+    hashing rate. The shards are in the page cache (just written), as a trainer's are after its
+    first epoch, so the figure is the hashing, not the disk."""
     root = str(Path(__file__).resolve().parents[1])
+    shard_bytes = sum(p.stat().st_size for p in build.glob("v-*/pairs-*.parquet"))
     with tempfile.TemporaryDirectory() as tmp:
         blob = str(Path(tmp) / "dataset.pickle")
-        out = {}
-        for code in (_CONSTRUCT, _WORKER):
-            done = subprocess.run([sys.executable, "-c", code.format(root=root, build=str(build), blob=blob)],
+        out: dict = {}
+        seconds: dict[bool, list[float]] = {True: [], False: []}
+        cpu: dict[bool, list[float]] = {True: [], False: []}
+        hashing = []
+        for _ in range(rounds):
+            done = subprocess.run([sys.executable, "-c", _HASH.format(root=root, build=str(build))],
                                   capture_output=True, text=True, check=True)
-            out.update(json.loads(done.stdout))
+            hashing.append(json.loads(done.stdout)["hash_seconds"])
+            for verify in (False, True):
+                code = _CONSTRUCT.format(root=root, build=str(build), blob=blob, verify=verify)
+                done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                      check=True)
+                found = json.loads(done.stdout)
+                seconds[verify].append(found["construct_seconds"])
+                cpu[verify].append(found["construct_cpu_seconds"])
+                out.update(found if verify else {})
+        done = subprocess.run([sys.executable, "-c", _WORKER.format(root=root, blob=blob)],
+                              capture_output=True, text=True, check=True)
+        out.update(json.loads(done.stdout))
+    verified, unverified = min(seconds[True]), min(seconds[False])
+    out.update(construct_seconds=verified, construct_seconds_unverified=unverified,
+               verify_ratio=round(verified / max(unverified, 1e-9), 2),
+               construct_cpu_seconds=min(cpu[True]), construct_cpu_seconds_unverified=min(cpu[False]),
+               verify_cpu_ratio=round(min(cpu[True]) / max(min(cpu[False]), 1e-9), 2),
+               construct_rounds={"verified": seconds[True], "unverified": seconds[False]},
+               shard_mb=round(shard_bytes / 2**20, 1), hash_seconds=min(hashing),
+               hash_mb_per_s=round(shard_bytes / 2**20 / max(min(hashing), 1e-9)))
     return out
 
 
@@ -404,6 +450,9 @@ def main() -> None:
                          "same-process cases only")
     ap.add_argument("--torch-threads", type=int, default=0,
                     help="torch intra-op threads (0 = torch's default, as a trainer has them)")
+    ap.add_argument("--construction-only", action="store_true",
+                    help="only the construction at --rows (the rows of a build at the first of "
+                         "--sizes, or --rows-from), verified and not")
     args = ap.parse_args()
     import torch
 
@@ -415,7 +464,11 @@ def main() -> None:
                  "machine": platform.machine(), "python": platform.python_version(), "sizes": {}}
     workers = [int(x) for x in args.workers.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
-        for size in args.sizes.split(","):
+        if args.construction_only:
+            h, w = (int(v) for v in args.sizes.split(",")[0].split("x"))
+            build = args.rows_from or make_build(Path(tmp) / "rows", args.pairs, args.frames, h, w,
+                                                 gop=None)
+        for size in [] if args.construction_only else args.sizes.split(","):
             h, w = (int(v) for v in size.split("x"))
             t0 = time.perf_counter()
             build = make_build(Path(tmp) / size / "default_gop", args.pairs, args.frames, h, w, gop=None)
@@ -429,7 +482,7 @@ def main() -> None:
         if args.rows and not args.busy:
             small = args.rows_from or build
             large = replicate_build(small, Path(tmp) / "large", args.rows)
-            out["construction"] = {"rows_copied_from": str(small), **construction(large)}
+            out["construction"] = {"rows_copied_from": str(small), **construction(large, args.rounds)}
         out["load_average_after"] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(out, indent=2))
 

@@ -9,6 +9,8 @@ of one uninterrupted build (files recording times excepted). The test suite runs
 stage; this runs ``--n`` per stage.
 
     .venv/bin/python bench/bench_faults.py --n 10 --seed 1 [--stages fit,clip] [--json out.json]
+    .venv/bin/python bench/bench_faults.py --n 0 --shard-flip 4
+    .venv/bin/python bench/bench_faults.py --n 0 --full-disk 2
 
 Prints one line per kill and a table per stage; exits 1 when any kill did not heal.
 
@@ -22,6 +24,20 @@ works on the build until its stop file appears and then prints one JSON summary 
 ``--missing N``: ``plan`` and ``build`` of N scene inputs whose files do not exist, against
 ``paradrive --version`` in the same run: both must refuse (exit 2) in about the time of starting
 the command.
+
+``--shard-flip N``: N times, one bit of a published pair shard flipped at a place drawn from the
+seed, its size and modification time set back (so only its bytes tell). A reader process must
+then refuse the build with the one shard-checksum error naming that shard (and says what reading
+without the check gives: wrong rows, the same rows, or a Parquet error); a plain re-run of the
+build must heal it
+(exit 0, ``inspect --verify`` clean, every output with the bytes of the uninterrupted build), and
+the reader must read every sample again, with the rows it read before the flip.
+
+``--full-disk N``: N publishes (a first publish and a republish in turn) on a real full disk: a
+small tmpfs under ``--manifests``, filled until the ledger's writes fit and the pairs' media do
+not. Each must exit 1 with the version before it (if any) still published, its ``--retry-failed``
+still on the full disk must exit 1 again, and once the filling file is deleted the retry must
+exit 0 with the pairs of a build published in one go. Needs root (to mount); skipped otherwise.
 """
 
 from __future__ import annotations
@@ -122,6 +138,87 @@ def _killed_publish(folder: Path, env: dict[str, str], extra: list[str], step: s
     return stopped
 
 
+# A reader of a build whose shard may be flipped: argv = build folder. One JSON line: the samples
+# read with the shards checked (or the error), and a digest of every row read without the check
+# (or the error that reading them raised).
+FLIP_READER = """
+import hashlib, json, sys
+from paradrive.data import PairDataset
+from paradrive.pairs import ShardChecksumError
+
+build, out = sys.argv[1], {}
+try:
+    ds = PairDataset(build, dtype="uint8", num_frames=2, output_size=(48, 64))
+    out["samples"] = sum(1 for i in range(len(ds)) if ds[i]["pair_id"])
+except ShardChecksumError as exc:
+    out["error"] = str(exc)
+try:
+    raw, digest = PairDataset(build, verify_shards=False), hashlib.sha256()
+    for i in range(len(raw)):
+        for name, value in sorted(raw.row(i).items()):
+            digest.update(name.encode() + (value.tobytes() if hasattr(value, "tobytes") else repr(value).encode()))
+    out["rows_digest"] = digest.hexdigest()
+except Exception as exc:
+    out["unverified_error"] = f"{type(exc).__name__}: {exc}"[:300]
+print(json.dumps(out))
+"""
+
+
+def shard_flips(work: Path, env: dict[str, str], times: int, rng: random.Random) -> list[dict]:
+    """Flip a bit of a published shard ``times`` times (see the module's docstring): each must be
+    refused by the reader, healed by a plain re-run, and read again with the rows of before."""
+    folder = work / "shard-flip"
+    faults.reference_build(folder, env)
+    expected, build_dir = faults.outputs(folder), folder / "m" / faults.BUILD
+    before = _read_flipped(build_dir, env)
+    rows = []
+    for i in range(times):
+        rel, offset, bit = _flip(build_dir, rng)
+        damaged = _read_flipped(build_dir, env)
+        t0 = time.time()
+        problems = faults.healed(folder, env, expected)
+        after = _read_flipped(build_dir, env)
+        error = damaged.get("error", "")
+        refused = (not damaged.get("samples") and "\n" not in error and
+                   error.startswith(f"build {build_dir}: shard {rel} does not match") and
+                   "run paradrive build" in error)
+        reads_again = after == before
+        unchecked = ("unreadable" if "rows_digest" not in damaged else
+                     "same rows" if damaged["rows_digest"] == before["rows_digest"] else "wrong rows")
+        rows.append({"flip": i, "shard": rel, "offset": offset, "bit": bit, "refused": refused,
+                     "error": error, "without_check": unchecked, "problems": problems,
+                     "reads_again": reads_again, "heal_seconds": round(time.time() - t0, 1)})
+        print(f"flip {i}: {rel} byte {offset} bit {bit}: {'refused' if refused else 'NOT refused'}"
+              f" (without the check: {unchecked}); "
+              f"{'healed' if not problems else '; '.join(problems[:3])}; "
+              f"{'reads again' if reads_again else 'does NOT read as before'}", flush=True)
+    return rows
+
+
+def _flip(build_dir: Path, rng: random.Random) -> tuple[str, int, int]:
+    """One bit of one of the published shards flipped in place, its size and mtime set back."""
+    index = json.loads((build_dir / "index.json").read_text())
+    rel = f"{index['version']}/{rng.choice(index['shards'])['file']}"
+    shard = build_dir / rel
+    stat = shard.stat()
+    offset, bit = rng.randrange(stat.st_size), rng.randrange(8)
+    with open(shard, "r+b") as f:
+        f.seek(offset)
+        byte = f.read(1)[0] ^ (1 << bit)
+        f.seek(offset)
+        f.write(bytes([byte]))
+    os.utime(shard, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    return rel, offset, bit
+
+
+def _read_flipped(build_dir: Path, env: dict[str, str]) -> dict:
+    done = subprocess.run([sys.executable, "-c", FLIP_READER, str(build_dir)], env=env,
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        return {"reader_failed": done.stderr.strip().splitlines()[-1:]}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def missing_inputs(work: Path, env: dict[str, str], count: int) -> dict:
     """CPU and wall seconds of ``plan`` and ``build`` refusing ``count`` inputs that are not
     there, and of ``paradrive --version`` (the command's start) in the same run."""
@@ -145,6 +242,67 @@ def missing_inputs(work: Path, env: dict[str, str], count: int) -> dict:
     return out
 
 
+def publish_on_full_disk(work: Path, env: dict[str, str], times: int) -> list[dict]:
+    """``--full-disk``: each publish on a full disk fails, its retry publishes once space is
+    freed (see the module's docstring)."""
+    from test_publish_retry import ROOM_FOR_THE_LEDGER, fill
+
+    if os.geteuid() != 0:
+        print("full disk: skipped (mounting a tmpfs needs root)", flush=True)
+        return []
+    folder = work / "full-disk"
+    folder.mkdir(parents=True)
+    options = ["--profile", "smoke", "--data", "data", "--build", "F"]
+
+    def build(manifests: Path, *extra: str) -> subprocess.CompletedProcess:
+        """The build of the scene, or its retry (which takes its scenes from the ledger)."""
+        scene = [] if "--retry-failed" in extra else ["--scene", "synthetic:demo?seed=7"]
+        return subprocess.run([sys.executable, "-m", "paradrive.cli", "build", *scene, *options,
+                               "--manifests", str(manifests), *extra], cwd=folder, env=env,
+                              capture_output=True, text=True)
+
+    assert build(folder / "reference").returncode == 0
+    shards = [s["sha256"] for s in json.loads((folder / "reference/F/index.json").read_text())["shards"]]
+    rows = []
+    for i in range(times):
+        disk = folder / f"m{i}"
+        disk.mkdir()
+        subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(disk)], check=True)
+        try:
+            rows.append(_full_disk_publish(disk, build, shards, republish=i % 2 == 1, fill=fill,
+                                           room=ROOM_FOR_THE_LEDGER))
+        finally:
+            subprocess.run(["umount", "-l", str(disk)], check=True)
+        print(f"full disk {'republish' if i % 2 else 'first publish'}: "
+              f"{'; '.join(rows[-1]['problems']) or 'failed, retried, published'}", flush=True)
+    return rows
+
+
+def _full_disk_publish(disk: Path, build, shards: list[str], *, republish: bool, fill, room: int) -> dict:
+    index = disk / "F" / "index.json"
+    change = ("--set", "manifest.row_group_rows=32") if republish else ()
+    problems = []
+    if republish and build(disk).returncode != 0:
+        problems.append("the first publish failed on an empty disk")
+    before = index.read_text() if index.exists() else None
+    filler = fill(disk, room)
+    failed = build(disk, *change)
+    if failed.returncode != 1:
+        problems.append(f"the publish on a full disk exited {failed.returncode}, not 1")
+    if (index.read_text() if index.exists() else None) != before:
+        problems.append("the published version changed on a full disk")
+    if build(disk, "--retry-failed", *change).returncode != 1:
+        problems.append("the retry on a still full disk did not exit 1")
+    filler.unlink()
+    retried = build(disk, "--retry-failed", *change)
+    if retried.returncode != 0:
+        problems.append(f"the retry with space exited {retried.returncode}: {retried.stdout[-300:]}")
+    elif not republish and [s["sha256"] for s in json.loads(index.read_text())["shards"]] != shards:
+        problems.append("the retried publish has other shards than a publish in one go")
+    return {"republish": republish, "exit_full": failed.returncode, "exit_retry": retried.returncode,
+            "problems": problems}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=5, help="kills per stage")
@@ -152,6 +310,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stages", default=",".join(faults.STAGES))
     ap.add_argument("--republish", type=int, default=0, help="republishes under running readers")
     ap.add_argument("--missing", type=int, default=0, help="plan and build of this many missing inputs")
+    ap.add_argument("--shard-flip", type=int, default=0,
+                    help="bits flipped in a published shard, each refused, healed and read again")
+    ap.add_argument("--full-disk", type=int, default=0,
+                    help="publishes on a full disk under --manifests, each failed, retried and published")
     ap.add_argument("--json", type=Path, default=None, help="write every kill's result here")
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="bench_faults-"))
@@ -166,6 +328,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.republish:
             extra["readers"] = republish_under_readers(work, env, args.republish, rng)
             print(json.dumps(extra["readers"], indent=2), flush=True)
+        if args.shard_flip:
+            extra["shard_flips"] = shard_flips(work, env, args.shard_flip, rng)
+        if args.full_disk:
+            extra["full_disk"] = publish_on_full_disk(work, env, args.full_disk)
         if args.n:
             rows = _kills(work, env, args, rng)
     finally:
@@ -178,10 +344,13 @@ def main(argv: list[str] | None = None) -> int:
 def _extra_ok(extra: dict) -> bool:
     readers = extra.get("readers")
     missing = extra.get("missing")
+    flips = extra.get("shard_flips", [])
     return ((readers is None or (not readers["failed"] and all(
         not loop.get("errors") for loop in readers["loops"].values())))
             and (missing is None or (missing["plan"]["exit"] == missing["build"]["exit"] == 2
-                                     and not missing["left_behind"])))
+                                     and not missing["left_behind"]))
+            and all(f["refused"] and not f["problems"] and f["reads_again"] for f in flips)
+            and all(not f["problems"] for f in extra.get("full_disk", [])))
 
 
 def _kills(work: Path, env: dict[str, str], args, rng: random.Random) -> list[dict]:

@@ -90,7 +90,7 @@ def train_steps(device, sizes: dict, stage: int, steps: int, tiny: bool) -> dict
     with torch.device(device):
         transformer = make_tiny_transformer(0) if tiny else WanTransformer3DModel(**wan21_t2v_1_3b_config())
         frames = len(latent_frame_indices(sizes["frames"]))
-        model = ReCamDrivingWan(transformer, rendering=stage == 2, max_frames=2 * frames).to(device)
+        model = ReCamDrivingWan(transformer, rendering=stage == 2, max_frames=frames).to(device)
     model.enable_gradient_checkpointing(True)
     params = trainable_parameters(model, stage)
     optimizer = torch.optim.AdamW(params, lr=1e-4)

@@ -16,7 +16,7 @@ One sample (docs/manifest.md, "The dataset adapter")::
     offset_m                    float              lateral offset of the source (+ = left)
     condition_iteration         int                checkpoint that rendered the condition
     pair_id, prompt             str                prompt is '' unless given
-    camera                      float32 (ceil(F/4), 12)   only with pose_format="recammaster"
+    camera                      float32 (ceil(F/4), 12)   only with pose_format="recammaster[_per_frame]"
 
 Frames are decoded with PyAV: the decoder seeks to the keyframe at or before the first frame
 asked for and decodes forward, stopping after the last one, so a short window or a stride never
@@ -29,9 +29,12 @@ intra-op threads, and where other work takes every core each such call waits for
 get no core (37 times slower), so the adapter keeps its speed in any process, whatever
 ``torch.get_num_threads()`` its caller left, and never changes it.
 
-Opening a build reads only the pair ids and URIs of its shards (the ids are kept as Arrow, the
-URIs checked once each); a row's other columns and its poses are read with its row group when a
-sample needs them, so a 115K-row build opens in 0.4 s and costs a worker megabytes.
+Opening a build checks each shard's sha256 against the index (``verify_shards``; once per
+process while a shard's stat is the same, see :func:`paradrive.pairs.check_shards`), then reads
+only the pair ids and URIs of its shards (the ids are kept as Arrow, the URIs checked once
+each); a row's other columns and its poses are read with its row group when a sample needs
+them, so a 115K-row build opens in 0.9–1.3 s on a shared 2-core machine and costs a worker
+megabytes.
 """
 
 from __future__ import annotations
@@ -53,8 +56,8 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
 from paradrive.io import PathEscapeError, check_relative, sha256_file
-from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, current_version,
-                             iter_shard, read_index, shard_paths)
+from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, check_shard_again,
+                             check_shards, current_version, iter_shard, read_index, shard_paths)
 from paradrive.video import each_frame
 from paradrive.latents import LatentReader
 
@@ -226,9 +229,11 @@ _PAIR_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "frame_offset": (lambda v: _is_integer(v, 0), "an integer >= 0 (the window's first frame in the clip)"),
     "output_size": (_is_size, "(height, width), two integers >= 1, or None (as stored)"),
     "resize": (lambda v: v in ("crop", "stretch"), "'crop' or 'stretch'"),
-    "pose_format": (lambda v: v in (None, "recammaster"), "None or 'recammaster'"),
+    "pose_format": (lambda v: v in (None, "recammaster", "recammaster_per_frame"),
+                    "None or 'recammaster' or 'recammaster_per_frame'"),
     "prompt": (lambda v: isinstance(v, str), "a string ('' as in the paper)"),
     "verify_checksums": (lambda v: isinstance(v, bool), "True or False"),
+    "verify_shards": (lambda v: isinstance(v, bool), "True or False"),
     "decode_threads": (lambda v: _is_integer(v, 0), "an integer >= 0 (1: one decoder thread; 0: FFmpeg picks)"),
     "dtype": (lambda v: (_FRAME_DTYPES.get(v) if isinstance(v, str) else v) in _FRAME_DTYPES.values(),
               f"one of {', '.join(_FRAME_DTYPES)} (or the torch dtype)"),
@@ -348,12 +353,21 @@ class PairDataset(Dataset):
         frame_offset: first frame of the window within the clip.
         output_size: (height, width) of the output frames (None = as stored).
         resize: ``crop`` (uniform scale + centre crop, default) or ``stretch``.
-        pose_format: None, or ``recammaster`` to add ``camera`` (see ``recammaster_camera``).
+        pose_format: None, or ``recammaster`` to add ``camera`` (see ``recammaster_camera``), or
+            ``recammaster_per_frame`` (the target in the source's camera at the same frame,
+            :func:`paradrive.geometry.recammaster_per_frame_camera`).
         prompt: the text every sample carries ('' as in the paper). With ``latents=True`` only
             '' is accepted: the cache holds the empty prompt's text embedding alone, so another
             prompt would be carried beside an embedding that is not its own.
         verify_checksums: check each video's sha256 against the manifest the first time this
             process reads it (a mismatch raises, naming the file).
+        verify_shards: check each pair shard's sha256 against ``index.json`` when the build is
+            opened (default True): a shard whose bytes changed since it was published raises
+            :class:`paradrive.pairs.ShardChecksumError`, naming the shard, the build and the
+            fix (a plain ``paradrive build``), before any of its rows is read. A shard is hashed
+            once per process while its stat is the same; a DataLoader worker re-hashes only a
+            shard whose stat changed since the dataset was opened. False reads the rows as they
+            are (``paradrive inspect --verify`` still finds the damage).
         decode_threads: decoder threads per video (1 = one, suits DataLoader workers; n > 1 or
             0 = FFmpeg's frame and slice threads, 0 letting FFmpeg pick how many).
         dtype: type of the frame tensors: ``"uint8"`` (0..255 as stored, a quarter of float32's
@@ -382,14 +396,15 @@ class PairDataset(Dataset):
     def __init__(self, build: str | Path, *, num_frames: int | None = None, frame_stride: int = 1,
                  frame_offset: int = 0, output_size: tuple[int, int] | None = None,
                  resize: str = "crop", pose_format: str | None = None, prompt: str = "",
-                 verify_checksums: bool = False, decode_threads: int = 1,
+                 verify_checksums: bool = False, verify_shards: bool = True, decode_threads: int = 1,
                  dtype: torch.dtype | str = torch.float32, reuse_buffers: bool = True,
                  latents: bool = False, version: str | None = None):
         _check_pair_arguments({
             "num_frames": num_frames, "frame_stride": frame_stride, "frame_offset": frame_offset,
             "output_size": output_size, "resize": resize, "pose_format": pose_format, "prompt": prompt,
-            "verify_checksums": verify_checksums, "decode_threads": decode_threads, "dtype": dtype,
-            "reuse_buffers": reuse_buffers, "latents": latents})
+            "verify_checksums": verify_checksums, "verify_shards": verify_shards,
+            "decode_threads": decode_threads, "dtype": dtype, "reuse_buffers": reuse_buffers,
+            "latents": latents})
         self.build = Path(build)
         self.index = read_index(self.build, version)   # resolved once: every read stays in it
         self.num_frames, self.frame_stride, self.frame_offset = num_frames, frame_stride, frame_offset
@@ -401,6 +416,9 @@ class PairDataset(Dataset):
         self.frames_decoded = 0
         self.buffers = FramePool() if reuse_buffers else FramePool(keep=0)
         self._shards = shard_paths(self.build, self.index)
+        # the stat of each shard whose sha256 matched the index: a worker's copy re-hashes a
+        # shard only when its stat differs (None: verify_shards=False)
+        self._stamps = check_shards(self.build, self.index, self._shards) if verify_shards else None
         # one Arrow string array a shard: pa.chunked_array would import pandas into every worker
         self._pair_ids = [self._checked_pair_ids(path, entry.rows)
                           for path, entry in zip(self._shards, self.index.shards)]
@@ -470,6 +488,8 @@ class PairDataset(Dataset):
         local = i - int(self._starts[shard])
         f = self._files.get(shard)
         if f is None:
+            if self._stamps is not None:
+                check_shard_again(self.build, self.index, shard, self._shards[shard], self._stamps[shard])
             f = self._files[shard] = pq.ParquetFile(self._shards[shard])
         meta = f.metadata
         group, offset = 0, local
@@ -544,6 +564,8 @@ class PairDataset(Dataset):
             target_c2w = row["target_c2w"][frames]
             source_c2w = target_c2w @ rel.astype(np.float64)
             sample["camera"] = torch.from_numpy(recammaster_camera(target_c2w, source_c2w))
+        if self.pose_format == "recammaster_per_frame":   # inv(rel_pose) per latent frame (paradrive.geometry)
+            sample["camera"] = torch.from_numpy(geometry.recammaster_per_frame_camera(rel, every=4))
         return sample
 
 
@@ -707,6 +729,11 @@ class PairIterableDataset(IterableDataset):
                 "version": self.dataset.version}
 
     def load_state_dict(self, state: dict) -> None:
+        """Resume from ``state_dict()`` of this rank: the same rank of the same world size (a
+        state is one rank's position in its own sequence; the DataLoader's worker count is not
+        part of it), the same seed, shuffle, partition and build; anything else is refused in
+        one line before any version is opened."""
+        self._check_rank(state)
         saved = state.get("version")
         if saved is not None and saved != self.dataset.version:
             try:   # the epoch goes on where it stopped: in the version it was reading
@@ -727,3 +754,13 @@ class PairIterableDataset(IterableDataset):
         self.epoch = int(state["epoch"])
         self._resume = (self.epoch, consumed)
         self._yielded = 0
+
+    def _check_rank(self, state: dict) -> None:
+        """A state saved by another rank, or under another world size, would resume this rank
+        at another rank's position (or in a sequence cut for another number of ranks)."""
+        rank, world = state.get("rank", self.rank), state.get("world_size", self.world_size)
+        if (rank, world) != (self.rank, self.world_size):
+            raise ValueError(f"cannot resume: the state was saved by rank {rank} of world_size "
+                             f"{world}, and rank {self.rank} of world_size {self.world_size} is "
+                             f"loading it; load each rank's own state_dict() with the same "
+                             f"world_size, or start a new epoch")

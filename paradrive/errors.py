@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import re
 
 # exit codes of a build (and of the CLI): every scene landed; no scene landed; a usage or
 # configuration error (before any stage ran); some scenes landed, some failed; Ctrl-C and
@@ -57,12 +58,24 @@ def validation_message(exc) -> str:
 
 
 _NO_SPACE = {errno.ENOSPC, errno.EDQUOT}
-_NOT_WRITABLE = {errno.EROFS, errno.EACCES, errno.EPERM}
+NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+NOT_WRITABLE = {errno.EROFS, errno.EACCES, errno.EPERM}
 
 
 class DiskFullError(OSError):
     """A write that found no room (the disk full, or a file at its size limit), its message
-    naming the file and the fix."""
+    naming the file and the fix. ``folder``: where the output lands (a temporary's own folder
+    is never named); ``missing``: bytes the write still had to put down when it failed, where
+    known (a short write says so); ``written``: bytes it had put down in its temporaries, which
+    were removed; ``size``: the size of the file it was writing (a copy's source), where known."""
+
+    def __init__(self, code: int, message: str, *, folder: object = None, missing: int | None = None,
+                 written: int | None = None, size: int | None = None):
+        super().__init__(code, message)
+        self.folder = None if folder is None else str(folder)
+        self.missing = missing
+        self.written = written
+        self.size = size
 
 
 class FileSizeLimitError(DiskFullError):
@@ -89,6 +102,40 @@ def size_limit_fix(where: object) -> str:
             f"disk: raise it (ulimit -f unlimited) and re-run")
 
 
+_SHORT_WRITE = re.compile(r"(\d+) requested and (\d+) written")
+_NO_ROOM_TEXT = {errno.ENOSPC: ("no space left on device", "[errno 28]"),
+                 errno.EDQUOT: ("disk quota exceeded", "[errno 122]"),
+                 errno.EFBIG: ("file too large", "[errno 27]")}
+
+
+def short_write(exc: BaseException) -> tuple[int, int] | None:
+    """(requested, written) of a library's short write that gives no errno (numpy's
+    ``tofile`` and Pillow say "48096 requested and 35808 written"), else None."""
+    found = _SHORT_WRITE.search(str(exc)) if isinstance(exc, OSError) else None
+    return (int(found[1]), int(found[2])) if found else None
+
+
+def no_room_code(exc: BaseException) -> int | None:
+    """ENOSPC, EDQUOT or EFBIG when ``exc`` is a write that found no room: by its errno, or by
+    its text where a library gives none (a short write counts as ENOSPC); None otherwise."""
+    if not isinstance(exc, OSError):
+        return None
+    if exc.errno is not None:
+        return exc.errno if exc.errno in NO_ROOM else None
+    text = str(exc).lower()
+    for code, words in _NO_ROOM_TEXT.items():
+        if any(w in text for w in words):
+            return code
+    return errno.ENOSPC if short_write(exc) else None
+
+
+def byte_count(n: int) -> str:
+    """``48,096 bytes``; ``3,412,345 bytes (3.4 MB)`` from a megabyte on."""
+    if n < 1_000_000:
+        return f"{n:,} byte{'' if n == 1 else 's'}"
+    return f"{n:,} bytes ({f'{n / 1e9:.1f} GB' if n >= 1_000_000_000 else f'{n / 1e6:.1f} MB'})"
+
+
 def os_error_fix(exc: BaseException, folder: object) -> str:
     """The fix of a write that failed for want of room or rights in ``folder``, as ``; …``
     (empty for other errors)."""
@@ -99,7 +146,7 @@ def os_error_fix(exc: BaseException, folder: object) -> str:
         return f"; {size_limit_fix(folder)}"
     if code in _NO_SPACE:
         return f"; no room to write in {folder}: free space there (or pass another --data) and re-run"
-    if code in _NOT_WRITABLE:
+    if code in NOT_WRITABLE:
         return f"; {folder} cannot be written: pass a --data this user can write, then re-run"
     return ""
 

@@ -131,6 +131,32 @@ def relative_pose(c2w_target, c2w_source) -> np.ndarray:
     return invert(c2w_target) @ as_pose(c2w_source)
 
 
+def target_in_source(c2w_target, c2w_source) -> np.ndarray:
+    """T_{s←t} = inv(c2w_source) · c2w_target, per frame: the target camera's pose in the source
+    camera's coordinates at the same frame, the inverse of :func:`relative_pose`.
+
+    This is ReCamMaster's sign (its camera input is the target camera seen from the condition
+    camera) without its reference to the condition's first frame, so it holds no ego motion: for a
+    forward camera and ``offset_m = +d`` (the source on the target's left) it is ``(+d, 0, 0)``.
+    Shapes (..., 4, 4) -> (..., 4, 4).
+    """
+    return invert(c2w_source) @ as_pose(c2w_target)
+
+
+def recammaster_per_frame_camera(rel_pose, every: int = 1) -> np.ndarray:
+    """The camera input in ReCamMaster's sign, per frame, from ``rel_pose`` = T_{t←s}.
+
+    Row k is the top 3x4 of ``inv(rel_pose[every * k])`` = inv(c2w_source) · c2w_target at that
+    frame (:func:`target_in_source`), flattened row-major. rel_pose (..., F, 4, 4) ->
+    (..., ceil(F / every), 12) float32; ``every = 4`` takes one pose per Wan latent frame of a
+    video's rel_pose, ``every = 1`` keeps every pose (a latent cache's, already one per latent frame).
+    """
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    rel = as_pose(rel_pose)[..., ::every, :, :]
+    return invert(rel)[..., :3, :4].reshape(rel.shape[:-2] + (12,)).astype(np.float32)
+
+
 def scale_intrinsics(fx: float, fy: float, cx: float, cy: float, sx: float, sy: float):
     """Intrinsics after resizing an image by (sx, sy): fx, cx scale by sx and fy, cy by sy."""
     return fx * sx, fy * sy, cx * sx, cy * sy

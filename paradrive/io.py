@@ -16,8 +16,8 @@ import posixpath
 from typing import Any
 from collections.abc import Callable, Iterator
 
-from paradrive.errors import (ConfigError, DiskFullError, FileSizeLimitError, ParaDriveError, file_size_limit,
-                              size_limit_fix)
+from paradrive.errors import (NO_ROOM, ConfigError, DiskFullError, FileSizeLimitError, ParaDriveError,
+                              byte_count, file_size_limit, no_room_code, short_write, size_limit_fix)
 
 
 class PathEscapeError(ParaDriveError):
@@ -44,10 +44,12 @@ def is_temporary(name: str) -> bool:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, size: int | None = None) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success rename it into place, else remove it.
 
-    Works for files and directories (an existing directory at ``path`` is replaced).
+    Works for files and directories (an existing directory at ``path`` is replaced). A write
+    that finds no room raises :class:`DiskFullError` (see :func:`no_room_error`); ``size``, the
+    bytes the write puts down when known, tells it how many more were needed.
     """
     path = Path(path)
     if path.exists() and not (path.is_file() or path.is_dir()):
@@ -66,47 +68,177 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         else:
             os.replace(tmp, path)
     except BaseException as exc:
-        code = _no_room_code(exc, tmp)
+        error = out_of_room(exc, path, tmp, size)  # measured before the temporary goes
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
-        if code is not None:
-            raise no_room_error(code, path) from exc
+        if error is not None:
+            raise error from exc
         raise
 
 
-NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+@contextlib.contextmanager
+def no_room_named(folder: str | os.PathLike, tmp: str | os.PathLike | None = None) -> Iterator[None]:
+    """A write under ``folder`` (assembled in ``tmp``, when given, which the caller removes)
+    that finds no room raises :class:`DiskFullError` naming ``folder``: for writers that manage
+    their own temporary (a scene being ingested) or call libraries that write files themselves
+    (a publish's Parquet shards)."""
+    folder = Path(folder)
+    try:
+        yield
+    except BaseException as exc:
+        if isinstance(exc, DiskFullError):   # raised further in: its folder is this one
+            exc.folder = str(folder)
+        error = out_of_room(exc, folder, None if tmp is None else Path(tmp), None, folder=folder)
+        if error is not None:
+            raise error from exc
+        raise
 
 
-def _no_room_code(exc: BaseException, tmp: Path) -> int | None:
+def landing(path: str | os.PathLike) -> Path:
+    """The folder where the output ``path`` lands: the folder holding the first temporary in
+    it (``scenes/.x.tmp-…/images/a.jpg`` lands in ``scenes``), else ``path``'s own folder."""
+    path = Path(path)
+    for i, part in enumerate(path.parts):
+        if is_temporary(part):
+            return Path(*path.parts[:i])
+    return path.parent
+
+
+def landed_path(path: str | os.PathLike) -> Path:
+    """``path`` with each temporary in it named as what it becomes (``.clips.tmp-…`` as
+    ``clips``)."""
+    return Path(*(p[1:p.index(TEMPORARY_MARK)] if is_temporary(p) else p for p in Path(path).parts))
+
+
+def tree_bytes(path: Path | None) -> int:
+    """The bytes of a file, or of every file under a folder (0: neither)."""
+    if path is None:
+        return 0
+    with contextlib.suppress(OSError):
+        if path.is_file():
+            return path.stat().st_size
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file() and not p.is_symlink())
+    return 0
+
+
+def free_bytes(folder: str | os.PathLike) -> int | None:
+    """The bytes free to this user on the file system of ``folder`` (or of its nearest folder
+    that exists); None when it cannot be told."""
+    place = Path(folder)
+    while not place.exists() and place != place.parent:
+        place = place.parent
+    try:
+        return shutil.disk_usage(place).free
+    except OSError:
+        return None
+
+
+def out_of_room(exc: BaseException, path: Path, tmp: Path | None, size: int | None, *,
+                folder: Path | None = None) -> DiskFullError | None:
+    """The :class:`DiskFullError` of a write of ``path`` (in ``tmp``; landing in ``folder``,
+    default :func:`landing`) that failed for want of room, with what it had written and still
+    had to write, or the size of the file it was copying; None for any other failure. One
+    raised further in (a file of a folder being assembled) gets this temporary's bytes added."""
+    if isinstance(exc, DiskFullError):
+        exc.written = (exc.written or 0) + tree_bytes(tmp)
+        return None
+    code = _no_room_code(exc, tmp)
+    if code is None or not isinstance(exc, OSError):
+        return None
+    written = tree_bytes(tmp)
+    missing, copying = _what_failed(exc)
+    if size is not None:
+        missing = max(missing or 0, size - written) or None
+    return no_room_error(code, path, missing=missing, written=written, size=size or copying,
+                         folder=folder)
+
+
+def _what_failed(exc: OSError) -> tuple[int | None, int | None]:
+    """What a failed write says of its size: the bytes a short write left unwritten, and the
+    size of the file a copy was writing (shutil names its source, then its target)."""
+    short = short_write(exc)
+    source = exc.filename if exc.filename2 else None
+    return (short[0] - short[1] if short else None,
+            tree_bytes(Path(os.fsdecode(source))) or None if source else None)
+
+
+def _no_room_code(exc: BaseException, tmp: Path | None) -> int | None:
     """ENOSPC, EDQUOT or EFBIG when ``exc`` is a write that found no room in ``tmp`` (a file or a
-    folder of them): its errno, or for a library's short write that gives none (Pillow's
-    "N requested and M written") a file of ``tmp`` at this process's size limit, or a full disk."""
+    folder of them): its errno or its text (:func:`~paradrive.errors.no_room_code`); for a
+    library's error that gives neither, a file of ``tmp`` at this process's size limit or a
+    full disk; a short write ("N requested and M written") with a file at the limit is EFBIG."""
     if not isinstance(exc, OSError) or isinstance(exc, DiskFullError):
         return None
     if exc.errno is not None:
         return exc.errno if exc.errno in NO_ROOM else None
+    code = no_room_code(exc)
+    if code not in (None, errno.ENOSPC) or tmp is None:
+        return code
     limit = file_size_limit()
     files = [tmp] if tmp.is_file() else [p for p in tmp.rglob("*") if p.is_file()] if tmp.is_dir() else []
     if limit is not None and any(f.stat().st_size >= limit for f in files):
         return errno.EFBIG
+    if code is not None:
+        return code
     with contextlib.suppress(OSError):
         if shutil.disk_usage(tmp.parent).free == 0:
             return errno.ENOSPC
     return None
 
 
-def no_room_error(code: int, path: Path) -> DiskFullError:
-    """The error of a write of ``path`` that found no room (``code``: ENOSPC, EDQUOT or EFBIG),
-    naming the file and the fix; nothing half-written is kept by the writers that raise it."""
+def no_room_error(code: int, path: Path, *, missing: int | None = None, written: int | None = None,
+                  size: int | None = None, folder: Path | None = None) -> DiskFullError:
+    """The error of a write of ``path`` (a file, or the folder ``folder`` it lands in) that found
+    no room (``code``: ENOSPC, EDQUOT or EFBIG), naming the file as it lands (never its
+    temporary name), how much more it needed where known, and the fix; nothing half-written is
+    kept by the writers that raise it."""
+    shown = landed_path(path)
+    place = landing(path) if folder is None else folder
+    where = f"in {shown}" if folder is not None and shown == folder else str(shown)
     if code == errno.EFBIG:
-        return FileSizeLimitError(code, f"{size_limit_fix(path.parent)} (while writing {path}; "
-                                        f"nothing half-written was kept)")
+        return FileSizeLimitError(code, f"{size_limit_fix(place)} (while writing {where}; "
+                                        f"nothing half-written was kept)", folder=place)
     what = "disk quota exceeded" if code == errno.EDQUOT else "disk full"
-    return DiskFullError(code, f"{what} while writing {path}; free space on {path.parent} and re-run "
-                               f"(nothing half-written was kept)")
+    need = f" (needs at least {byte_count(missing)} more)" if missing else ""
+    return DiskFullError(code, f"{what} while writing {where}{need}; free space on {place} and "
+                               f"re-run (nothing half-written was kept)", folder=place,
+                         missing=missing, written=written, size=size)
+
+
+def no_room_message(exc: BaseException, who: str, folder: str | os.PathLike | None = None, *,
+                    elsewhere: str = "pass another --data") -> str | None:
+    """One line for a write that failed for want of room (:class:`DiskFullError`, or an
+    OSError whose errno or text says so): ``who`` (``scene <id>: <stage>``), the folder the
+    output lands in, the bytes free there now, how much more than that the write needed (or
+    the size of what it was writing) and the fix, free space there or ``elsewhere``; None for
+    any other error. ``folder``: where the writer wrote, for an error that names no file."""
+    if not isinstance(exc, DiskFullError):
+        code = no_room_code(exc)
+        if code is None or not isinstance(exc, OSError):
+            return None
+        target = exc.filename2 or exc.filename
+        missing, copying = _what_failed(exc)
+        exc = no_room_error(code, Path(os.fsdecode(target or folder or ".")), missing=missing,
+                            size=copying, folder=None if target else Path(folder or "."))
+        if not (target or folder):
+            exc.folder = None
+    place = exc.folder or folder
+    shown = "the folder it writes" if place is None else str(place)
+    if exc.errno == errno.EFBIG:   # the limit and the file it stopped (not free space)
+        return f"{who}: {exc.strerror if isinstance(exc, FileSizeLimitError) else size_limit_fix(shown)}"
+    free = None if place is None else free_bytes(place)
+    # what was written in vain is gone again, so the write needed more than is free now
+    need = (f"at least {byte_count(exc.missing)} more than that" if exc.missing
+            else f"more than that: it ran out copying a file of {byte_count(exc.size)}" if exc.size
+            else f"more than that: it had written {byte_count(exc.written)} when it ran out"
+            if exc.written else "more than that")
+    room = f": {byte_count(free)} free there and it needs {need}" if free is not None else ""
+    what = "disk quota exceeded" if exc.errno == errno.EDQUOT else "disk full"
+    return (f"{who}: {what} writing in {shown}{room}; free space there (or {elsewhere}) and "
+            f"re-run (nothing half-written was kept)")
 
 
 def check_output(path: str | os.PathLike, what: str, *, folder: bool = False) -> Path:
@@ -137,8 +269,32 @@ def check_output(path: str | os.PathLike, what: str, *, folder: bool = False) ->
     return path
 
 
+def encoded_in_memory(write: Callable[[str], None]) -> bytes | None:
+    """The bytes ``write(path)`` puts in a file, written to an anonymous file in memory (Linux
+    ``memfd``) and read back; None where there is none. For libraries that write only to a path
+    and handle a full disk badly (libjpeg ends the process; libpng truncates the file and
+    reports success): what they make is then written by :func:`write_bytes`, whose full disk is
+    an error like any other."""
+    if not hasattr(os, "memfd_create"):
+        return None
+    fd = os.memfd_create("paradrive-encode", os.MFD_CLOEXEC)
+    try:
+        write(f"/proc/self/fd/{fd}")
+        size = os.fstat(fd).st_size
+        chunks, done = [], 0
+        while done < size:
+            chunk = os.pread(fd, size - done, done)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            done += len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
+    with atomic_path(path, size=len(data)) as tmp:
         tmp.write_bytes(data)
 
 

@@ -177,7 +177,7 @@ def write_shard(path: Path, pair_ids: Sequence[str], latents: torch.Tensor, pair
 
 def _write(path: Path, data: bytes) -> dict:
     """``data`` landed at ``path`` by rename (a reader never sees half a file); {bytes, sha256}."""
-    with atomic_path(path) as tmp:
+    with atomic_path(path, size=len(data)) as tmp:   # a full disk: how much more it needed
         tmp.write_bytes(data)
     return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
 

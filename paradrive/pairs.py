@@ -7,14 +7,19 @@ eval and the inference scorer. Readers read ``index.json`` once and open only th
 names, so a build republished meanwhile is never seen half old, half new; a publish keeps the
 versions readers may still hold (``manifest.keep_versions_for``), so they read them to the end.
 Every URI a row or the index holds is checked to stay inside that version folder before it is
-opened.
+opened, and a reader that trains on the rows (the adapter, the latent encode) checks each shard's
+sha256 against the index when it opens it (:func:`check_shards`), once per process while the
+file's stat stays the same.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pyarrow as pa
@@ -24,7 +29,7 @@ from pydantic import ValidationError
 from paradrive.errors import ConfigError, ParaDriveError, validation_message
 from paradrive.io import PathEscapeError, check_relative, path_inside
 from paradrive.contracts.layout import INDEX_JSON, MEDIA_DIR, SCENES_DIR, BuildLayout
-from paradrive.contracts.records import IndexRecord
+from paradrive.contracts.records import IndexRecord, ShardRecord
 from paradrive.streams import format_offset
 
 SCHEMA_VERSION = 1
@@ -247,19 +252,113 @@ def _corrupt_shard(path: Path, exc: BaseException) -> ParaDriveError:
 
 
 def read_pairs(build_dir: str | Path, columns: Iterable[str] | None = None,
-               index: IndexRecord | None = None) -> pa.Table:
+               index: IndexRecord | None = None, *, verify: bool = False) -> pa.Table:
     """Every row of a build (the shards its index lists, in order) as one Arrow table.
 
     ``index``: the one the caller read (and resolves media through); without it, ``index.json``
     is read here. A caller that reads the index and the rows apart must pass it, or a republish
-    between the two reads gives it rows of one version and media of another."""
+    between the two reads gives it rows of one version and media of another. ``verify``: check
+    each shard's sha256 against the index first (:func:`check_shards`), as a reader that trains
+    or encodes on the rows must; a summary that re-hashes them itself leaves it off."""
     build_dir = Path(build_dir)
+    index = index or read_index(build_dir)
     paths = shard_paths(build_dir, index)
+    if verify:
+        check_shards(build_dir, index, paths)
     tables = []
     for p in paths:
-        if not p.is_file():
-            raise ParaDriveError(f"{p} is listed in {build_dir / INDEX_JSON} but missing; "
-                                 f"re-run the manifest stage (paradrive build --stages manifest "
-                                 f"--force)")
+        _check_listed(build_dir, p)
         tables.append(read_shard(p, columns))
     return pa.concat_tables(tables) if tables else SCHEMA.empty_table()
+
+
+def _check_listed(build_dir: Path, path: Path) -> None:
+    if not path.is_file():
+        raise ParaDriveError(f"{path} is listed in {build_dir / INDEX_JSON} but missing; "
+                             f"re-run the manifest stage (paradrive build --stages manifest "
+                             f"--force)")
+
+
+# --------------------------------------------------------------------------- shard checksums
+
+class ShardChecksumError(ParaDriveError):
+    """A published shard whose bytes are not those ``index.json`` lists (a flipped byte keeps
+    the Parquet readable and its values wrong); a plain ``paradrive build`` publishes it again."""
+
+
+# A shard's stamp: its path and the stat of the bytes that were hashed. Any write to the file
+# changes its ctime, which (unlike its mtime) a program cannot set back, so while the stamp is
+# the same the bytes are the ones hashed.
+ShardStamp = tuple[str, int, int, int, int, int]
+_MATCHED: dict[ShardStamp, str] = {}   # stamp -> the sha256 its bytes had, in this process
+
+
+def shard_stamp(path: Path) -> ShardStamp:
+    st = os.stat(path)
+    return (str(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def check_shards(build_dir: str | Path, index: IndexRecord,
+                 paths: Sequence[Path] | None = None) -> list[ShardStamp]:
+    """Check that every shard of ``index`` has the sha256 the index lists; returns their stamps.
+
+    A shard is hashed once per process while its stat stays the same (its stamp); those not yet
+    hashed are hashed at once on up to as many threads as the CPUs (hashlib lets go of the GIL).
+    A missing shard, or one whose bytes differ, raises one error naming the shard, the build and
+    the fix (:class:`ShardChecksumError` for the bytes)."""
+    build_dir = Path(build_dir)
+    paths = list(paths) if paths is not None else shard_paths(build_dir, index)
+    return _check(build_dir, index, list(index.shards), paths)
+
+
+def check_shard_again(build_dir: str | Path, index: IndexRecord, k: int, path: Path,
+                      stamp: ShardStamp) -> None:
+    """Shard ``k``, checked by :func:`check_shards` with ``stamp``, re-checked as a reader opens
+    it later (a DataLoader worker, or after the file was touched): a stat while the stamp is the
+    same, its sha256 again otherwise."""
+    if not path.is_file() or shard_stamp(path) != stamp:
+        _check(Path(build_dir), index, [index.shards[k]], [path])
+
+
+def _check(build_dir: Path, index: IndexRecord, entries: list[ShardRecord],
+           paths: list[Path]) -> list[ShardStamp]:
+    for path in paths:
+        _check_listed(build_dir, path)
+    stamps = [shard_stamp(path) for path in paths]
+    todo = [k for k, stamp in enumerate(stamps) if stamp not in _MATCHED]
+    jobs = min(len(todo), _cpus(), 8)
+    if jobs > 1:
+        with ThreadPoolExecutor(jobs) as pool:
+            found = list(pool.map(lambda k: _sha256(paths[k]), todo))
+    else:
+        found = [_sha256(paths[k]) for k in todo]
+    for k, sha in zip(todo, found):
+        _MATCHED[stamps[k]] = sha
+    for entry, stamp in zip(entries, stamps):
+        if _MATCHED[stamp] != entry.sha256:
+            raise shard_mismatch(build_dir, index, entry, _MATCHED[stamp])
+    return stamps
+
+
+def _sha256(path: Path, chunk: int = 1 << 18) -> str:
+    """The file's sha256, read into one buffer of ``chunk`` bytes: opening a build allocates
+    a quarter of a MB a hashing thread, not a new block per read."""
+    h, buffer = hashlib.sha256(), bytearray(chunk)
+    view = memoryview(buffer)
+    with open(path, "rb", buffering=0) as f:
+        while n := f.readinto(buffer):
+            h.update(view[:n])
+    return h.hexdigest()
+
+
+def _cpus() -> int:
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity else os.cpu_count() or 1
+
+
+def shard_mismatch(build_dir: Path, index: IndexRecord, entry: ShardRecord, actual: str) -> ShardChecksumError:
+    shard = f"{index.version}/{entry.file}" if index.version else entry.file
+    return ShardChecksumError(
+        f"build {build_dir}: shard {shard} does not match its sha256 in {INDEX_JSON} "
+        f"({actual[:12]}… read, {entry.sha256[:12]}… listed); run paradrive build "
+        f"--manifests {build_dir.parent} --build {build_dir.name} again to heal it")

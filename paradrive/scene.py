@@ -24,7 +24,8 @@ from paradrive import geometry
 from paradrive.actors import Actor, actor_from_json
 from paradrive.contracts.layout import SceneLayout
 from paradrive.errors import SceneError
-from paradrive.io import PathEscapeError, atomic_path, check_relative, path_inside, write_json
+from paradrive.io import (PathEscapeError, atomic_path, check_relative, encoded_in_memory, path_inside,
+                          write_bytes, write_json)
 
 SCHEMA_VERSION = 2
 # versions load_scene reads: 1 is 2 without actors
@@ -71,7 +72,11 @@ PNG_FILTER_UP = 0x20
 
 
 def write_image(path: str | Path, pixels: np.ndarray, *, quality: int = 95) -> None:
-    """Write uint8 (H, W, C) pixels atomically; the format follows the extension (jpg, png, ...)."""
+    """Write uint8 (H, W, C) pixels atomically; the format follows the extension (jpg, png, ...).
+
+    The image is encoded in memory and then written as bytes (:func:`encoded_in_memory`), so a
+    full disk raises :class:`~paradrive.errors.DiskFullError` naming the file: written
+    directly, libjpeg would end the process and libpng would leave a truncated file."""
     import OpenImageIO as oiio
 
     path = Path(path)
@@ -79,23 +84,34 @@ def write_image(path: str | Path, pixels: np.ndarray, *, quality: int = 95) -> N
     if pixels.ndim == 2:
         pixels = pixels[..., None]
     h, w, c = pixels.shape
-    with atomic_path(path) as tmp:
-        # OpenImageIO picks the format from the extension: keep it on the temporary name.
-        tmp_with_ext = tmp.with_name(tmp.name + path.suffix)
-        spec = oiio.ImageSpec(w, h, c, "uint8")
-        if path.suffix.lower() in (".jpg", ".jpeg"):
-            spec.attribute("Compression", f"jpeg:{quality}")
-        elif path.suffix.lower() == ".png":
-            spec.attribute("png:compressionLevel", PNG_LEVEL)
-            spec.attribute("png:filter", PNG_FILTER_UP)
-        out = oiio.ImageOutput.create(str(tmp_with_ext))
-        if out is None or not out.open(str(tmp_with_ext), spec):
+    spec = oiio.ImageSpec(w, h, c, "uint8")
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        spec.attribute("Compression", f"jpeg:{quality}")
+    elif path.suffix.lower() == ".png":
+        spec.attribute("png:compressionLevel", PNG_LEVEL)
+        spec.attribute("png:filter", PNG_FILTER_UP)
+
+    def encode(target: str) -> None:
+        out = oiio.ImageOutput.create(str(path))  # the format from the extension
+        if out is None or not out.open(target, spec):
             raise OSError(f"cannot write image {path}: {oiio.geterror()}")
         ok = out.write_image(pixels)
         out.close()
         if not ok:
-            tmp_with_ext.unlink(missing_ok=True)
             raise OSError(f"cannot write image {path}: {out.geterror()}")
+
+    data = encoded_in_memory(encode)
+    if data is not None:
+        write_bytes(path, data)
+        return
+    with atomic_path(path) as tmp:
+        # OpenImageIO picks the format from the extension: keep it on the temporary name.
+        tmp_with_ext = tmp.with_name(tmp.name + path.suffix)
+        try:
+            encode(str(tmp_with_ext))
+        except OSError:
+            tmp_with_ext.unlink(missing_ok=True)
+            raise
         tmp_with_ext.rename(tmp)
 
 

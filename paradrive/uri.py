@@ -1,4 +1,10 @@
-"""Scene URIs: ``<kind>:<path>[#<scene>][?key=value&…]`` and the scene ids derived from them."""
+"""Scene URIs: ``<kind>:<path>[#<scene>][?key=value&…]`` and the scene ids derived from them.
+
+A path or scene name holds any character a file name may, written as it is, except that ``?``
+and ``#`` end the path: write them ``%3F`` and ``%23``. A ``%`` and two hex digits is the byte
+they spell (``%25`` is ``%`` itself; several spell a UTF-8 character, ``%C3%A9`` is ``é``); any
+other ``%`` stays as written. :func:`quote_name` writes a name so that it reads back as it is,
+and every URI the builder makes from a file it found is written so."""
 
 from __future__ import annotations
 
@@ -6,7 +12,7 @@ import hashlib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from urllib.parse import parse_qsl
+from urllib.parse import parse_qsl, unquote
 
 from paradrive.errors import ConfigError
 
@@ -30,28 +36,63 @@ def parse_uri(text: str) -> SceneURI:
     """Split a scene URI into kind, path, fragment (scene name) and query parameters.
 
     ``synthetic:demo?seed=7&frames=160`` -> kind 'synthetic', path 'demo', query {seed, frames}.
-    The fragment may come before or after the query.
+    The fragment may come before or after the query. Percent escapes in the path and the
+    fragment are decoded (see the module doc); the query's values are decoded as a form's.
     """
     text = text.strip()
+    kind, raw_path, tail = _split(text)
+    query: dict[str, str] = {}
+    scene = None
+    for part in re.findall(r"[?#][^?#]*", tail):
+        if part.startswith("?"):
+            query.update(parse_qsl(part[1:], keep_blank_values=True))
+        else:
+            scene = unquote_name(part[1:]) or None
+    if not raw_path:
+        raise ConfigError(f"scene URI {text!r}: the path after '{kind}:' is empty")
+    return SceneURI(kind=kind, path=unquote_name(raw_path), scene=scene, query=query, text=text)
+
+
+def _split(text: str) -> tuple[str, str, str]:
+    """``(kind, the path as written, the rest)`` of a scene URI: a path never holds a bare
+    ``?`` or ``#`` (written ``%3F``, ``%23``)."""
     kind, sep, rest = text.partition(":")
     if not sep or kind not in KINDS:
         raise ConfigError(
             f"scene URI {text!r}: expected '<kind>:<path>' with kind one of {', '.join(KINDS)}, "
             f"e.g. 'synthetic:demo?seed=7'")
-    query: dict[str, str] = {}
-    scene = None
-    # Query and fragment may appear in either order; paths never contain '?' or '#'.
     m = re.match(r"^(?P<path>[^?#]*)(?P<tail>.*)$", rest)
     assert m is not None  # the pattern matches any string
-    path, tail = m.group("path"), m.group("tail")
-    for part in re.findall(r"[?#][^?#]*", tail):
-        if part.startswith("?"):
-            query.update(parse_qsl(part[1:], keep_blank_values=True))
-        else:
-            scene = part[1:] or None
-    if not path:
-        raise ConfigError(f"scene URI {text!r}: the path after '{kind}:' is empty")
-    return SceneURI(kind=kind, path=path, scene=scene, query=query, text=text)
+    return kind, m.group("path"), m.group("tail")
+
+
+def unquote_name(text: str) -> str:
+    """A path or scene name as a URI writes it, decoded: ``%`` and two hex digits is that byte
+    (bytes that are no UTF-8 come back as the file system's own surrogate escapes); any other
+    ``%`` is kept."""
+    return unquote(text, errors="surrogateescape")
+
+
+def quote_name(name: str) -> str:
+    """``name`` (a path or a scene name) as a URI writes it, so that :func:`parse_uri` reads it
+    back unchanged: ``%``, ``#``, ``?``, characters that do not print (controls, a byte that is
+    no UTF-8) and spaces at either end become percent escapes; everything else, spaces within
+    and letters beyond ASCII included, stays as it is."""
+    lead = len(name) - len(name.lstrip())
+    end = len(name.rstrip())
+    return "".join(_escaped(ch) if ch in "%#?" or not ch.isprintable() or i < lead or i >= end
+                   else ch for i, ch in enumerate(name))
+
+
+def _escaped(ch: str) -> str:
+    return "".join(f"%{b:02X}" for b in ch.encode("utf-8", "surrogateescape"))
+
+
+def make_uri(kind: str, path: str, query: str = "", scene: str | None = None) -> str:
+    """The URI of a log found on disk: ``kind:<path>[?query][#scene]``, the path and the name
+    written by :func:`quote_name` (``query`` as given, ``key=value&…``)."""
+    return (f"{kind}:{quote_name(path)}" + (f"?{query}" if query else "")
+            + (f"#{quote_name(scene)}" if scene else ""))
 
 
 def safe_name(text: str) -> str:
@@ -98,8 +139,8 @@ def _named(kind: str, name: str) -> str:
 def with_name(text: str, name: str) -> str:
     """The scene URI ``text`` with its fragment (the scene's name) set to ``name``; its kind,
     path and query stay as written."""
-    uri = parse_uri(text)
-    _, _, rest = uri.text.partition(":")
-    queries = "".join(part for part in re.findall(r"[?#][^?#]*", rest[len(uri.path):])
-                      if part.startswith("?"))
-    return f"{uri.kind}:{uri.path}{queries}#{name}"
+    kind, raw_path, tail = _split(text.strip())
+    if not raw_path:
+        parse_uri(text)  # the error of an empty path
+    queries = "".join(part for part in re.findall(r"[?#][^?#]*", tail) if part.startswith("?"))
+    return f"{kind}:{raw_path}{queries}#{quote_name(name)}"

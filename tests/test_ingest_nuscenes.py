@@ -170,3 +170,71 @@ def test_nan_ego_pose_is_reported(dataroot, tmp_path):
 def test_unknown_scene_name_is_reported(dataroot, tmp_path):
     with pytest.raises(SceneError, match=r"no scene 'scene-9999'"):
         ingest(f"nuscenes:{dataroot}?version=v1.0-mini#scene-9999", tmp_path / "s", stage_params("ingest", {}))
+
+
+# -- a row without a key the reader uses -------------------------------------------------------
+
+def _read_rows(root, table):
+    return json.loads((root / "v1.0-mini" / f"{table}.json").read_text())
+
+
+def _victim(root, table, channel="CAM_FRONT"):
+    """The token of the row of ``table`` the reader reads first for ``channel``: the scene, its
+    first sample, the camera's first sample_data and that row's ego pose, calibration, sensor."""
+    (scene,) = _read_rows(root, "scene")
+    sd = next(r for r in _read_rows(root, "sample_data")
+              if r["prev"] == "" and f"/{channel}/" in r["filename"])
+    cs = next(r for r in _read_rows(root, "calibrated_sensor") if r["token"] == sd["calibrated_sensor_token"])
+    return {"scene": scene["token"], "sample": scene["first_sample_token"], "sample_data": sd["token"],
+            "ego_pose": sd["ego_pose_token"], "calibrated_sensor": cs["token"],
+            "sensor": cs["sensor_token"]}[table]
+
+
+def _without(root, table, key, channel="CAM_FRONT"):
+    """``root``'s ``table`` with ``key`` taken out of the row the reader reads first; its token."""
+    token = _victim(root, table, channel)
+    _edit(root, table, lambda rows: next(r for r in rows if r["token"] == token).pop(key))
+    return token
+
+
+def _missing_key_message(root, table, token, key):
+    return (f"scene nuscenes-scene-0061: {table}.json row {token!r} has no key {key!r} "
+            f"({root / 'v1.0-mini' / f'{table}.json'}); the table is incomplete or damaged: "
+            f"re-extract the nuScenes metadata archive")
+
+
+@pytest.mark.parametrize("table, key, channel", [
+    ("sample_data", "filename", "CAM_FRONT"), ("sample_data", "timestamp", "CAM_FRONT"),
+    ("sample_data", "ego_pose_token", "CAM_FRONT"), ("sample_data", "calibrated_sensor_token", "CAM_FRONT"),
+    ("sample_data", "filename", "LIDAR_TOP"), ("scene", "first_sample_token", "CAM_FRONT"),
+    ("sample", "timestamp", "CAM_FRONT"), ("ego_pose", "rotation", "CAM_FRONT"),
+    ("calibrated_sensor", "sensor_token", "CAM_FRONT"), ("calibrated_sensor", "translation", "CAM_FRONT"),
+    ("sensor", "channel", "CAM_FRONT"),
+])
+def test_a_row_without_a_key_the_reader_uses_fails_the_scene_naming_table_row_and_key(
+        dataroot, tmp_path, table, key, channel):
+    from paradrive.pipeline import StageRegistry, run_build
+
+    root = _copy(dataroot, tmp_path)
+    token = _without(root, table, key, channel)
+    config = StageRegistry().resolve("smoke", {"ingest": {"cameras": ["front"], "image_ext": "png",
+                                                          "lidar": True}})
+    report = run_build(config, [URI.format(root=root)], tmp_path / "data", stages=["ingest"],
+                       manifests_dir=tmp_path / "m", build="b")
+    (failure,) = report.failures()   # failed with the reason, not crashed
+    assert (failure.stage, failure.status) == ("ingest", "failed")
+    assert failure.error == _missing_key_message(root, table, token, key)
+    assert list((tmp_path / "data" / "scenes").iterdir()) == []
+
+
+def test_a_row_without_a_key_is_named_when_the_tables_are_read_whole(dataroot, tmp_path):
+    from paradrive.ingest import nuscenes
+    from paradrive.ingest.nuscenes_tables import JsonTables
+
+    root = _copy(dataroot, tmp_path)
+    token = _without(root, "sample_data", "filename")
+    uri = parse_uri(URI.format(root=root))
+    with pytest.raises(SceneError) as err:
+        nuscenes.read(uri, tmp_path / "s", stage_params("ingest", {"cameras": ["front"], "image_ext": "png"}),
+                      uri.scene_id, JsonTables.load(root / "v1.0-mini", uri.scene_id))
+    assert str(err.value) == _missing_key_message(root, "sample_data", token, "filename")

@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import uuid
+import weakref
 from pathlib import Path
 
 import pytest
@@ -58,42 +59,89 @@ def renewals(monkeypatch):
     return seen
 
 
-def test_three_builds_on_one_scene_never_hold_it_together(store, renewals):
-    intervals: list[tuple[float, float, str]] = []
+class SteppedClock(locks.LeaseClock):
+    """Lease time that moves only when the test moves it: a renewal cannot be late, however
+    little CPU its thread gets, and a lease expires only when the test lets it."""
+
+    def __init__(self) -> None:
+        self.t = time.time()
+        self.moved = threading.Condition()
+        # a holder's keep-alive (its stop event) -> the time its last wait was due
+        self.beats: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+    def now(self) -> float:
+        with self.moved:
+            return self.t
+
+    def advance(self, seconds: float) -> None:
+        with self.moved:
+            self.t += seconds
+            self.moved.notify_all()
+
+    def wait(self, stop: threading.Event, seconds: float) -> bool:
+        """Until ``seconds`` after this keep-alive's last wait was due (a beat the test made
+        while it was busy renewing still counts), or ``stop``."""
+        with self.moved:
+            until = self.beats.get(stop, self.t) + seconds
+            while self.t < until and not stop.is_set():
+                self.moved.wait(0.05)   # and look at ``stop`` again: a holder leaving sets it
+            self.beats[stop] = until
+            return stop.is_set()
+
+
+GUARD_S = 600   # a wait this long means a deadlock, not a slow machine
+
+
+def test_three_builds_on_one_scene_never_hold_it_together(store, monkeypatch):
+    """Each build holds the scene for RENEWALS_HELD renewals (longer than a lease lives); the
+    test moves the lease clock a renewal's beat at a time, only once the holder has renewed."""
+    clock = SteppedClock()
+    monkeypatch.setattr(locks, "CLOCK", clock)
+    events: queue.Queue = queue.Queue()   # ("acquired", name, token) and ("renewed", token)
+    renew = locks._Lease.renew
+
+    def reported(self, holder):
+        renewed = renew(self, holder)
+        if renewed is not None:
+            events.put(("renewed", holder.token))
+        return renewed
+
+    monkeypatch.setattr(locks._Lease, "renew", reported)
+    holding: list[str] = []
     failures: list[BaseException] = []
-    start = threading.Barrier(3)
+    done = {f"b{k}": threading.Event() for k in range(3)}
 
     def build(name: str) -> None:
         try:
-            start.wait(60)
-            with scene_lock(store["root"], SID, LockOptions(name, timeout=120)) as held:
-                began = time.monotonic()
+            with scene_lock(store["root"], SID, LockOptions(name, timeout=GUARD_S)) as held:
+                assert not holding, f"{name} took the scene while {holding} held it"
+                holding.append(name)
                 assert json.loads(store["fs"].cat_file(store["lease"]))["token"] == held.holder.token
-                mine = renewals.setdefault(held.holder.token, queue.Queue())
-                got = 0
-                for _ in range(20 * RENEWALS_HELD):   # each wait ends with a renewal or a lease
-                    if got == RENEWALS_HELD or held.lost:
-                        break
-                    try:
-                        got += bool(mine.get(timeout=locks.LEASE_SECONDS))
-                    except queue.Empty:
-                        continue
-                intervals.append((began, time.monotonic(), name))
+                events.put(("acquired", name, held.holder.token))
+                assert done[name].wait(GUARD_S)
                 assert not held.lost, f"{name}: {held.lost}"
-                assert got == RENEWALS_HELD
+                holding.remove(name)
         except BaseException as exc:   # reported below, on the test's thread
             failures.append(exc)
+            events.put(("failed", name, repr(exc)))
 
-    threads = [threading.Thread(target=build, args=(f"b{k}",)) for k in range(3)]
+    threads = [threading.Thread(target=build, args=(name,)) for name in done]
     for t in threads:
         t.start()
+    order = []
+    for _ in threads:
+        kind, name, token = events.get(timeout=GUARD_S)
+        assert kind == "acquired", (kind, name, token, failures)
+        order.append(name)
+        for _beat in range(RENEWALS_HELD):
+            clock.advance(locks.LEASE_SECONDS / 3)
+            assert events.get(timeout=GUARD_S) == ("renewed", token), failures
+        done[name].set()
     for t in threads:
-        t.join(300)
+        t.join(GUARD_S)
     assert not failures, failures
-    assert sorted(name for *_, name in intervals) == ["b0", "b1", "b2"]
-    ordered = sorted(intervals)
-    for (_, ended, first), (began, _, second) in zip(ordered, ordered[1:]):
-        assert began >= ended, f"{first} and {second} held the scene together"
+    assert sorted(order) == ["b0", "b1", "b2"]
     assert not store["fs"].exists(store["lease"])
 
 

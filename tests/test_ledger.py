@@ -129,7 +129,7 @@ def test_summary_counts_times_slowest_and_failures(ledger):
     assert fit["seconds_max"] == 5.0 and fit["peak_rss_mb_max"] == 100.0
     assert s["slowest"][0]["scene_id"] == CID
     assert s["failures"] == [{"scene_id": BID, "scene_uri": B, "stage": "fit", "attempts": 1,
-                              "error": "bad log"}]
+                              "seconds": 0.0, "peak_rss_mb": 100.0, "error": "bad log"}]
     assert s["build_stages"][0]["state"] == "done"
     assert s["last_run"]["exit_code"] == 3 and s["last_run"]["executor"] == "local"
 

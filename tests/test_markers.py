@@ -30,7 +30,7 @@ def test_markers_keep_their_keys_and_order_with_a_version_first(tmp_path):
     for stage in ("ingest", "fit", "render", "clip"):
         doc = json.loads((scene / ".paradrive" / f"{stage}.json").read_text())
         assert list(doc) == SCENE_KEYS and doc["schema_version"] == 1, stage
-        assert doc["outputs"] and all(set(info) == {"bytes", "sha256", "mtime_ns", "inode"}
+        assert doc["outputs"] and all(set(info) == {"bytes", "sha256", "mtime_ns", "inode", "ctime_ns"}
                                       for info in doc["outputs"].values())
     build = json.loads((tmp_path / "m" / "b" / ".paradrive" / "manifest.json").read_text())
     assert list(build) == ["schema_version", "stage", "build", "fingerprint", "scene_runs", "outputs"]
@@ -46,7 +46,7 @@ def test_a_marker_an_older_version_wrote_loads_and_nothing_is_redone(tmp_path):
         del doc["schema_version"]
         doc["retired_key"] = {"an older version": "wrote this"}
         for info in doc["outputs"].values():   # written before outputs' stats were recorded
-            del info["mtime_ns"], info["inode"]
+            del info["mtime_ns"], info["inode"], info["ctime_ns"]
         path.write_text(json.dumps(doc, indent=2))
     marker = read_marker(scene, "render")
     assert marker is not None and marker.schema_version == 1 and marker.outputs

@@ -1,6 +1,8 @@
 """ReCamDriving on diffusers' Wan2.1 transformer (paradrive.wan.recam), with tiny random weights:
-the camera and frame inputs start neutral, stage 2 starts where stage 1 ended, each stage trains
-exactly the paper's parameters, and ReCamMaster's weights land where they belong."""
+the camera and frame inputs start neutral, stage 2 starts from Wan2.1's cross attention (or, with
+its output zeroed, where stage 1 ended), each stage trains exactly the paper's parameters, and
+ReCamMaster's weights land where they belong. The paper's equations term by term are in
+tests/test_paper_equations.py."""
 
 from __future__ import annotations
 
@@ -23,11 +25,11 @@ def inputs(seed: int = 0) -> dict[str, torch.Tensor]:
             "condition_latents": torch.randn(B, C, T, H, W, generator=g)}
 
 
-def model(stage: int = 1, seed: int = 0) -> ReCamDrivingWan:
-    """The tiny model, its new modules (the stage-2 cross attention's q/k/v) drawn from ``seed``."""
+def model(stage: int = 1, seed: int = 0, **options) -> ReCamDrivingWan:
+    """The tiny model on the transformer drawn from ``seed`` (``options``: ReCamDrivingWan's)."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return ReCamDrivingWan(make_tiny_transformer(seed), rendering=stage == 2, max_frames=8)
+        return ReCamDrivingWan(make_tiny_transformer(seed), rendering=stage == 2, max_frames=T, **options)
 
 
 def run(m: ReCamDrivingWan, x: dict) -> torch.Tensor:
@@ -67,14 +69,22 @@ def test_poses_enter_the_camera_encoder_in_float32_under_bf16_autocast():
     torch.testing.assert_close(got, exact)
 
 
-def test_a_fresh_stage2_model_computes_what_its_stage1_weights_did():
+@pytest.mark.parametrize("zero_out", [False, True])
+def test_a_fresh_stage2_model_reads_the_rendering_from_the_start_unless_its_cross_output_is_zeroed(zero_out):
+    """The paper's start (the cross attention a copy of Wan2.1's) sees the rendering at once; the
+    zeroed output projection (beyond the paper) computes exactly what the stage-1 weights did."""
     stage1, x = model(1), inputs()
     with torch.no_grad():
         for p in stage1.parameters():
             p.add_(0.01 * torch.randn_like(p))   # a trained stage-1 model, not the initial one
-        stage2 = model(2)
+        stage2 = model(2, cross_attn_zero_out=zero_out)
         stage2.load_state_dict(stage1.state_dict(), strict=False)
-        torch.testing.assert_close(run(stage2, x), run(stage1, x))
+        if zero_out:
+            torch.testing.assert_close(run(stage2, x), run(stage1, x))
+        else:
+            assert not torch.allclose(run(stage2, x), run(stage1, x), atol=1e-3)
+            other = {**x, "condition_latents": x["condition_latents"].flip(-1)}
+            assert not torch.allclose(run(stage2, other), run(stage2, x), atol=1e-3)
 
 
 def _expected(m: ReCamDrivingWan, stage: int, ffn: bool = False) -> set[str]:

@@ -53,7 +53,9 @@ def test_wan_configs_resolve_by_name_and_are_checked():
     default = load_wan_config(None)
     assert (default["data"]["num_frames"], default["data"]["height"], default["data"]["width"]) == (121, 480, 832)
     assert default["train"]["steps"] == 6000 and default["train"]["lr"] == 1e-4
-    assert default["model"]["camera"] == "relative"
+    assert default["model"]["camera"] == "auto"   # relative, or recammaster_per_frame with model.recammaster
+    assert (default["model"]["max_frames"], default["model"]["frame_embedding"]) == (31, "shared")   # the paper's E_f
+    assert default["model"]["cross_attn_zero_out"] is False
     with pytest.raises(ConfigError, match="model.camera = 'absolute' is not allowed"):
         load_wan_config("smoke", {"model": {"camera": "absolute"}})
     with pytest.raises(ConfigError, match="unknown setting 'dim'"):
@@ -73,9 +75,15 @@ def test_the_camera_is_the_relative_pose_at_each_latent_frames_first_video_frame
 
 def test_the_camera_form_is_the_configs_choice(tmp_path):
     batch = collate([LatentPairs()[1]])
-    relative = WanTrainer(config(), 1, tmp_path / "rel", LatentPairs()).latents(batch)["camera"]
+    auto = WanTrainer(config(), 1, tmp_path / "rel", LatentPairs())
+    assert auto.config["model"]["camera"] == "relative"   # no ReCamMaster weights: ΔT
+    relative = auto.latents(batch)["camera"]
     assert torch.equal(relative, batch["rel_pose"][:, :, :3, :4].reshape(1, T, 12))
     assert relative[0, :, 3].tolist() == [2.0, 2.0]   # the lateral offset, the same at every frame
+    inverse = load_wan_config("smoke", {"model": {"camera": "recammaster_per_frame"}})
+    per_frame = WanTrainer(inverse, 1, tmp_path / "pf", LatentPairs()).latents(batch)["camera"]
+    assert per_frame[0, :, 3].tolist() == [-2.0, -2.0]   # the inverse: the other sign, no rotation
+    assert per_frame[0, :, :3].tolist() == [[1.0, 0.0, 0.0]] * 2
     other = load_wan_config("smoke", {"model": {"camera": "recammaster"}})
     assert torch.equal(WanTrainer(other, 1, tmp_path / "rm", LatentPairs()).latents(batch)["camera"], batch["camera"])
 
@@ -194,8 +202,8 @@ def test_training_reads_a_builds_cached_latents_without_the_vae(wan_builds, wan_
 
 
 def test_settings_the_model_cannot_read_are_refused_before_any_step(tmp_path):
-    few = load_wan_config("smoke", {"model": {"max_frames": 3}})   # 5-frame clips: 2 + 2 latent frames
-    with pytest.raises(ConfigError, match="need 4 .*set model.max_frames=4"):
+    few = load_wan_config("smoke", {"model": {"max_frames": 1}})   # 5-frame clips: 2 latent frames
+    with pytest.raises(ConfigError, match="need 2 .*set model.max_frames=2"):
         WanTrainer(few, 1, tmp_path / "a", LatentPairs())
     odd = load_wan_config("smoke", {"data": {"height": 40}})       # a 5-row latent grid, patches of 2
     with pytest.raises(ConfigError, match="multiples of 16x16"):

@@ -44,7 +44,7 @@ def build(
     set_: list[str] = typer.Option([], "--set", help="Override a parameter: stage.param=value. Repeatable."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their outputs are up to date."),
     verify_outputs: bool = typer.Option(False, "--verify-outputs", help="Also re-hash every stage's outputs (not only their sizes; the clips' are always re-hashed) and redo a stage whose files changed."),
-    retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only the scenes the ledger records as failed; the manifest still covers the whole build."),
+    retry_failed: bool = typer.Option(False, "--retry-failed", help="Run again only what the ledger records as failed: its failed scenes, or a failed publish (manifest) when every scene is done; the manifest still covers the whole build."),
     lock_timeout: float = typer.Option(DEFAULT_LOCK_TIMEOUT_S, "--lock-timeout", min=0, help="Seconds to wait for a scene another build holds locked; after that the scene is left for this run (reported failed, naming that build)."),
     split: str | None = typer.Option(None, "--split", help="Build exactly the scenes of this split (splits/NAME.txt, or a split file's path) found among --scenes; every line must match one log."),
     exclude_split: list[str] = typer.Option([], "--exclude-split", help="Leave out the scenes of this split (repeatable; default: manifest.exclude_splits, i.e. paper-eval; 'none' keeps every scene). Training builds only."),
@@ -53,8 +53,9 @@ def build(
     """Run the pipeline on one or many scenes; stages that are up to date are skipped.
 
     A scene that fails never stops the others: it is recorded in the build's ledger with its
-    reason (see 'paradrive status BUILD'). Exit code 0: all done; 3: partial (some scenes failed,
-    the rest landed); 1: nothing succeeded; 2: usage error.
+    reason (see 'paradrive status BUILD'). Exit code 0: all done and published; 3: partial (some
+    scenes failed, the rest landed); 1: nothing landed (no scene, or the publish failed); 2: usage
+    error.
     """
     ray_options = {"address": address, "gpu_policy": gpu_policy, "max_in_flight": max_in_flight,
                    "max_retries": max_retries}
@@ -104,17 +105,21 @@ def _prepare(scene: list[str], scenes: list[str], profile: str | None, stages: s
         if scene or scenes:
             fail("--retry-failed takes the scenes from the ledger; leave out --scene/--scenes")
         ledger = _open_ledger(manifests, build_name)
-        uris = ledger.failed_scene_uris()
-        if not uris:
-            out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed scene",
-                      markup=False)
+        uris, build_uris = ledger.failed_scene_uris(), ledger.scene_uris()
+        unpublished = ledger.unfinished_build_stages()
+        if not uris and not unpublished:
+            out.print(f"nothing to retry: the ledger of build '{build_name}' records no failed "
+                      f"scene and no failed publish", markup=False)
             raise typer.Exit(0)
-        build_uris = ledger.scene_uris()
+        if not uris:   # every scene is done, the publish is not: run only what failed
+            uris, stage_list = build_uris, stage_list or unpublished
+            out.print(f"retrying {', '.join(unpublished)} of build '{build_name}' over its "
+                      f"{len(build_uris)} scene(s)", markup=False)
     else:
         uris = collect_scene_uris(scene, scenes) or ([] if scenes else [DEFAULT_SCENE])
         if not uris:
             fail(f"--scenes {' '.join(scenes)}: no scenes found")
-    check_present(uris)   # inputs that are not there: one line, before the ledger or a lock
+    check_present(uris, ingest=config.params.get("ingest"))   # inputs that are not there: one line, before the ledger or a lock
     selection = select_scenes(config, uris, split, exclude_split)
     if not retry_failed:
         ledger = _open_ledger(manifests, build_name)
@@ -209,6 +214,8 @@ def _print_footprint(root, report) -> None:
     from paradrive.pipeline.budget import scene_footprint
 
     scene_ids = list(report.scenes())
+    if not scene_ids:   # a run of the build stages alone (a retried publish)
+        return
     try:
         out.print(footprint_table({sid: scene_footprint(root, sid) for sid in scene_ids}))
     except OSError as exc:  # a URL data root that cannot be listed now: the build itself is done
@@ -338,9 +345,23 @@ def _print_report(report, ledger=None, max_rows: int = 20) -> None:
     out.print(table)
     more = f" (status of all: paradrive status {ledger.build} --manifests {ledger.path.parent.parent})" \
         if ledger is not None else ""
-    out.print(f"{done} of {len(scenes)} scenes done"
+    counted = (f"{done} of {len(scenes)} scenes done" if scenes or not report.results
+               else f"build {report.results[-1].scene_id[len('build:'):]}: "
+                    + ", ".join(f"{r.stage} {r.status}" for r in report.results))
+    out.print(counted
               + ("" if report.exit_code == 0 else f"; exit code {report.exit_code} "
-                 f"({'partial build' if report.exit_code == 3 else 'no scene built'})") + more, markup=False)
+                 f"({_outcome(report)})") + more, markup=False)
+
+
+def _outcome(report) -> str:
+    """The words for a build's non-zero exit code in its last line."""
+    if report.exit_code == 3:
+        return "partial build"
+    failed = [r.stage for r in report.failures() if r.scene_id.startswith("build:")]
+    if failed and any(state == "done" for state in report.scenes().values()):
+        return (f"{', '.join(failed)} failed: nothing of this run was published; "
+                f"retry it with --retry-failed")
+    return "no scene built"
 
 
 def register(app: typer.Typer) -> None:

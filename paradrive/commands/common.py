@@ -12,12 +12,24 @@ from rich.markup import escape
 
 from paradrive.errors import EXIT_USAGE
 
+# Output to a pipe or a file is read by scripts (grep, cut): lines that long never wrap, so a
+# table is printed at its natural width and no name or value in it is cut.
+PIPE_WIDTH = 10_000
+
+
+def new_console(stderr: bool = False) -> Console:
+    """A console for stdout (or stderr): on a terminal, the terminal's width (COLUMNS when set);
+    on a pipe or a file, :data:`PIPE_WIDTH`."""
+    made = Console(stderr=stderr)
+    return made if made.is_terminal else Console(stderr=stderr, width=PIPE_WIDTH)
+
+
 # Made at import: the build's progress and result lines, errors and notes, and what build,
 # stages, export and view report. A command whose tables follow the terminal's width when it
 # runs (inspect, status, eval, plan) makes its own consoles then: a Console takes COLUMNS when
 # it is made.
-console = Console(stderr=True)
-out = Console()
+console = new_console(stderr=True)
+out = new_console()
 
 DEFAULT_DATA = Path("data")
 DEFAULT_MANIFESTS = Path("manifests")

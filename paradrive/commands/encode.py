@@ -12,6 +12,7 @@ import typer
 
 from paradrive.commands.common import fail
 from paradrive.errors import EXIT_FAILED, EXIT_USAGE, ConfigError, ParaDriveError
+from paradrive.io import no_room_message
 
 
 def encode_cmd(
@@ -50,7 +51,8 @@ def encode_cmd(
     except ConfigError as exc:
         fail(str(exc), EXIT_USAGE)
     except (ParaDriveError, OSError) as exc:   # OSError: a write failed on the way (disk full, ...)
-        fail(str(exc), EXIT_FAILED)
+        fail(no_room_message(exc, f"build {build.name}: encode", elsewhere="encode a copy of the "
+                             "build on a disk with room") or str(exc), EXIT_FAILED)
     totals = doc["totals"]
     typer.echo(f"encoded {totals['pairs']} pairs ({totals['videos']} videos, {len(doc['shards'])} shards, "
                f"{totals['bytes'] / 1e6:.1f} MB, latents {doc['latent_shape']} {doc['dtype']}) into "

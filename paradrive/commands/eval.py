@@ -7,11 +7,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from paradrive.commands.common import DEFAULT_SCENE, fail
+from paradrive.commands.common import DEFAULT_SCENE, fail, new_console
 from paradrive.errors import ConfigError, SceneError
 
 
@@ -51,7 +50,7 @@ def score_build_cmd(build: Path | None, videos: Path | None, out_dir: Path | Non
     from paradrive.inference import plot_scores, score_videos
     from paradrive.io import write_json
 
-    out, err = Console(), Console(stderr=True)
+    out, err = new_console(), new_console(stderr=True)
     if build is None or videos is None or not videos.is_dir():
         fail("--build takes an inference set and --videos a folder of generated videos named by pair_id",
              err=err, soft_wrap=False)
@@ -105,7 +104,7 @@ def eval_cmd(
     from paradrive.storage import DataRoot, local_scene
     from paradrive.uri import parse_uri
 
-    out, err = Console(), Console(stderr=True)
+    out, err = new_console(), new_console(stderr=True)
     uris = list(scene) or [DEFAULT_SCENE]
     try:
         config = StageRegistry().resolve(profile, parse_overrides(set_))

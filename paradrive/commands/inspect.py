@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from paradrive.commands.common import fail
+from paradrive.commands.common import fail, new_console
 from paradrive.errors import ParaDriveError
 
 if TYPE_CHECKING:  # the build's readers are imported when the command runs
@@ -101,7 +101,7 @@ def inspect_cmd(
     from paradrive.inspection import summarize
     from paradrive.pairs import read_index
 
-    out, err = Console(), Console(stderr=True)
+    out, err = new_console(), new_console(stderr=True)
     try:
         index = read_index(build)   # one version for everything below, however long it takes
         result = verify_and_report(build, err, jobs, index) if verify else None

@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from paradrive.commands.common import DEFAULT_DATA, fail
+from paradrive.commands.common import DEFAULT_DATA, fail, new_console
 from paradrive.errors import ConfigError, ParaDriveError
 
 if TYPE_CHECKING:  # the plan's modules are imported when the command runs
@@ -79,7 +79,7 @@ def plan_cmd(
     try:
         config = StageRegistry().resolve(profile, parse_overrides(set_))
         given = scene_uris(scene, scenes)
-        check_present(given)   # a plan of logs that are not there projects nothing real
+        check_present(given, ingest=config.params.get("ingest"))   # a plan of logs that are not there projects nothing real
         uris = default_selection(config, given).uris
         if not uris:
             raise ConfigError("no scenes to plan: give --scene or --scenes")
@@ -89,7 +89,7 @@ def plan_cmd(
     if as_json:
         print(json.dumps(plan.as_json(), indent=2))
     else:
-        print_plan(plan, config, data, Console())
+        print_plan(plan, config, data, new_console())
 
 
 def register(app: typer.Typer) -> None:

@@ -14,7 +14,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from paradrive.commands.common import DEFAULT_MANIFESTS, fail
+from paradrive.commands.common import DEFAULT_MANIFESTS, fail, new_console
 from paradrive.errors import ParaDriveError
 
 STATE_STYLE = {"done": "green", "skipped": "green", "failed": "red", "blocked": "yellow",
@@ -149,11 +149,11 @@ def status(
     try:
         summary = build_status(build, manifests, data, storage_option)
     except (ParaDriveError, OSError) as exc:
-        fail(str(exc), err=Console(stderr=True), soft_wrap=False)
+        fail(str(exc), err=new_console(stderr=True), soft_wrap=False)
     if as_json:
         print(dumps(summary))
         return
-    print_status(summary, Console(), all_scenes=all_scenes)
+    print_status(summary, new_console(), all_scenes=all_scenes)
 
 
 def register(app: typer.Typer) -> None:

@@ -446,14 +446,15 @@ class IndexRecord(BaseModel):
 # --------------------------------------------------------------------------- .paradrive/<stage>.json
 
 class OutputFile(Part):
-    """How a marker records one output: its size and sha256, and the modification time (ns)
-    and inode it had when it was hashed (a file let go keeps only its size and sha256; a
-    marker written before hashes or stats were recorded lacks them)."""
+    """How a marker records one output: its size and sha256, and the modification time (ns),
+    inode and change time (ns) it had when it was hashed (a file let go keeps only its size and
+    sha256; a marker written before hashes or stats were recorded lacks them)."""
 
     bytes: int
     sha256: str | None = None
     mtime_ns: int | None = None
     inode: int | None = None
+    ctime_ns: int | None = None
 
 
 class DroppedOutputs(Part):

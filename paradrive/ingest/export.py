@@ -41,6 +41,7 @@ from paradrive.ingest.tfrecord import write_records
 from paradrive.ingest.undistort import distort_image, distortion_is_zero
 from paradrive.io import atomic_path, write_bytes
 from paradrive.scene import Camera, Scene, write_image
+from paradrive.uri import make_uri
 
 if TYPE_CHECKING:
     from paradrive.contracts.params import IngestParams
@@ -626,7 +627,7 @@ def video_uri(path: Path, info: dict, truth: str, *, with_intrinsics: bool) -> s
         query.update({"fx": f"{info['fx']:.6f}", "fy": f"{info['fy']:.6f}",
                       "cx": f"{info['cx'] - 0.5:.6f}", "cy": f"{info['cy'] - 0.5:.6f}"})
     query["truth"] = truth
-    return f"video:{path}?" + "&".join(f"{k}={quote(v, safe=':/')}" for k, v in query.items())
+    return make_uri("video", str(path), "&".join(f"{k}={quote(v, safe=':/')}" for k, v in query.items()))
 
 
 # and the cameras the format can hold
@@ -687,8 +688,8 @@ def export_scene(scene_uri: str, fmt: str, out: str | Path, ingest_params: Inges
     if fmt == "waymo":
         path = export_waymo(street, out / f"segment-{name}_with_camera_labels.tfrecord",
                             segment=name)
-        return f"waymo:{path}"
+        return make_uri("waymo", str(path))
     if fmt == "nuscenes":
         export_nuscenes(street, out, scene_name=name)
-        return f"nuscenes:{out}?version=v1.0-mini#{name}"
-    return f"drivestudio:{export_drivestudio(street, out / name)}"
+        return make_uri("nuscenes", str(out), "version=v1.0-mini", name)
+    return make_uri("drivestudio", str(export_drivestudio(street, out / name)))

@@ -71,10 +71,10 @@ def _get(tables: Tables, table: str, token: str, *, scene_id: str, where, referr
 
 
 def _pose(row: dict, *, scene_id: str, where, what: str) -> np.ndarray:
-    try:
+    try:   # a missing key names itself (nuscenes_tables.Row)
         q = np.asarray(row["rotation"], dtype=np.float64)
         t = np.asarray(row["translation"], dtype=np.float64)
-    except (KeyError, TypeError, ValueError) as exc:
+    except (TypeError, ValueError) as exc:
         raise SceneError(f"{what} lacks rotation/translation ({exc})", scene_id=scene_id,
                          path=where, fix="re-extract the nuScenes metadata archive") from exc
     if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(q).all() and np.isfinite(t).all()):

@@ -54,8 +54,38 @@ log = logging.getLogger("paradrive.ingest.nuscenes")
 _GAP = re.compile(r"[\s,]*")
 
 
+class MissingKey(SceneError, KeyError):
+    """A row of a nuScenes table without a key the reader needs (a KeyError too, so a reader
+    that drops a damaged optional record, an actor's box, still does)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class Row(dict):
+    """A row of a table, as ``json.loads`` gives it, that names itself when it lacks a key:
+    ``row["filename"]`` on a row without one raises :class:`MissingKey` naming the table, the
+    row's token and the key, with the fix; ``row.get`` is unchanged. The one accessor of every
+    table row the reader uses."""
+
+    __slots__ = ("table", "folder", "scene_id")
+
+    def __init__(self, data: dict, table: str, folder: Path, scene_id: str):
+        super().__init__(data)
+        self.table, self.folder, self.scene_id = table, folder, scene_id
+
+    def __missing__(self, key: str):
+        raise MissingKey(f"{self.table}.json row {dict.get(self, 'token')!r} has no key {key!r}",
+                         scene_id=self.scene_id, path=self.folder / f"{self.table}.json",
+                         fix="the table is incomplete or damaged: re-extract the nuScenes "
+                             "metadata archive")
+
+    def __reduce__(self):
+        return Row, (dict(self), self.table, self.folder, self.scene_id)
+
+
 class Tables(Protocol):
-    """Rows of a version's tables, as ``json.loads`` gives them."""
+    """Rows of a version's tables, as ``json.loads`` gives them (each a :class:`Row`)."""
 
     def get(self, table: str, token: str) -> dict | None: ...
 
@@ -100,7 +130,7 @@ class JsonTables:
         for name in present_tables(folder, scene_id):
             try:
                 rows = json.loads((folder / f"{name}.json").read_text())
-                by_token = {row["token"]: row for row in rows}
+                by_token: dict[str, dict] = {row["token"]: Row(row, name, folder, scene_id) for row in rows}
             except (json.JSONDecodeError, KeyError, TypeError) as exc:
                 raise malformed(name, folder, scene_id, f"{type(exc).__name__}: {exc}") from exc
             if len(by_token) != len(rows):
@@ -182,17 +212,21 @@ def index_path(folder: Path) -> Path | None:
 class IndexedTables:
     """The rows of one version's tables looked up in its SQLite index."""
 
-    def __init__(self, path: Path, db: sqlite3.Connection, meta: dict[str, str]):
+    def __init__(self, path: Path, db: sqlite3.Connection, meta: dict[str, str], folder: Path,
+                 scene_id: str = ""):
         self.path = path
         self.meta = meta
         self.built_here = False
+        self.folder, self.scene_id = folder, scene_id   # whose tables, for the rows' errors
         self._db = db
         self._tables = set(json.loads(meta["tables"]))
         self._cache: dict[tuple[str, str], dict | None] = {}
 
     @classmethod
-    def open_if_current(cls, path: Path, stats: dict[str, list[int]]) -> IndexedTables | None:
-        """The index at ``path`` if it is there, complete and made from tables of ``stats``."""
+    def open_if_current(cls, path: Path, stats: dict[str, list[int]], folder: Path,
+                        scene_id: str = "") -> IndexedTables | None:
+        """The index at ``path`` of the tables of ``folder`` if it is there, complete and made
+        from tables of ``stats``."""
         if not path.is_file():
             return None
         # read-only and immutable: the file is never changed in place, only replaced by a rename
@@ -204,27 +238,30 @@ class IndexedTables:
         if meta.get("format") != FORMAT or json.loads(meta.get("tables", "null")) != stats:
             db.close()
             return None
-        return cls(path, db, meta)
+        return cls(path, db, meta, folder, scene_id)
 
     def close(self) -> None:
         self._db.close()
 
-    def _loads(self, query: str, args: Iterable = ()) -> list[dict]:
-        return [json.loads(text) for (text,) in self._db.execute(query, tuple(args))]
+    def _loads(self, table: str, query: str, args: Iterable = ()) -> list[dict]:
+        return [Row(json.loads(text), table, self.folder, self.scene_id)
+                for (text,) in self._db.execute(query, tuple(args))]
 
     def get(self, table: str, token: str) -> dict | None:
         key = (table, token)
         if key not in self._cache:
-            found = self._loads(f'SELECT row FROM "{table}" WHERE token = ?', [token]) \
+            found = self._loads(table, f'SELECT row FROM "{table}" WHERE token = ?', [token]) \
                 if table in self._tables else []
             self._cache[key] = found[0] if found else None
         return self._cache[key]
 
     def rows(self, table: str) -> list[dict]:
-        return self._loads(f'SELECT row FROM "{table}" ORDER BY rowid') if table in self._tables else []
+        return (self._loads(table, f'SELECT row FROM "{table}" ORDER BY rowid')
+                if table in self._tables else [])
 
     def sample_data_of(self, sample_token: str) -> list[dict]:
-        return self._loads("SELECT row FROM sample_data WHERE sample_token = ? ORDER BY rowid",
+        return self._loads("sample_data",
+                           "SELECT row FROM sample_data WHERE sample_token = ? ORDER BY rowid",
                            [sample_token])
 
     def annotations_of(self, sample_tokens: Iterable[str]) -> list[dict]:
@@ -233,6 +270,7 @@ class IndexedTables:
         samples = list(sample_tokens)
         marks = ", ".join("?" * len(samples))
         return self._loads(
+            "sample_annotation",
             "SELECT row FROM sample_annotation WHERE instance_token IN (SELECT instance_token "
             f"FROM sample_annotation WHERE sample_token IN ({marks})) ORDER BY rowid", samples)
 
@@ -320,17 +358,17 @@ def open_tables(folder: Path, scene_id: str) -> Tables:
                     "cache is writable); reading the tables whole; set $PARADRIVE_CACHE to a "
                     "writable folder", scene_id, folder, folder / INDEX_DIR)
         return JsonTables.load(folder, scene_id)
-    found = IndexedTables.open_if_current(path, _stats(folder, names))
+    found = IndexedTables.open_if_current(path, _stats(folder, names), folder, scene_id)
     if found is not None:
         return found
     with _held(path.with_suffix(".lock"), folder):
-        found = IndexedTables.open_if_current(path, _stats(folder, names))
+        found = IndexedTables.open_if_current(path, _stats(folder, names), folder, scene_id)
         if found is not None:
             return found
         _remove_leftovers(path.parent)
         log.info("scene %s: indexing the tables of %s into %s", scene_id, folder, path)
         build_index(folder, path, names, scene_id)
-    built = IndexedTables.open_if_current(path, _stats(folder, names))
+    built = IndexedTables.open_if_current(path, _stats(folder, names), folder, scene_id)
     if built is None:
         raise SceneError("the tables changed while their index was being built", scene_id=scene_id,
                          path=folder, fix="re-run once the tables are no longer being written")

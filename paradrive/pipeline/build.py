@@ -1,9 +1,9 @@
 """A build: scene stages for many scenes through an executor, then the build-scoped stages.
 
-Exit codes of a build (also the CLI's): 0 every scene finished every asked stage; 3 partial (some
-scenes failed, the others landed); 1 no scene landed (a scene whose ingest landed but whose fit
-failed did not); 2 a usage or configuration error, found before any stage ran; 130 interrupted
-(Ctrl-C), 143 terminated (SIGTERM).
+Exit codes of a build (also the CLI's; the table in docs/operations.md): 0 every scene finished
+every asked stage and the publish landed; 3 partial (some scenes failed, the others landed); 1
+nothing landed (no scene finished, or the publish failed); 2 a usage or configuration error,
+found before any stage ran; 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
 
 from __future__ import annotations
@@ -66,15 +66,17 @@ class BuildReport:
 
     @property
     def exit_code(self) -> int:
-        """0 nothing failed; 1 no scene landed (a scene that got through ingest but failed its
-        fit did not land), or only build stages ran and one failed; 3 some scenes landed (a
-        build stage that published the others counts as their landing)."""
+        """0 nothing failed; 3 partial: some scenes failed and the others landed; 1 nothing
+        landed: no scene finished its stages, or the build's publish (a build stage) failed,
+        so this run's scenes are in no published version. A build stage after a publish that
+        landed (encode after manifest) failing is partial. The table is docs/operations.md's."""
         if not self.failures():
             return EXIT_OK
-        published = any(r.scene_id.startswith("build:") and r.status == "done" for r in self.results)
-        if published or "done" in self.scenes().values():
-            return EXIT_PARTIAL
-        return EXIT_FAILED
+        build_results = [r for r in self.results if r.scene_id.startswith("build:")]
+        if build_results:
+            published = any(r.status in ("done", "skipped") for r in build_results)
+            return EXIT_PARTIAL if published else EXIT_FAILED
+        return EXIT_PARTIAL if "done" in self.scenes().values() else EXIT_FAILED
 
 
 def default_selection(config: ResolvedConfig, uris: list[str],
@@ -208,15 +210,21 @@ def _run_on_build(config: ResolvedConfig, stage: str, spec: StageSpec, root: Dat
 def _failed(exc: Exception, label: str, stage: str, build: str, seconds: float,
             log: logging.Logger) -> StageResult:
     """The result of a build stage that raised: the message of an expected failure (a
-    ParaDriveError, a file system or value error), else a crash with its traceback in the log."""
+    ParaDriveError, a file system or value error; a full disk names the folder, the room there
+    and the room needed), else a crash with its traceback in the log. Its seconds and peak
+    memory are recorded as a finished stage's are."""
+    from paradrive.io import no_room_message
+    from paradrive.pipeline.runner import peak_rss_mb
+
     if isinstance(exc, (ParaDriveError, OSError, ValueError)):
         error = (str(exc) if isinstance(exc, ParaDriveError)
-                 else f"build {build}: {stage} failed: {type(exc).__name__}: {exc}")
+                 else no_room_message(exc, f"build {build}: {stage}", elsewhere="pass another --manifests")
+                 or f"build {build}: {stage} failed: {type(exc).__name__}: {exc}")
         log.error("%s: failed: %s", stage, error)
     else:  # a bug or an unexpected library error
         log.error("%s: crashed:\n%s", stage, traceback.format_exc())
         error = f"build {build}: {stage} crashed: {type(exc).__name__}: {exc}"
-    return StageResult(label, stage, "failed", seconds=seconds, error=error)
+    return StageResult(label, stage, "failed", seconds=seconds, error=error, peak_rss_mb=peak_rss_mb())
 
 
 def _made_otherwise(config: ResolvedConfig, needs: list[str], uri: str, sdir: Path) -> str | None:
@@ -326,7 +334,8 @@ def _intact(marker: StageMarker | None, runs: dict, build_dir: Path) -> bool:
     copy damaged in place at the same size is found (its stat changed, so it is read again) and
     the stage runs again, as a scene stage would."""
     return (marker is not None and marker.scene_runs == runs
-            and not damaged_outputs(marker, local_size(build_dir), local_sha256(build_dir)))
+            and not damaged_outputs(marker, local_size(build_dir),
+                                    local_sha256(build_dir, change_time=True)))
 
 
 def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Path | DataRoot, *,
@@ -360,7 +369,8 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
         check_uri(uri)  # a malformed URI, or values no ingest takes: a usage error for the build
     # one log given twice is a usage error for the whole build too
     uris = distinct_scenes([SceneInput(uri, uri) for uri in scene_uris])
-    check_present(uris)   # and so is a log that is not there: no scene starts, no lock is taken
+    # and so is a log that is not there (no scene starts, no lock is taken), and one street twice
+    check_present(uris, ingest=config.params.get("ingest"))
     build_uris: list[str] = []
     in_build: set[str] = set()
     for uri in list(build_scene_uris or []) + uris:  # the whole build's order comes first

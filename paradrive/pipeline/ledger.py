@@ -15,7 +15,8 @@ same time (each write is one short ``BEGIN IMMEDIATE`` transaction; a writer wai
         state: pending | running | done | skipped | failed | blocked
         attempts: times a build ran the stage (a skip because it was up to date is no attempt;
                   Ray's own retries after a worker died count within one attempt)
-        seconds / peak_rss_mb: of the run that produced the outputs (a later skip keeps them)
+        seconds / peak_rss_mb: of the run that produced the outputs (a later skip keeps them),
+                  or of the run that failed
     events(id PRIMARY KEY, run_id, scene_id, stage, state, at, seconds, error)
         every transition, for the history of a scene; state 'takeover' (error: the holder)
         when the stage took over the scene lock of a build that died holding it
@@ -503,6 +504,14 @@ class Ledger:
                 uris.append(row["scene_uri"])
         return uris
 
+    def unfinished_build_stages(self) -> list[str]:
+        """This build's build-scoped stages (the manifest publish, encode) that a run asked for
+        and that did not finish: failed, blocked, or left running or pending by a run that
+        stopped (``--retry-failed`` runs them again), in pipeline order."""
+        label = build_label(self.build)
+        return [row["stage"] for row in self.tasks()
+                if row["scene_id"] == label and row["state"] not in FINISHED]
+
     def summary(self) -> dict:
         """What ``paradrive status`` shows, as plain data (also its ``--json``). Two queries
         whatever the build's size: the task rows (read once) and the last run."""
@@ -519,7 +528,7 @@ class Ledger:
                                                 "seconds_max": 0.0, "runs": 0,
                                                 "peak_rss_mb_max": 0.0})
             st[r["state"]] += 1
-            if r["state"] in FINISHED and r["seconds"]:
+            if r["state"] in (*FINISHED, "failed") and r["seconds"]:  # a failed run's time counts too
                 st["seconds_total"] += r["seconds"]
                 st["seconds_max"] = max(st["seconds_max"], r["seconds"])
                 st["runs"] += 1
@@ -532,11 +541,12 @@ class Ledger:
                                                       "scene_uri": r["scene_uri"],
                                                       "state": states[r["scene_id"]],
                                                       "seconds": 0.0, "stages": {}})
-            sc["seconds"] += (r["seconds"] or 0.0) if r["state"] in FINISHED else 0.0
+            sc["seconds"] += (r["seconds"] or 0.0) if r["state"] in (*FINISHED, "failed") else 0.0
             sc["stages"][r["stage"]] = r["state"]
         slowest = sorted(per_scene.values(), key=lambda s: -s["seconds"])[:10]
         failures = [{"scene_id": r["scene_id"], "scene_uri": r["scene_uri"], "stage": r["stage"],
-                     "attempts": r["attempts"], "error": r["error"]}
+                     "attempts": r["attempts"], "seconds": r["seconds"],
+                     "peak_rss_mb": r["peak_rss_mb"], "error": r["error"]}
                     for r in rows if r["state"] == "failed"]
         build_rows = [{"stage": r["stage"], "state": r["state"], "seconds": r["seconds"],
                        "error": r["error"]} for r in rows if r["scene_id"].startswith("build:")]

@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from collections.abc import Iterator
 
-from paradrive.errors import ParaDriveError, SceneError
+from paradrive.errors import NOT_WRITABLE, ParaDriveError, SceneError
 from paradrive.contracts.layout import LOCKS_DIR, DataLayout
 from paradrive.storage import DataRoot
 
@@ -51,6 +51,22 @@ LEASE_SECONDS = 60.0             # a URL root's lease lives this long unless its
 RENEW_MARGIN = 0.1               # of LEASE_SECONDS: a lease this close to its expiry is not
                                  # renewed (clocks of two hosts differ; a write takes time)
 POLL_SECONDS = 0.25              # how often a waiting build looks at the lock again
+
+
+class LeaseClock:
+    """Where leases read the time (their expiry) and wait for the next renewal: the wall clock.
+    A test puts in a clock of its own that moves only when it says, so a renewal is never late
+    however little CPU its thread gets."""
+
+    def now(self) -> float:
+        return time.time()
+
+    def wait(self, stop: threading.Event, seconds: float) -> bool:
+        """Wait ``seconds`` or until ``stop`` is set; whether it was set."""
+        return stop.wait(seconds)
+
+
+CLOCK = LeaseClock()
 
 
 class LeaseLost(SceneError):
@@ -140,7 +156,7 @@ class Holder:
         return bool(self.process_start) and _process_start(self.pid) not in ("", self.process_start)
 
     def expired(self, now: float | None = None) -> bool:
-        return self.expires_at is not None and (now or time.time()) > self.expires_at
+        return self.expires_at is not None and (now or CLOCK.now()) > self.expires_at
 
 
 @dataclass
@@ -148,13 +164,17 @@ class HeldLock:
     """A lock this process holds; ``took_over`` describes a dead or expired holder it replaced.
     ``discard``: remove the lock file on release (set for a scene that never started, so a
     build of logs that were not there leaves no lock file behind). ``lost``: why a lease is no
-    longer this build's ('' while it is)."""
+    longer this build's ('' while it is). ``read_only``: why this process may only read the
+    scene ('' when it may write it): its data root refused the lock file (a read-only mount,
+    a folder of another user's); then it holds the lock shared, or none where there is no lock
+    file, and must write nothing there."""
 
     scene_id: str
     holder: Holder
     took_over: str = ""
     discard: bool = False
     lost: str = ""
+    read_only: str = ""
 
     def check(self) -> None:
         """Raise :class:`LeaseLost` once the lease is lost: nothing may be written after."""
@@ -174,8 +194,15 @@ def _lock_file(root: DataRoot, scene_id: str) -> Path:
 def _file_lock(root: DataRoot, scene_id: str, options: LockOptions,
                log: logging.Logger) -> Iterator[HeldLock]:
     path = _lock_file(root, scene_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = _locked_file(path, scene_id, options, log)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = _locked_file(path, scene_id, options, log)
+    except OSError as exc:
+        if exc.errno not in NOT_WRITABLE:
+            raise
+        with _reader_lock(path, scene_id, options, log, exc) as held:
+            yield held
+        return
     try:
         previous = Holder.parse(os.pread(fd, 1 << 16, 0))
         me = Holder.me(options.build)
@@ -189,6 +216,29 @@ def _file_lock(root: DataRoot, scene_id: str, options: LockOptions,
             if held.discard:  # removed while held: a waiter that took the old file tries again
                 path.unlink(missing_ok=True)
             os.ftruncate(fd, 0)  # an empty record: let go cleanly
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _reader_lock(path: Path, scene_id: str, options: LockOptions, log: logging.Logger,
+                 refused: OSError) -> Iterator[HeldLock]:
+    """The lock of a scene whose data root refused this process its lock file: shared (a
+    writer holding it is waited for, and waits for this reader), or none where the file is not
+    there; the lock says the scene may only be read."""
+    why = f"{path}: {refused.strerror or refused}"
+    held = HeldLock(scene_id, Holder.me(options.build), read_only=why)
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:   # no lock file (nobody ever locked the scene here), or none we may read
+        yield held
+        return
+    try:
+        _wait(scene_id, options, log, lambda: _try_flock(fd, fcntl.LOCK_SH), lambda: _read_record(path))
+        try:
+            yield held
+        finally:
             fcntl.flock(fd, fcntl.LOCK_UN)
     finally:
         os.close(fd)
@@ -258,7 +308,7 @@ class _Lease:
     def create(self, holder: Holder) -> Holder | None:
         """Write ``holder`` if no lease exists, expiring ``LEASE_SECONDS`` from now (the moment
         of writing); the lease written when it is ours afterwards, else None."""
-        mine = replace(holder, expires_at=time.time() + LEASE_SECONDS)
+        mine = replace(holder, expires_at=CLOCK.now() + LEASE_SECONDS)
         data = mine.dumps().encode()
         try:
             self._create(data)
@@ -289,7 +339,7 @@ class _Lease:
         found = self.read()
         if found is None or found.token != holder.token or _lapsing(holder):
             return None
-        renewed = replace(holder, expires_at=time.time() + LEASE_SECONDS)
+        renewed = replace(holder, expires_at=CLOCK.now() + LEASE_SECONDS)
         self.fs.pipe_file(self.path, renewed.dumps().encode())
         return renewed
 
@@ -343,14 +393,14 @@ def _lease_lock(root: DataRoot, scene_id: str, options: LockOptions,
 
 def _lapsing(holder: Holder) -> bool:
     """Too near its expiry (or past it) to be renewed safely."""
-    return holder.expired(time.time() + RENEW_MARGIN * LEASE_SECONDS)
+    return holder.expired(CLOCK.now() + RENEW_MARGIN * LEASE_SECONDS)
 
 
 def _keep_alive(lease: _Lease, held: HeldLock, current: list[Holder], stop: threading.Event,
                 log: logging.Logger) -> None:
     """Renew ``held``'s lease every ``LEASE_SECONDS / 3`` until ``stop``; on finding it taken
     or lapsed, mark it lost and write it no more."""
-    while not stop.wait(LEASE_SECONDS / 3):
+    while not CLOCK.wait(stop, LEASE_SECONDS / 3):
         try:
             renewed = lease.renew(current[0])
         except Exception as exc:  # the store hiccuped: try again at the next beat, if there is time

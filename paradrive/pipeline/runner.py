@@ -30,6 +30,7 @@ import json
 import logging
 import os
 import re
+import sys
 import time
 import traceback
 import uuid
@@ -41,7 +42,7 @@ from collections.abc import Callable, Iterator
 import paradrive
 from paradrive.errors import (ConfigError, ParaDriveError, SceneError, StageNotImplemented, missing_extra,
                               os_error_fix)
-from paradrive.io import remove_stale_temporaries, sha256_file
+from paradrive.io import no_room_message, remove_stale_temporaries, sha256_file
 from paradrive.pipeline.locks import HeldLock, LockOptions, SceneLocked, scene_lock
 from paradrive.pipeline.progress import ProgressSink, StageProgress
 from paradrive.contracts.specs import ResolvedConfig, StageSpec, typed_params
@@ -130,7 +131,7 @@ def output_entry(path: Path, sha256: str | None = None) -> OutputFile:
     before the hash: a write during hashing shows as a changed time, never as a trusted hash."""
     stat = path.stat()
     return OutputFile(bytes=stat.st_size, sha256=sha256 or sha256_file(path),
-                      mtime_ns=stat.st_mtime_ns, inode=stat.st_ino)
+                      mtime_ns=stat.st_mtime_ns, inode=stat.st_ino, ctime_ns=stat.st_ctime_ns)
 
 
 def damaged_outputs(marker: StageMarker | None, size_of: Callable[[str], int | None],
@@ -164,20 +165,26 @@ def local_size(folder: Path) -> Callable[[str], int | None]:
     return size_of
 
 
-def local_sha256(folder: Path, *, trust_stat: bool = True) -> Callable[[str, OutputFile], str | None]:
+def local_sha256(folder: Path, *, trust_stat: bool = True,
+                 change_time: bool = False) -> Callable[[str, OutputFile], str | None]:
     """``sha_of(rel, recorded)``: the sha256 of an output as it is now (None: not a file).
 
     With ``trust_stat`` a file whose size, modification time and inode are those ``recorded``
     (:func:`output_entry`) keeps its recorded sha256 without being read: a no-op check of a
     paper-size scene's clips then costs a stat per file instead of reading ~0.3 GB. Without it
     (``--verify-outputs``) every file is read. A marker written before the stat was recorded
-    has its files read."""
+    has its files read. ``change_time``: the change time must be the recorded one too, which
+    no program can set back, so a write whose modification time was put back (``touch -d``,
+    ``os.utime``) is found; for a build's shards, not a scene's clips, whose change time moves
+    each time a publish links them."""
     def sha_of(rel: str, recorded: OutputFile) -> str | None:
         path = Path(folder) / rel
         try:
             stat = path.stat()
             if trust_stat and (stat.st_size, stat.st_mtime_ns, stat.st_ino) == (
-                    recorded.bytes, recorded.mtime_ns, recorded.inode):
+                    recorded.bytes, recorded.mtime_ns, recorded.inode) and not (
+                    change_time and recorded.ctime_ns is not None
+                    and stat.st_ctime_ns != recorded.ctime_ns):
                 return recorded.sha256
             return sha256_file(path)
         except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
@@ -428,6 +435,20 @@ class _Redacting(logging.Filter):
         return True
 
 
+class _SceneLogFile(logging.FileHandler):
+    """The scene's log file; a line that cannot be written there (its disk full) is dropped,
+    not printed with a traceback: the stage's own write fails too and says so in one line."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        if isinstance(sys.exc_info()[1], OSError):
+            return
+        super().handleError(record)
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):   # what it could not flush, the disk had no room for
+            super().close()
+
+
 @contextlib.contextmanager
 def scene_logger(scene_id: str, log_file: Path | None = None,
                  storage_options: dict | None = None) -> Iterator[logging.Logger]:
@@ -439,7 +460,7 @@ def scene_logger(scene_id: str, log_file: Path | None = None,
     handler = None
     if log_file is not None:
         log_file.parent.mkdir(parents=True, exist_ok=True)
-        handler = logging.FileHandler(os.path.abspath(log_file))
+        handler = _SceneLogFile(os.path.abspath(log_file))
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         handler.addFilter(_Redacting(storage_options))
         log.addHandler(handler)
@@ -479,6 +500,9 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
                                error=f"scene {scene_id}: {stage}: cannot lock "
                                      f"{root.scene_location(scene_id)}: {type(exc).__name__}: "
                                      f"{exc}; check the data root and re-run")
+        if held.read_only:   # the data root refused its lock file: nothing may be written
+            return _read_only_stage(config, stage, scene_uri, scene_id, root, force,
+                                    verify_outputs, held.read_only)
         try:
             result = _run_locked(config, stage, scene_uri, scene_id, root, force, on_progress,
                                  verify_outputs, held)
@@ -486,6 +510,30 @@ def run_scene_stage(config: ResolvedConfig, stage: str, scene_uri: str,
             held.discard = not scene_dir_for(root.local, scene_id).exists()
         result.took_over = held.took_over
         return result
+
+
+def _read_only_stage(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str,
+                     root: DataRoot, force: bool, verify_outputs: bool, why: str) -> StageResult:
+    """(scene, stage) on a data root this process cannot write (``why``: the lock file it was
+    refused): up to date, it is skipped as anywhere else, with nothing written (no log line,
+    no outputs let go); to run, it fails in one line naming the root and the fix."""
+    scene_dir = scene_dir_for(root.local, scene_id)
+    fp, marker = "", read_marker(scene_dir, stage)
+    try:
+        fp, upstream = stage_fingerprint(config, stage, scene_uri, scene_dir)
+        sha_of = (local_sha256(scene_dir, trust_stat=not verify_outputs)
+                  if hashes_checked(config, stage, verify_outputs) else None)
+        reason = "--force" if force else _stale(config, stage, scene_uri, scene_dir, marker, fp,
+                                                upstream, local_size(scene_dir), None, sha_of)
+    except ConfigError as exc:
+        reason = str(exc)
+    if not reason:
+        return StageResult(scene_id, stage, "skipped", fingerprint=fp,
+                           summary=dict((marker.summary if marker else None) or {}))
+    return StageResult(scene_id, stage, "failed", fingerprint=fp, error=(
+        f"scene {scene_id}: {stage} has to run ({reason}), but the data root {root.local} is "
+        f"read-only for this build ({why}); make it writable or pass a --data this user can "
+        f"write, then re-run"))
 
 
 def _run_locked(config: ResolvedConfig, stage: str, scene_uri: str, scene_id: str, root: DataRoot,
@@ -632,8 +680,11 @@ class _StageRun:
         if message is None:
             message = str(exc)
             if not isinstance(exc, ParaDriveError):
-                message = (f"scene {self.scene_id}: {self.stage} failed: {type(exc).__name__}: {exc}"
-                           f"{os_error_fix(exc, self.scene_dir)}")
+                message = no_room_message(
+                    exc, f"scene {self.scene_id}: {self.stage}", self.scene_dir,
+                    elsewhere="pass another --cache" if self.root.remote else "pass another --data"
+                ) or (f"scene {self.scene_id}: {self.stage} failed: {type(exc).__name__}: {exc}"
+                      f"{os_error_fix(exc, self.scene_dir)}")
             message = redact(message, self.root.storage_options)
         self.log.error("%s: failed: %s", self.stage, message)
         _remove_if_empty(self.scene_dir, made)

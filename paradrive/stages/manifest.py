@@ -16,6 +16,7 @@ import logging
 from pathlib import Path
 
 from paradrive.errors import ParaDriveError, SceneError
+from paradrive.io import no_room_named
 from paradrive.manifest import (MediaFile, dynamic_filter, publish, read_clips, scene_rows,
                                 staging_version)
 from paradrive.contracts.base import BuildContext
@@ -113,6 +114,8 @@ def _scene(entry: dict, staging: Path, params: Params) -> tuple[list[dict], list
 
 
 def run(ctx: BuildContext[Params]) -> IndexRecord:
-    return build_manifest(ctx.build_dir, ctx.scenes, ctx.params, fingerprint=ctx.fingerprint,
-                          build=ctx.build, log=ctx.log, selection=ctx.selection,
-                          data_root=ctx.data_dir)
+    # a publish that finds no room (a Parquet shard, a media copy) names the build folder
+    with no_room_named(ctx.build_dir):
+        return build_manifest(ctx.build_dir, ctx.scenes, ctx.params, fingerprint=ctx.fingerprint,
+                              build=ctx.build, log=ctx.log, selection=ctx.selection,
+                              data_root=ctx.data_dir)

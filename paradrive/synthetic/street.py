@@ -16,6 +16,7 @@ import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from paradrive.geometry import rotation_about
 from paradrive.scene import Camera
 from paradrive.synthetic import raycast as rc
 from paradrive.synthetic import traffic
+from paradrive.synthetic.limits import MAX_TRAVEL_M, along, check_values
 
 # box / cylinder / sphere materials
 FACADE, CAR, CABIN, WHEEL, METAL, LAMP, TRUNK, FOLIAGE, PERSON = range(9)
@@ -85,6 +87,51 @@ def camera_spec(name: str, width: int, height: int, hfov_deg: float = 70.0,
     f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2)
     return CameraSpec(name, int(width), int(height), float(f), float(f), 0.5 * width, 0.5 * height,
                       cam2ego)
+
+
+# ---------------------------------------------------------------------------------------------
+# the street's parameters: what each may be
+
+
+def camera_names(cameras) -> tuple[str, ...]:
+    """The rig's cameras from a tuple or a comma-separated string; ValueError for an unknown
+    one or none."""
+    if isinstance(cameras, str):
+        cameras = tuple(c.strip() for c in cameras.split(",") if c.strip())
+    cameras = tuple(cameras)
+    unknown = [c for c in cameras if c not in CAMERA_NAMES]
+    if unknown or not cameras:
+        raise ValueError(f"synthetic street: unknown camera(s) {unknown or cameras!r}; "
+                         f"use any of {', '.join(CAMERA_NAMES)}")
+    return cameras
+
+
+def defaults() -> dict[str, Any]:
+    """SyntheticStreet's own defaults, read from its signature (where they are defined)."""
+    import inspect
+
+    return {name: p.default for name, p in inspect.signature(SyntheticStreet).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+# the road laid out behind the first frame and ahead of the last one (m)
+_BEHIND_M, _AHEAD_M = 40.0, 160.0
+
+
+def drive(frames: int, speed_mps: float, fps: float, kappa: float) -> tuple[float, float]:
+    """The arc lengths ``(s_min, s_max)`` the street is laid out over; ValueError for a drive
+    longer than :data:`MAX_TRAVEL_M` or one that turns more than 160 degrees."""
+    travel = speed_mps * (frames - 1) / fps
+    if not abs(travel) <= MAX_TRAVEL_M:
+        raise ValueError(f"synthetic street: {frames} frames at {speed_mps} m/s and {fps} frames "
+                         f"a second drive {travel:.0f} m, over the {MAX_TRAVEL_M:.0f} m a street "
+                         f"may be; use fewer frames or a lower speed")
+    s_min, s_max = min(0.0, travel) - _BEHIND_M, max(0.0, travel) + _AHEAD_M
+    if kappa != 0.0 and max(abs(s_min), abs(s_max)) * abs(kappa) > 0.9 * np.pi:
+        raise ValueError(f"synthetic street: {frames} frames at {speed_mps} m/s on "
+                         f"curvature {kappa} turn more than 160 deg; use fewer frames "
+                         "or a smaller curvature")
+    return s_min, s_max
 
 
 # ---------------------------------------------------------------------------------------------
@@ -232,7 +279,9 @@ class _LayoutBuilder:
         for side, g in gens.items():
             front = self.facade_l[0] if side > 0 else self.facade_l[1]
             s = self.s_min - g.uniform(0, 10)
-            while s < self.s_max:
+            for _ in along(s, self.s_max, 8.0):   # a facade is 8 m wide at least
+                if s >= self.s_max:
+                    break
                 w = g.uniform(8, 26)
                 h = [g.uniform(7, 12), g.uniform(12, 20), g.uniform(20, 32)][g.choice(3, p=[.35, .4, .25])]
                 depth = g.uniform(9, 16)
@@ -247,7 +296,9 @@ class _LayoutBuilder:
             g = gens[side]
             front = (self.facade_l[0] if side > 0 else self.facade_l[1]) + 18.0
             s = self.s_min - g.uniform(0, 20)
-            while s < self.s_max:
+            for _ in along(s, self.s_max, 14.0):
+                if s >= self.s_max:
+                    break
                 w = g.uniform(14, 40)
                 h = g.uniform(16, 45)
                 l_in = front + g.uniform(0, 6)
@@ -262,7 +313,9 @@ class _LayoutBuilder:
         for side in (1.0, -1.0):
             g_car = gens[side]
             s = self.s_min + g_car.uniform(0, 6)
-            while s < self.s_max:
+            for _ in along(s, self.s_max, 3.9 + 0.8):   # the shortest car and gap
+                if s >= self.s_max:
+                    break
                 length = g_car.uniform(3.9, 4.8)
                 width = g_car.uniform(1.72, 1.9)
                 lc = side * (park + g_car.uniform(-0.12, 0.12))
@@ -280,7 +333,9 @@ class _LayoutBuilder:
         for side in (1.0, -1.0):
             g_lamp = gens[side]
             s = self.s_min + g_lamp.uniform(0, 20)
-            while s < self.s_max:
+            for _ in along(s, self.s_max, 20.0):
+                if s >= self.s_max:
+                    break
                 h = g_lamp.uniform(6.0, 8.0)
                 lp = side * (self.kerb_l + 0.6)
                 x, y = self.arc.to_world(s, lp)
@@ -301,7 +356,9 @@ class _LayoutBuilder:
             g_tree = gens[side]
             s = self.s_min + g_tree.uniform(0, 12)
             near = np.array(lamp_s[side])
-            while s < self.s_max:
+            for _ in along(s, self.s_max, 11.0):
+                if s >= self.s_max:
+                    break
                 lt = side * (self.kerb_l + g_tree.uniform(1.3, 1.9))
                 r_crown = g_tree.uniform(1.3, 2.2)
                 trunk_h = g_tree.uniform(2.6, 3.6)
@@ -605,18 +662,9 @@ class SyntheticStreet:
                  height: int = 480, curvature: float = 0.0, speed_mps: float = 8.0,
                  fps: float = 10.0, cameras=("front",), lidar: bool = False,
                  traffic: bool = True):
-        if isinstance(cameras, str):
-            cameras = tuple(c.strip() for c in cameras.split(",") if c.strip())
-        unknown = [c for c in cameras if c not in CAMERA_NAMES]
-        if unknown or not cameras:
-            raise ValueError(f"synthetic street: unknown camera(s) {unknown or cameras!r}; "
-                             f"use any of {', '.join(CAMERA_NAMES)}")
-        if int(frames) < 1 or int(width) < 1 or int(height) < 1 or float(fps) <= 0:
-            raise ValueError(f"synthetic street: frames={frames}, width={width}, height={height}, "
-                             f"fps={fps} must all be positive")
-        if abs(float(curvature)) > 0.01:
-            raise ValueError(f"synthetic street: curvature {curvature} 1/m is too sharp; "
-                             "use |curvature| <= 0.01 (radius >= 100 m)")
+        cameras = camera_names(cameras)
+        check_values({"seed": seed, "frames": frames, "width": width, "height": height,
+                      "curvature": curvature, "speed_mps": speed_mps, "fps": fps})
         self.name = str(name)
         self.seed = int(seed)
         self.frames = int(frames)
@@ -627,12 +675,7 @@ class SyntheticStreet:
         self.fps = float(fps)
         self.lidar = bool(lidar)
         self.arc = rc.RoadArc(self.curvature)
-        travel = self.speed_mps * (self.frames - 1) / self.fps
-        s_min, s_max = min(0.0, travel) - 40.0, max(0.0, travel) + 160.0
-        if self.arc.kappa != 0.0 and max(abs(s_min), abs(s_max)) * abs(self.arc.kappa) > 0.9 * np.pi:
-            raise ValueError(f"synthetic street: {self.frames} frames at {self.speed_mps} m/s on "
-                             f"curvature {self.curvature} turn more than 160 deg; use fewer frames "
-                             "or a smaller curvature")
+        s_min, s_max = drive(self.frames, self.speed_mps, self.fps, self.arc.kappa)
         self.traffic = bool(traffic)
         self.layout = build_layout(self.seed, self.arc, s_min, s_max,
                                    ego_speed=self.speed_mps if self.traffic else 0.0)

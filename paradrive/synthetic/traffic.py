@@ -18,6 +18,7 @@ import numpy as np
 
 from paradrive import geometry
 from paradrive.actors import Actor
+from paradrive.synthetic.limits import along
 
 # labels as a roof LiDAR would give them: only while the box centre is this close to the ego (m)
 LABEL_RANGE_M = 75.0
@@ -48,6 +49,13 @@ class Mover:
         dl = float(np.clip(lc + self.velocity[1] * t, -self.l_stop, self.l_stop)) - lc
         return self.velocity[0] * t, dl
 
+    def offsets(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ds, dl) at each of ``times`` (s): :meth:`offset` for all of them at once, the same
+        float64 operations element by element."""
+        lc = 0.5 * (self.bbox[2] + self.bbox[3])
+        dl = np.clip(lc + self.velocity[1] * times, -self.l_stop, self.l_stop) - lc
+        return self.velocity[0] * times, dl
+
     def size(self) -> np.ndarray:
         """length (along the heading), width, height."""
         s0, s1, l0, l1, z0, z1 = self.bbox
@@ -73,9 +81,9 @@ def track(mover: Mover, arc, times: np.ndarray, ego_xy: np.ndarray) -> Actor | N
     Frames where the box centre is farther than LABEL_RANGE_M from the ego carry no label.
     """
     s0, s1, l0, l1, z0, z1 = mover.bbox
-    offsets = np.array([mover.offset(float(t)) for t in times]).reshape(-1, 2)
-    sc = 0.5 * (s0 + s1) + offsets[:, 0]
-    lc = 0.5 * (l0 + l1) + offsets[:, 1]
+    ds, dl = mover.offsets(np.asarray(times, np.float64))
+    sc = 0.5 * (s0 + s1) + ds
+    lc = 0.5 * (l0 + l1) + dl
     x, y = arc.to_world(sc, lc)
     near = np.hypot(x - ego_xy[:, 0], y - ego_xy[:, 1]) <= LABEL_RANGE_M
     if not near.any():
@@ -97,7 +105,9 @@ def lane_cars(g, lane_l: float, direction: float, speed: float, s_min: float, s_
     """
     cars = []
     s = s_min + g.uniform(0.0, 15.0)
-    while s < s_max:
+    for _ in along(s, s_max, 22.0):   # the next car's rear is 22 m at least past this one's front
+        if s >= s_max:
+            break
         rows, bbox = add_car(g, s, lane_l + g.uniform(-0.2, 0.2), direction)
         cars.append((rows, bbox, (direction * speed * g.uniform(0.97, 1.03), 0.0),
                      0.0 if direction > 0 else np.pi))
@@ -115,7 +125,9 @@ def crossing_people(g, street_half: float, ego_speed: float, s_min: float, s_max
     """
     people = []
     s = s_min + g.uniform(20.0, 40.0)
-    while s < s_max:
+    for _ in along(s, s_max, 35.0):
+        if s >= s_max:
+            break
         side = 1.0 if g.random() < 0.5 else -1.0  # the side it starts from
         speed = g.uniform(1.2, 1.6)
         t_centre = max(s, 0.0) / ego_speed - g.uniform(3.0, 6.0)

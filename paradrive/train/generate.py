@@ -24,7 +24,7 @@ from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import path_inside
 from paradrive.train.trainer import read_checkpoint, torch_threads, write_video
 from paradrive.wan.recam import checkpoint_parameter_names, load_trained
-from paradrive.train.wan import (CHECKPOINT_FORMAT, WanRunner, base_record, build_wan_model, check_base,
+from paradrive.train.wan import (WanRunner, base_record, build_wan_model, check_base, check_format,
                                  generated_frames, open_wan_dataset)
 
 __all__ = ["Generator", "GenerateReport", "checkpoint_file", "load_generator", "generate"]
@@ -54,8 +54,7 @@ def load_generator(checkpoint: Path, folders: dict[str, str | None], device: str
     ``folders`` (``vae``, ``text_encoder``) replace the run's own when given."""
     path = checkpoint_file(checkpoint)
     ckpt = read_checkpoint(path, "--checkpoint", ("format", "stage", "config", "model", "base"))
-    if ckpt["format"] != CHECKPOINT_FORMAT:
-        raise ValueError(f"--checkpoint {path}: not a 'paradrive train --model wan' checkpoint ({CHECKPOINT_FORMAT})")
+    check_format(ckpt["format"], f"--checkpoint {path}")
     config = ckpt["config"]
     config["model"].update({k: str(v) for k, v in folders.items() if v is not None})
     if folders.get("transformer") is None:

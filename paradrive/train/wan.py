@@ -16,11 +16,16 @@ A batch comes in one of two forms, told apart by its keys:
   (frozen, no gradients), the camera taken from ``rel_pose`` at frames 0, 4, 8, ... (one per
   latent frame) and the empty prompt's embedding computed once.
 
-The camera input (``model.camera``) is ``relative`` by default: ΔT = ``rel_pose`` =
+The camera input (``model.camera``, :data:`CAMERA_FORMS`): ``relative`` is ΔT = ``rel_pose`` =
 inv(c2w_target)·c2w_source at the same frame, the map from source-camera to target-camera
-coordinates, as the paper conditions on; ``recammaster`` is the target camera in the source
-camera's coordinates at its first frame, which carries the ego's own motion too (see
-docs/train-recamdriving.md).
+coordinates; ``recammaster_per_frame`` is its inverse, inv(c2w_source)·c2w_target at the same
+frame, the target camera seen from the source camera in ReCamMaster's sign; ``recammaster`` is
+the target camera in the source camera's coordinates at its first frame, ReCamMaster's own form,
+which carries the ego's own motion too. ``auto`` (the default) is ``recammaster_per_frame`` when
+stage 1 starts its camera encoder from ReCamMaster (``model.recammaster``), so the encoder reads
+inputs of the sign it was trained on, and ``relative`` otherwise; stage 2 keeps the form its
+stage-1 checkpoint was trained with. The run's config and checkpoints record the form used, never
+``auto`` (see docs/train-recamdriving.md).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from typing import Any, cast
 
 import torch
 
+from paradrive import geometry
 from paradrive.data import PairDataset
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import load_tensors
@@ -45,11 +51,15 @@ from paradrive.wan.recam import (ReCamDrivingWan, checkpoint_parameter_names, co
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "paradrive-train-wan/2"
+# /3: the frame embedding counts the latent frames of one clip (shared by target, source and
+# condition); a /2 checkpoint's covered the joined sequence and does not fit
+CHECKPOINT_FORMAT = "paradrive-train-wan/3"
 TINY = "tiny"
 TINY_TEXT_TOKENS = 8
 # model settings a stage-2 run may set apart from the stage-1 run it starts from
-_STAGE_ONLY = ("stage2_ffn", "recammaster")
+_STAGE_ONLY = ("stage2_ffn", "recammaster", "cross_attn_zero_out")
+# the camera inputs ``model.camera`` chooses among (besides ``auto``)
+CAMERA_FORMS = ("relative", "recammaster_per_frame", "recammaster")
 
 
 def load_wan_config(source: str | Path | None, overrides: Mapping[str, Any] | None = None) -> dict:
@@ -79,6 +89,16 @@ def relative_camera(rel_pose: torch.Tensor) -> torch.Tensor:
     return rel_pose[:, index, :3, :4].reshape(rel_pose.shape[0], -1, 12).float()
 
 
+def camera_form(model: Mapping[str, Any]) -> str:
+    """The camera input a run's ``model`` settings choose: ``model.camera``, with ``auto`` read as
+    ``recammaster_per_frame`` when ``model.recammaster`` names a ReCamMaster checkpoint (its camera
+    encoder was trained on inputs of that sign) and ``relative`` otherwise."""
+    chosen = str(model["camera"])
+    if chosen != "auto":
+        return chosen
+    return "recammaster_per_frame" if model.get("recammaster") is not None else "relative"
+
+
 def to_channels_first(frames: torch.Tensor) -> torch.Tensor:
     """The adapter's (B, F, 3, H, W) frames -> the (B, 3, F, H, W) layout diffusers' video models
     (and the Wan VAE) take."""
@@ -86,14 +106,14 @@ def to_channels_first(frames: torch.Tensor) -> torch.Tensor:
 
 
 def check_shape(config: Mapping[str, Any], model: ReCamDrivingWan) -> None:
-    """ConfigError before any work when the frame embedding cannot cover a clip's target and
-    source latent frames together, or the frames do not divide into the transformer's patches."""
+    """ConfigError before any work when the frame embedding cannot cover a clip's latent frames,
+    or the frames do not divide into the transformer's patches."""
     d = config["data"]
     frames, cover = int(d["num_frames"]), int(config["model"]["max_frames"])
-    need = 2 * len(latent_frame_indices(frames))
+    need = len(latent_frame_indices(frames))
     if need > cover:
-        raise ConfigError(f"model.max_frames = {cover}: {frames}-frame clips need {need} (the target's and "
-                          f"the source's latent frames together); set model.max_frames={need} or more")
+        raise ConfigError(f"model.max_frames = {cover}: {frames}-frame clips need {need} (their latent frames, "
+                          f"1 + (F - 1) // 4); set model.max_frames={need} or more")
     _, p_h, p_w = model.transformer.config.patch_size
     unit_h, unit_w = 8 * p_h, 8 * p_w   # the VAE's 8x, then the transformer's patch
     if int(d["height"]) % unit_h or int(d["width"]) % unit_w:
@@ -135,7 +155,7 @@ def open_wan_dataset(build_dir: str | Path, config: Mapping[str, Any], notes: li
     (:func:`cache_mismatch`), else uint8 frames. ``data.input: latents`` with no fitting cache is
     a ConfigError; ``auto`` then reads the videos and says why in ``notes``."""
     d = config["data"]
-    pose_format = "recammaster" if config["model"]["camera"] == "recammaster" else None
+    pose_format = "recammaster" if camera_form(config["model"]) == "recammaster" else None
     kwargs: dict[str, Any] = {"num_frames": d["num_frames"], "frame_stride": d["frame_stride"],
                               "output_size": (d["height"], d["width"]), "pose_format": pose_format}
     fix = (f"re-encode it with 'paradrive encode {build_dir} --vae DIR --set encode.num_frames={d['num_frames']} "
@@ -214,14 +234,22 @@ class WanRunner:
 
     def _camera(self, batch: Mapping[str, Any], cached: bool) -> torch.Tensor:
         """(B, T', 12) float32 per latent frame: ΔT (``relative``; a latent sample's ``rel_pose``
-        is already one per latent frame, a pixel sample's one per video frame), or ReCamMaster's
-        form (``recammaster``: the ``camera`` of a latent sample or of ``pose_format="recammaster"``)."""
-        if self.config["model"]["camera"] == "recammaster":
+        is already one per latent frame, a pixel sample's one per video frame), its inverse
+        (``recammaster_per_frame``), or ReCamMaster's form (``recammaster``: the ``camera`` of a
+        latent sample or of ``pose_format="recammaster"``)."""
+        form = camera_form(self.config["model"])
+        if form == "recammaster":
             if "camera" not in batch:
                 raise ValueError("model.camera=recammaster: the samples carry no 'camera'; read the build "
                                  "with pose_format='recammaster'")
             return batch["camera"].to(self.device).float()
-        rel = batch["rel_pose"].to(self.device)
+        rel = batch["rel_pose"]
+        if form == "recammaster_per_frame":
+            if not cached:
+                rel = rel[:, latent_frame_indices(rel.shape[1])]
+            rows = geometry.recammaster_per_frame_camera(rel.detach().cpu().double().numpy())
+            return torch.from_numpy(rows).to(self.device)
+        rel = rel.to(self.device)
         if cached:
             return rel[:, :, :3, :4].reshape(rel.shape[0], rel.shape[1], 12).float()
         return relative_camera(rel)
@@ -279,6 +307,9 @@ class WanTrainer(WanRunner, Trainer):
         # the reference's __init__ builds its own model: only its first steps are shared
         self._start(config, stage, out_dir, dataset)
         m = self.config["model"]
+        # recorded as the form used; at stage 2 ``auto`` becomes the form stage 1 trained with
+        self._camera_auto = m["camera"] == "auto"
+        m["camera"] = camera_form(m)
         self.ffn = bool(m["stage2_ffn"])
         self.model = build_wan_model(self.config, stage).to(self.device)
         check_shape(self.config, self.wan)
@@ -298,6 +329,23 @@ class WanTrainer(WanRunner, Trainer):
     def state_dict(self) -> dict:
         return {**super().state_dict(), "base": dict(self.base)}
 
+    def _load(self, path: Path, ckpt: dict) -> None:
+        if ckpt.get("format") == "paradrive-train-wan/2":
+            check_format(ckpt["format"], str(path))
+        self._adopt_camera(ckpt, str(path))
+        super()._load(path, ckpt)
+
+    def _adopt_camera(self, ckpt: Mapping[str, Any], where: str) -> None:
+        """At stage 2, ``model.camera: auto`` is the camera form of the checkpoint it starts from
+        (stage 1's: its camera encoder, frozen now, was trained on that input)."""
+        theirs = ckpt.get("config", {}).get("model", {}).get("camera")
+        if not self._camera_auto or self.stage != 2 or theirs not in CAMERA_FORMS:
+            return
+        if theirs == "recammaster" and self.config["model"]["camera"] != theirs:
+            raise ConfigError(f"{where}: trained with model.camera=recammaster, which reads the build with "
+                              f"pose_format='recammaster'; pass --set model.camera=recammaster")
+        self.config["model"]["camera"] = theirs
+
     def _load_model_state(self, path: Path, ckpt: dict) -> None:
         check_base(ckpt, self.base, str(path))
         load_trained(self.wan, ckpt["model"], checkpoint_parameter_names(self.wan, self.stage, self.ffn), str(path))
@@ -306,8 +354,8 @@ class WanTrainer(WanRunner, Trainer):
         if not path.is_file():
             raise FileNotFoundError(f"--init {path}: no such checkpoint")
         ckpt = read_checkpoint(path, "--init", ("format", "stage", "config", "model", "base"), self.device)
-        if ckpt["format"] != CHECKPOINT_FORMAT:
-            raise ValueError(f"--init {path}: not a 'paradrive train --model wan' checkpoint ({CHECKPOINT_FORMAT})")
+        check_format(ckpt["format"], f"--init {path}")
+        self._adopt_camera(ckpt, f"--init {path}")
         mine = {k: v for k, v in self.config["model"].items() if k not in _STAGE_ONLY}
         theirs = {k: v for k, v in ckpt["config"]["model"].items() if k not in _STAGE_ONLY}
         if theirs != mine:
@@ -330,7 +378,24 @@ class WanTrainer(WanRunner, Trainer):
             state = load_tensors(path)
             state = state.get("state_dict", state) if isinstance(state, dict) else state
         count = load_recammaster(self.wan, state, str(path))
-        log.info("loaded %d ReCamMaster tensors from %s", count, path)
+        camera = self.config["model"]["camera"]
+        log.info("loaded %d ReCamMaster tensors from %s (camera input: %s)", count, path, camera)
+        if camera == "relative":
+            self.notes.append(f"model.recammaster {path} with model.camera=relative: its camera encoder was trained "
+                              f"on the target seen from the source, the opposite sign of ΔT; "
+                              f"model.camera=recammaster_per_frame (the default with model.recammaster) feeds it that")
+
+
+def check_format(found: Any, where: str) -> None:
+    """ValueError unless ``found`` is this trainer's checkpoint format; one of the earlier format
+    (its frame embedding covered the joined sequence) is named as such."""
+    if found == CHECKPOINT_FORMAT:
+        return
+    if found == "paradrive-train-wan/2":
+        raise ValueError(f"{where}: written by an earlier 'paradrive train --model wan' whose frame embedding "
+                         f"covered the target's and the source's latent frames together ({found}); this one shares "
+                         f"one row per latent frame ({CHECKPOINT_FORMAT}): train the stages again")
+    raise ValueError(f"{where}: not a 'paradrive train --model wan' checkpoint ({CHECKPOINT_FORMAT})")
 
 
 def base_record(config: Mapping[str, Any], model: ReCamDrivingWan) -> dict[str, str]:
@@ -360,7 +425,9 @@ def build_wan_model(config: Mapping[str, Any], stage: int) -> ReCamDrivingWan:
     transformer = make_tiny_transformer(int(config["seed"])) if source == TINY else load_transformer(source)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(config["seed"]))
-        return ReCamDrivingWan(transformer, rendering=stage == 2, max_frames=int(m["max_frames"]))
+        return ReCamDrivingWan(transformer, rendering=stage == 2, max_frames=int(m["max_frames"]),
+                               frame_embedding=str(m["frame_embedding"]),
+                               cross_attn_zero_out=bool(m["cross_attn_zero_out"]))
 
 
 def load_wan_vae(config: Mapping[str, Any], device: torch.device) -> Any:
@@ -402,7 +469,7 @@ def _autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
     return None
 
 
-__all__ = ["CHECKPOINT_FORMAT", "DamagedCheckpoint", "WanRunner", "WanTrainer", "base_record", "build_wan_model",
-           "cache_mismatch", "check_base", "check_shape", "empty_text_embedding", "generated_frames",
-           "latent_frame_indices", "load_wan_config", "load_wan_vae", "open_wan_dataset", "relative_camera",
-           "to_channels_first"]
+__all__ = ["CAMERA_FORMS", "CHECKPOINT_FORMAT", "DamagedCheckpoint", "WanRunner", "WanTrainer", "base_record",
+           "build_wan_model", "cache_mismatch", "camera_form", "check_base", "check_format", "check_shape",
+           "empty_text_embedding", "generated_frames", "latent_frame_indices", "load_wan_config", "load_wan_vae",
+           "open_wan_dataset", "relative_camera", "to_channels_first"]

@@ -250,7 +250,8 @@ def encode_build(build_dir: str | Path, settings: EncodeSettings, *, log: loggin
     build_dir = Path(build_dir)
     index = read_index(build_dir)
     vae_sha256 = folder_checksum(vae_folder(_vae_path(settings)))
-    rows = read_pairs(build_dir, _COLUMNS, index)  # the rows of the version it read
+    # the rows of the version it read, each shard checked against its sha256 in the index
+    rows = read_pairs(build_dir, _COLUMNS, index, verify=True)
     if rows.num_rows == 0:
         raise ParaDriveError(f"build {index.build} has no pairs to encode ({build_dir})")
     plan = _plan(settings, rows, vae_sha256)

@@ -3,19 +3,25 @@
 :class:`ReCamDrivingWan` keeps a ``diffusers.WanTransformer3DModel`` untouched (its weights load
 and save in diffusers' layout) and adds, beside it, what the paper adds:
 
-stage 1 (relative-pose control)
+stage 1 (relative-pose control), the paper's x_i = Cat(x_t + c_r + E_f, x_s + c_I + E_f)
     per block a camera encoder (``Linear(12, dim)``, zero-initialised) whose output is added to
     the normalised hidden states entering the block's self-attention, and a projector
     (``Linear(dim, dim)``, initialised to the identity) after it, as ReCamMaster does; a learnable
-    frame embedding (zero-initialised) added to every token of a latent frame. The transformer
+    frame embedding E_f of one row per latent frame of a clip (zero-initialised). The transformer
     reads the noisy target latents and the clean source latents concatenated along frames
     (target first, as ReCamMaster orders them, so its weights keep their RoPE positions); the
-    camera input is the target's pose for the target half and the identity for the source half.
-stage 2 (3DGS guidance)
+    camera input is the target's pose (c_r) for the target half and the identity (c_I) for the
+    source half, and target frame k and source frame k get the same row k of E_f.
+stage 2 (3DGS guidance), the paper's x̄_gs = x_gs + c_r + E_f
     per block a *rendering attention* (self-attention over the condition rendering's tokens,
-    a second stream carried from block to block, initialised from the block's self-attention)
-    and a *cross attention* from the diffusion tokens to that stream, whose output projection
-    starts at zero so a fresh stage-2 model computes exactly what its stage-1 weights did.
+    a second stream carried from block to block, initialised from the block's Wan2.1
+    self-attention) and a *cross attention* from the diffusion tokens to that stream, initialised
+    with its norm from the block's Wan2.1 cross attention (the one to the text), as the paper
+    does. The condition tokens get row k of E_f, and c_r enters them as it enters the target's:
+    added to the input of every block's (rendering) attention.
+
+Two settings beyond the paper (``frame_embedding="per_half"``, ``cross_attn_zero_out=True``) are
+described where the class takes them.
 
 Time convention: :mod:`paradrive.train.flow` runs t = 0 (noise) -> 1 (data) and learns
 v = data - noise; Wan was trained on sigma = 1 - t (timestep = 1000 sigma) predicting
@@ -45,6 +51,10 @@ from paradrive.errors import ConfigError
 
 # the identity pose as the camera encoder reads it: the top 3x4 rows, row-major
 IDENTITY_CAMERA = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+# how the frame embedding's rows are laid out: the paper's one E_f for all three streams, or a row
+# per frame of the joined target + source sequence (beyond the paper)
+FRAME_EMBEDDINGS = ("shared", "per_half")
 
 # module names (inside ``recam.<i>.`` or the transformer's ``blocks.<i>.``) each stage trains
 STAGE1_MODULES = ("attn1", "cam_encoder", "projector", "frame_embed")
@@ -117,9 +127,10 @@ class ReCamBlockAdditions(nn.Module):
 
     Stage 1: ``cam_encoder`` and ``projector``. With ``rendering`` (stage 2) also
     ``render_norm`` / ``render_attn`` (a copy of the block's self-attention) and ``cross_norm`` /
-    ``cross_attn`` (output projection zero)."""
+    ``cross_attn`` (copies of the block's text cross attention and its norm; with
+    ``cross_attn_zero_out`` the copy's output projection is zeroed)."""
 
-    def __init__(self, block: Any, dim: int, rendering: bool):
+    def __init__(self, block: Any, dim: int, rendering: bool, cross_attn_zero_out: bool = False):
         super().__init__()
         self.cam_encoder = nn.Linear(12, dim)
         nn.init.zeros_(self.cam_encoder.weight)
@@ -130,20 +141,18 @@ class ReCamBlockAdditions(nn.Module):
             self.projector.bias.zero_()
         self.rendering = rendering
         if rendering:
-            from diffusers.models.transformers.transformer_wan import WanAttention, WanAttnProcessor
-
-            attn = block.attn1
+            if block.attn2.add_k_proj is not None:
+                raise ConfigError("the transformer's cross attention also reads image tokens (added_kv_proj_dim): "
+                                  "ReCamDriving's stage 2 starts from Wan2.1's text-to-video cross attention")
             self.render_norm = nn.LayerNorm(dim, eps=1e-6)
-            self.render_attn = copy.deepcopy(attn)
-            self.cross_norm = nn.LayerNorm(dim, eps=1e-6)
-            head_dim = dim // attn.heads
-            self.cross_attn = WanAttention(dim=dim, heads=attn.heads, dim_head=head_dim, eps=1e-6,
-                                           cross_attention_dim_head=head_dim,
-                                           processor=WanAttnProcessor())
-            out = cast(nn.Linear, self.cross_attn.to_out[0])
-            nn.init.zeros_(out.weight)
-            nn.init.zeros_(out.bias)
-            self.to(attn.to_q.weight.device)
+            self.render_attn = copy.deepcopy(block.attn1)    # the paper: from Wan2.1's self-attention
+            self.cross_norm = copy.deepcopy(block.norm2)     # the paper: from Wan2.1's cross attention
+            self.cross_attn = copy.deepcopy(block.attn2)
+            if cross_attn_zero_out:
+                out = cast(nn.Linear, self.cross_attn.to_out[0])
+                nn.init.zeros_(out.weight)
+                nn.init.zeros_(out.bias)
+            self.to(block.attn1.to_q.weight.device)
 
     def camera(self, camera: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """camera (B, N, 12) float32 -> (B, N, dim) in ``dtype``. The poses stay float32 into the
@@ -168,20 +177,34 @@ class ReCamDrivingWan(nn.Module):
       condition_latents  (B, C, T', h, w)  the 3DGS condition rendering's latents (stage 2 only)
     returns the velocity (data - noise) of the target latents, (B, C, T', h, w).
 
-    ``max_frames``: latent frames the frame embedding covers, the target's and the source's
-    together (62 for 121-frame clips: 2 x 31).
+    ``max_frames``: the latent frames of one clip the frame embedding covers (the paper's f: 31
+    for 121-frame clips).
+
+    ``frame_embedding``: ``shared`` (the paper's E_f, ``max_frames`` rows: target frame k, source
+    frame k and condition frame k all get row k) or ``per_half`` (beyond the paper:
+    ``2 * max_frames`` rows over the joined sequence, source frame k gets row T' + k and the
+    condition row k, so the embedding alone also tells the two halves apart).
+
+    ``cross_attn_zero_out`` (beyond the paper): zero the stage-2 cross attention's output
+    projection after copying it from Wan2.1's, so that a fresh stage-2 model computes exactly
+    what its stage-1 weights computed. The trainer passes both from its settings.
     """
 
-    def __init__(self, transformer: Any, rendering: bool = False, max_frames: int = 64):
+    def __init__(self, transformer: Any, rendering: bool = False, *, max_frames: int,
+                 frame_embedding: str = "shared", cross_attn_zero_out: bool = False):
         super().__init__()
+        if frame_embedding not in FRAME_EMBEDDINGS:
+            raise ValueError(f"frame_embedding={frame_embedding!r}: use one of {', '.join(FRAME_EMBEDDINGS)}")
         self.transformer: Any = transformer
         config = transformer.config
         self.dim = int(config.num_attention_heads * config.attention_head_dim)
         self.rendering = rendering
-        self.recam = nn.ModuleList(ReCamBlockAdditions(block, self.dim, rendering)
+        self.recam = nn.ModuleList(ReCamBlockAdditions(block, self.dim, rendering, cross_attn_zero_out)
                                    for block in transformer.blocks)
         device = next(transformer.parameters()).device
-        self.frame_embed = nn.Parameter(torch.zeros(max_frames, self.dim, device=device))
+        self.max_frames, self.frame_embedding = int(max_frames), frame_embedding
+        rows = self.max_frames * (2 if frame_embedding == "per_half" else 1)
+        self.frame_embed = nn.Parameter(torch.zeros(rows, self.dim, device=device))
         self.gradient_checkpointing = False
 
     def enable_gradient_checkpointing(self, enabled: bool = True) -> None:
@@ -190,32 +213,42 @@ class ReCamDrivingWan(nn.Module):
         self.gradient_checkpointing = enabled
 
     # -- tokens -------------------------------------------------------------------------------
-    def _tokens(self, latents: torch.Tensor) -> torch.Tensor:
-        """latents (B, C, T, h, w) -> patch tokens (B, T*l, dim), l tokens per latent frame,
-        plus the frame embedding of their latent frame (frames counted within ``latents``)."""
-        frames = latents.shape[2]
-        if frames > self.frame_embed.shape[0]:
-            raise ValueError(f"{frames} latent frames exceed model.max_frames={self.frame_embed.shape[0]}")
+    def frame_rows(self, frames: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The rows of E_f for the target's, the source's and the condition's ``frames`` latent
+        frames, (T', dim) each: the same rows 0 .. T'-1 for all three (``shared``, the paper's),
+        or rows T' .. 2T'-1 for the source (``per_half``)."""
+        if frames > self.max_frames:
+            raise ValueError(f"{frames} latent frames exceed model.max_frames={self.max_frames}")
+        rows = self.frame_embed[:frames]
+        if self.frame_embedding == "per_half":
+            return rows, self.frame_embed[frames:2 * frames], rows
+        return rows, rows, rows
+
+    def _tokens(self, latents: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """latents (B, C, T, h, w) -> patch tokens (B, T*l, dim), l tokens per latent frame, each
+        plus its frame's row of ``rows`` (T, dim)."""
         x = self.transformer.patch_embedding(latents)          # (B, dim, T, h', w')
         per_frame = x.shape[3] * x.shape[4]
         x = x.flatten(2).transpose(1, 2)
-        e_f = self.frame_embed[:frames].to(x.dtype).repeat_interleave(per_frame, dim=0)
+        e_f = rows.to(x.dtype).repeat_interleave(per_frame, dim=0)
         return (x + e_f).contiguous()
 
-    def _camera_input(self, camera: torch.Tensor, tokens_per_frame: int) -> torch.Tensor:
-        """(B, T', 12) target poses -> (B, 2T'*l, 12): the target's pose on the target half, the
-        identity on the source half, repeated over each frame's l tokens."""
+    def camera_inputs(self, camera: torch.Tensor, tokens_per_frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, T', 12) target poses -> what each token's camera encoder reads, repeated over each
+        frame's l tokens: the joined sequence's (B, 2T'*l, 12), the target's pose on the target
+        half (c_r) and the identity on the source half (c_I), and the condition's (B, T'*l, 12),
+        the target's pose again (the paper's x̄_gs carries the same c_r as the target)."""
+        target = camera.float().repeat_interleave(tokens_per_frame, dim=1)
         identity = torch.tensor(IDENTITY_CAMERA, dtype=torch.float32, device=camera.device)
-        both = torch.cat([camera.float(), identity.expand_as(camera)], dim=1)
-        return both.repeat_interleave(tokens_per_frame, dim=1)
+        return torch.cat([target, identity.expand_as(target)], dim=1), target
 
     # -- one block ----------------------------------------------------------------------------
     def _block(self, index: int, x: torch.Tensor, cond: torch.Tensor | None, camera: torch.Tensor,
-               context: torch.Tensor, temb: torch.Tensor, rope: tuple, cond_rope: tuple | None
-               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+               cond_camera: torch.Tensor | None, context: torch.Tensor, temb: torch.Tensor, rope: tuple,
+               cond_rope: tuple | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """One Wan block with ReCamDriving's additions, in the block's own order: self-attention
-        (camera added to its input, projector on its output), [stage 2: rendering attention and
-        cross attention], text cross-attention, FFN."""
+        (camera added to its input, projector on its output), [stage 2: rendering attention (the
+        same camera term added to its input) and cross attention], text cross-attention, FFN."""
         block, add = self.transformer.blocks[index], cast(ReCamBlockAdditions, self.recam[index])
         shift, scale, gate, c_shift, c_scale, c_gate = (block.scale_shift_table + temb.float()).chunk(6, dim=1)
         normed = (block.norm1(x.float()) * (1 + scale) + shift).type_as(x)
@@ -223,8 +256,10 @@ class ReCamDrivingWan(nn.Module):
         attn = add.projector(block.attn1(normed, None, None, rope))
         x = (x.float() + attn * gate).type_as(x)
         if self.rendering:
-            assert cond is not None and cond_rope is not None
-            cond = cond + add.render_attn(add.render_norm(cond), None, None, cond_rope)
+            assert cond is not None and cond_camera is not None and cond_rope is not None
+            normed_cond = add.render_norm(cond)
+            normed_cond = normed_cond + add.camera(cond_camera, normed_cond.dtype)
+            cond = cond + add.render_attn(normed_cond, None, None, cond_rope)
             x = x + add.cross_attn(add.cross_norm(x), cond, None, None)
         normed = block.norm2(x.float()).type_as(x)
         x = x + block.attn2(normed, context, None, None)
@@ -251,23 +286,26 @@ class ReCamDrivingWan(nn.Module):
             raise ValueError(f"latent grid {h}x{w} does not divide into the transformer's patch {p_h}x{p_w}")
         hidden = torch.cat([x_t, source_latents.to(x_t.dtype)], dim=2)    # target first, then source
         rope = tf.rope(hidden)
-        x = self._tokens(hidden)
-        per_frame = (h // p_h) * (w // p_w)
-        cam = self._camera_input(camera, per_frame)
+        e_target, e_source, e_condition = self.frame_rows(frames)
+        x = self._tokens(hidden, torch.cat([e_target, e_source]))
+        cam, cond_cam = self.camera_inputs(camera, (h // p_h) * (w // p_w))
         cond = cond_rope = None
         if self.rendering:
             assert condition_latents is not None
+            if condition_latents.shape != x_t.shape:
+                raise ValueError(f"condition latents {tuple(condition_latents.shape)} and target latents "
+                                 f"{tuple(x_t.shape)} differ")
             cond_rope = tf.rope(condition_latents)
-            cond = self._tokens(condition_latents.to(x_t.dtype))
+            cond = self._tokens(condition_latents.to(x_t.dtype), e_condition)
         sigma = (1.0 - t.float()).expand(b) if t.ndim == 0 else 1.0 - t.float()
         temb, timestep_proj, context, _ = tf.condition_embedder(sigma * 1000.0, text_embedding.to(x.dtype), None)
         timestep_proj = timestep_proj.unflatten(1, (6, -1))
         for i in range(len(tf.blocks)):
             if self.gradient_checkpointing and torch.is_grad_enabled():
-                x, cond = checkpoint(self._block, i, x, cond, cam, context, timestep_proj, rope, cond_rope,
-                                     use_reentrant=False)
+                x, cond = checkpoint(self._block, i, x, cond, cam, cond_cam, context, timestep_proj, rope,
+                                     cond_rope, use_reentrant=False)
             else:
-                x, cond = self._block(i, x, cond, cam, context, timestep_proj, rope, cond_rope)
+                x, cond = self._block(i, x, cond, cam, cond_cam, context, timestep_proj, rope, cond_rope)
         shift, scale = (tf.scale_shift_table + temb.unsqueeze(1)).chunk(2, dim=1)
         x = (tf.norm_out(x.float()) * (1 + scale) + shift).type_as(x)
         x = tf.proj_out(x)
