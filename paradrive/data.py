@@ -51,7 +51,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
-from torch.utils.data import Dataset, IterableDataset, get_worker_info
+from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
 from paradrive import geometry
 from paradrive.errors import ParaDriveError
@@ -61,8 +61,8 @@ from paradrive.pairs import (SCHEMA, URI_COLUMNS, build_file, check_row_uris, ch
 from paradrive.video import each_frame
 from paradrive.latents import LatentReader
 
-__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "epoch_order", "frame_array", "output_geometry",
-           "per_rank", "plane_sink",
+__all__ = ["FramePool", "PairDataset", "PairIterableDataset", "PairLoader", "epoch_order", "frame_array",
+           "output_geometry", "per_rank", "plane_sink",
            "recammaster_camera", "to_unit_range"]
 
 # Columns of a row; they and the per-frame poses are read one row group at a time, when a
@@ -609,9 +609,11 @@ class PairIterableDataset(IterableDataset):
     Resume. ``state_dict(samples_consumed)`` records the epoch, the samples of this rank's
     epoch sequence already used and the build version read; after ``load_state_dict`` (which
     opens that version again, while a publish keeps it) the next iterator of that epoch starts
-    right after them. With ``num_workers=0`` the dataset counts by itself; with workers (whose
-    copies of the dataset the main process cannot see) the trainer counts the samples its loader
-    delivered since the iterator started (batches x batch_size) and passes that number.
+    right after them. Read it through :class:`PairLoader`, whose ``state_dict()`` counts the
+    samples the loop received, with or without workers. Under a plain DataLoader the dataset
+    counts by itself only with ``num_workers=0``: with workers the samples are drawn by the
+    workers' copies, which the main process cannot see, so its own count stays 0 and the
+    caller must pass the number its loader delivered since the iterator started.
     ``set_epoch(e)`` before each epoch (as with DistributedSampler).
 
     A republished build. The dataset reads the version it opened to the end, however often the
@@ -720,7 +722,8 @@ class PairIterableDataset(IterableDataset):
         """Where this rank stands: the epoch and the samples of its epoch sequence used so far.
 
         samples_consumed: samples the loader delivered since the current iterator started
-        (needed with DataLoader workers); None = the dataset's own count (no workers).
+        (needed with DataLoader workers; :meth:`PairLoader.state_dict` passes it); None = the
+        dataset's own count, right only with ``num_workers=0``.
         """
         used = self._yielded if samples_consumed is None else int(samples_consumed)
         return {"epoch": self.epoch, "samples_consumed": self._start() + used,
@@ -764,3 +767,63 @@ class PairIterableDataset(IterableDataset):
                              f"{world}, and rank {self.rank} of world_size {self.world_size} is "
                              f"loading it; load each rank's own state_dict() with the same "
                              f"world_size, or start a new epoch")
+
+
+def _batch_samples(batch: Any, default: int) -> int:
+    """Samples in a collated batch: the length of its ``pair_id`` list (the last batch of an
+    epoch may be short), else ``default``."""
+    if isinstance(batch, dict) and isinstance(batch.get("pair_id"), (list, tuple)):
+        return len(batch["pair_id"])
+    if isinstance(batch, (list, tuple)) and batch and isinstance(batch[0], dict):
+        return len(batch)
+    return default
+
+
+class PairLoader:
+    """A ``DataLoader`` over a :class:`PairIterableDataset` whose ``state_dict()`` knows how many
+    samples the loop has received, with any number of workers.
+
+    ``for batch in loader`` iterates a DataLoader built with the dataset's ``batch_size`` and
+    ``options`` (``num_workers``, ``collate_fn``, ``pin_memory``, ...); each batch is counted when
+    it is handed to the loop, in the main process, so a state saved after a batch was used resumes
+    right after it, however far the workers have read ahead. ``state_dict()`` /
+    ``load_state_dict()`` are the dataset's, with that count passed in; a new iterator (a new
+    epoch after ``set_epoch``, or the one after ``load_state_dict``) starts counting at 0.
+    ``persistent_workers=True`` is refused: persistent workers keep the dataset copy of their
+    first iterator, so they would not see a new epoch or a loaded state.
+    """
+
+    def __init__(self, dataset: PairIterableDataset, **options: Any):
+        if not isinstance(dataset, PairIterableDataset):
+            raise TypeError(f"PairLoader reads a PairIterableDataset, got {type(dataset).__name__}")
+        size = options.pop("batch_size", dataset.batch_size)
+        if size != dataset.batch_size:
+            raise ValueError(f"PairLoader(batch_size={size}): the dataset cuts its workers' shares in "
+                             f"batches of {dataset.batch_size}; give both the same batch_size")
+        if options.get("persistent_workers"):
+            raise ValueError("PairLoader(persistent_workers=True): persistent workers keep their first "
+                             "copy of the dataset and would miss set_epoch and load_state_dict; leave it off")
+        self.dataset = dataset
+        self.loader = DataLoader(dataset, batch_size=dataset.batch_size, **options)
+        self._received = 0
+        self._epoch: int | None = None   # the epoch the current iterator reads
+
+    def __iter__(self):
+        self._epoch, self._received = self.dataset.epoch, 0
+        for batch in self.loader:
+            self._received += _batch_samples(batch, self.dataset.batch_size)
+            yield batch
+
+    def __len__(self) -> int:
+        """Batches of a whole epoch (fewer after a resume point)."""
+        return math.ceil(len(self.dataset) / self.dataset.batch_size)
+
+    def state_dict(self) -> dict:
+        """The dataset's state with the samples received since the current iterator began."""
+        received = self._received if self._epoch == self.dataset.epoch else 0
+        return self.dataset.state_dict(samples_consumed=received)
+
+    def load_state_dict(self, state: dict) -> None:
+        """Resume from ``state_dict()``: the next iterator starts right after the samples it counted."""
+        self.dataset.load_state_dict(state)
+        self._received, self._epoch = 0, None

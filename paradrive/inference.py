@@ -118,7 +118,7 @@ def score_videos(build_dir: str | Path, videos_dir: str | Path) -> dict:
     if index.kind != "inference":
         raise ParaDriveError(f"{build_dir}: a {index.kind} build; scoring "
                              f"needs an inference set (paradrive build --kind inference)")
-    rows = read_pairs(build_dir, ["pair_id", "offset_m", "target_uri"], index).to_pylist()
+    rows = read_pairs(build_dir, ["pair_id", "offset_m", "target_uri"], index, verify=True).to_pylist()
     scored, missing, no_target = [], [], 0
     for row in rows:
         if row["target_uri"] is None:

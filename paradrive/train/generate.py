@@ -7,7 +7,8 @@ written as ``OUT/<pair_id>.mp4``: the names ``paradrive eval --build BUILD --vid
 
 The checkpoint is a run folder's ``last.pt`` (``<out>/stage2``, or a ``.pt`` file): its trained
 parameters go onto the base transformer it names (its folder, or ``--transformer``), checked by
-the fingerprint of the base's config. A row that cannot be read is reported in one line and the
+the fingerprint of the base's config, with the EMA of the trained parameters in their place when
+the run kept one (``train.ema_decay``). A row that cannot be read is reported in one line and the
 others go on.
 """
 
@@ -22,7 +23,7 @@ import torch
 from paradrive.devices import resolve_device
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.io import path_inside
-from paradrive.train.trainer import read_checkpoint, torch_threads, write_video
+from paradrive.train.trainer import averaged_weights, read_checkpoint, torch_threads, write_video
 from paradrive.wan.recam import checkpoint_parameter_names, load_trained
 from paradrive.train.wan import (WanRunner, base_record, build_wan_model, check_base, check_format,
                                  generated_frames, open_wan_dataset)
@@ -66,7 +67,8 @@ def load_generator(checkpoint: Path, folders: dict[str, str | None], device: str
     model = build_wan_model(config, stage)
     check_base(ckpt, base_record(config, model), f"--checkpoint {path}")
     names = checkpoint_parameter_names(model, stage, bool(config["model"]["stage2_ffn"]))
-    load_trained(model, ckpt["model"], names, f"--checkpoint {path}")
+    # the EMA of the trained parameters, when the run kept one (train.ema_decay), is what samples
+    load_trained(model, averaged_weights(ckpt), names, f"--checkpoint {path}")
     return Generator(config, stage, where, model.to(where))
 
 

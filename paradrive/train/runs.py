@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from paradrive.errors import ConfigError
 from paradrive.io import path_inside
 
 
@@ -32,6 +33,8 @@ def start_run(build: Path, stage: int, config: str | None, out_dir: Path | None,
     ``runs/<build name>``); stage 2 starts from stage 1's ``last.pt`` unless ``init`` says
     otherwise. Raises ValueError, FileNotFoundError or ParaDriveError naming what is wrong."""
     cfg = load_run_config(model, config, overrides, folders)
+    if model == "wan":
+        check_weight_folders(cfg["model"])
     if not build.is_dir():
         raise FileNotFoundError(f"--build {build}: no such build folder (run 'paradrive build' first)")
     run_dir = out_dir if out_dir is not None else Path("runs") / build.resolve().name
@@ -63,6 +66,37 @@ def load_run_config(model: str, config: str | None, overrides: dict, folders: di
     if "autoencoder" not in cfg:   # a wan-* config names Wan's folders, not a patch codec
         raise ValueError(f"--config {config} is a config of --model wan; add --model wan")
     return cfg
+
+
+_FLAGS = {"transformer": "--transformer", "vae": "--vae", "text_encoder": "--text-encoder"}
+
+
+def check_weight_folders(settings: dict) -> None:
+    """ConfigError before any work when ``model.transformer``, ``model.vae`` or
+    ``model.text_encoder`` names a folder that does not exist or lacks what is loaded from it
+    (``tiny`` and unset ones are left alone): one line naming the flag, the path and the layout."""
+    from paradrive.wan.text import text_encoder_folders
+    from paradrive.wan.vae import vae_folder
+
+    for key, flag in _FLAGS.items():
+        value = settings.get(key)
+        if value in (None, "tiny"):
+            continue
+        folder = Path(str(value))
+        if not folder.is_dir():
+            raise ConfigError(f"{flag} {folder}: no such folder; pass the local Wan2.1-T2V-1.3B diffusers "
+                              f"folder (it holds transformer/, vae/, text_encoder/ and tokenizer/)")
+        if key == "transformer":
+            inner = folder / "transformer" if (folder / "transformer" / "config.json").is_file() else folder
+            if not (inner / "config.json").is_file() or not any(inner.glob("*.safetensors")):
+                raise ConfigError(f"{flag} {folder}: no config.json and safetensors weights there nor in "
+                                  f"{folder / 'transformer'}; pass the Wan2.1-T2V-1.3B diffusers folder (it "
+                                  f"holds transformer/) or its transformer/ folder")
+        else:
+            try:
+                vae_folder(folder) if key == "vae" else text_encoder_folders(folder)
+            except ConfigError as exc:
+                raise ConfigError(f"{flag}: {exc}") from exc
 
 
 def open_pairs(model: str, build: Path, cfg: dict, notes: list[str] | None = None):
@@ -124,7 +158,7 @@ def write_sample(run: Run, item: dict, path: Path, steps: int | None) -> int:
 
     cfg, trainer, s = run.cfg, run.trainer, run.cfg["sample"]
     trainer.model.eval()
-    with torch_threads(cfg["threads"]):
+    with torch_threads(cfg["threads"]), trainer.averaged():   # the EMA weights when the run keeps them
         if isinstance(trainer, WanTrainer):   # decodes through the VAE
             video = trainer.sample(item, steps or int(s["steps"]), seed=int(s["seed"]))
         else:

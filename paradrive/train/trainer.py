@@ -3,8 +3,9 @@
 A run lives in one folder (``<out>/stage<k>``)::
 
     config.yaml        the resolved config the run uses
-    last.pt            the newest checkpoint (model, optimiser, data position, RNG states)
-    ckpt_<step>.pt     kept checkpoints every ``train.checkpoint_every`` steps
+    last.pt            the newest checkpoint (model, optimiser, EMA when on, data position, RNG states)
+    ckpt_<step>.pt     checkpoints every ``train.checkpoint_every`` steps (``train.keep_last`` newest
+                       kept, and every ``train.keep_every``-th step)
     metrics.jsonl      one line per step: step, loss, lr
 
 Running again in the same folder resumes from ``last.pt`` and computes exactly what an
@@ -19,6 +20,7 @@ import contextlib
 import copy
 import json
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -247,6 +249,30 @@ def read_checkpoint(path: str | Path, what: str, keys: Sequence[str] = CHECKPOIN
     return ckpt
 
 
+def scheduled_lr(train: Mapping[str, Any], step: int) -> float:
+    """The learning rate of optimiser step ``step`` (0-based) under ``train``'s settings.
+
+    Warm-up: ``lr * (step + 1) / warmup_steps`` for the first ``warmup_steps`` steps. After it,
+    with p = (step - warmup_steps) / (steps - warmup_steps) held at 1 past the run's end:
+    ``constant`` gives ``lr``; ``linear`` gives ``min_lr + (lr - min_lr) * (1 - p)``; ``cosine``
+    gives ``min_lr + (lr - min_lr) * (1 + cos(pi * p)) / 2``. A function of the step alone, so a
+    resumed run goes on with the schedule where it stopped.
+    """
+    lr, warmup, total = float(train["lr"]), int(train["warmup_steps"]), int(train["steps"])
+    if step < warmup:
+        return lr * (step + 1) / warmup
+    kind = str(train["lr_schedule"])
+    if kind == "constant":
+        return lr
+    low = float(train["min_lr"])
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    if kind == "linear":
+        return low + (lr - low) * (1.0 - progress)
+    if kind == "cosine":
+        return low + (lr - low) * 0.5 * (1.0 + math.cos(math.pi * progress))
+    raise ConfigError(f"train.lr_schedule = {kind!r}: use constant, cosine or linear")
+
+
 def sample_seed(seed: int, stage: int, step: int, position: int) -> int:
     """The seed of one sample's flow noise and time: from the run's seed, the stage, the optimiser
     step and the sample's place in that step's global batch, so it is the same on any number of
@@ -281,6 +307,7 @@ class Trainer:
         stage 1 starting afresh."""
         self.step = self.epoch = self.batch_in_epoch = 0
         self._pending_optimizer: dict | None = None
+        self._pending_ema: dict | None = None
         resume = self._resume_checkpoint()
         if resume is not None:
             self._load(*resume)
@@ -375,6 +402,56 @@ class Trainer:
                 raise DamagedCheckpoint(f"{self.out_dir / 'last.pt'}: its optimiser state does not fit this "
                                         f"run's trained parameters ({exc}); use another --out") from exc
         self._pending_optimizer = None
+        self._make_ema()
+
+    def _make_ema(self) -> None:
+        """The exponential moving average of the trained parameters (``train.ema_decay``; null =
+        off): a resumed run's from its checkpoint, else a copy of the weights the run starts from."""
+        decay = self.config["train"].get("ema_decay")
+        pending, self._pending_ema = self._pending_ema, None
+        self.ema: dict[str, torch.Tensor] | None = None
+        if decay is None:
+            return
+        trained = {n: p.detach() for n, p in self.model.named_parameters() if p.requires_grad}
+        if pending is None:
+            if self.step > 0:
+                self.notes.append(f"train.ema_decay={decay}: the checkpoint resumed at step {self.step} holds no "
+                                  f"EMA; it starts from the resumed weights")
+            self.ema = {n: p.clone() for n, p in trained.items()}
+            return
+        if set(pending) != set(trained):
+            raise DamagedCheckpoint(f"{self.out_dir / 'last.pt'}: its EMA does not fit this run's trained "
+                                    f"parameters; use another --out")
+        self.ema = {n: pending[n].to(device=p.device, dtype=p.dtype).clone() for n, p in trained.items()}
+
+    @torch.no_grad()
+    def _update_ema(self) -> None:
+        """ema <- decay * ema + (1 - decay) * weights, after each optimiser step."""
+        if self.ema is None:
+            return
+        decay = float(self.config["train"]["ema_decay"])
+        params = dict(self.model.named_parameters())
+        for name, average in self.ema.items():
+            average.mul_(decay).add_(params[name].detach(), alpha=1.0 - decay)
+
+    @contextlib.contextmanager
+    def averaged(self) -> Iterator[None]:
+        """The model with the EMA in place of its trained weights for the duration (unchanged
+        without an EMA); the trained weights are back afterwards."""
+        if self.ema is None:
+            yield
+            return
+        params = dict(self.model.named_parameters())
+        kept = {n: params[n].detach().clone() for n in self.ema}
+        with torch.no_grad():
+            for name, average in self.ema.items():
+                params[name].copy_(average)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                for name, value in kept.items():
+                    params[name].copy_(value)
 
     # -- weights -----------------------------------------------------------------------------------
     def _init_from(self, path: Path) -> None:
@@ -413,6 +490,7 @@ class Trainer:
                              f"{ckpt['world_size']} (the data order and batches depend on it) or use another --out")
         self._load_model_state(path, ckpt)
         self._pending_optimizer = ckpt["optimizer"]
+        self._pending_ema = ckpt.get("ema")
         self.step, self.epoch, self.batch_in_epoch = ckpt["step"], ckpt["epoch"], ckpt["batch_in_epoch"]
         torch.set_rng_state(ckpt["torch_rng"])
         log.info("resumed %s at step %d", path, self.step)
@@ -430,10 +508,13 @@ class Trainer:
         return self.model.state_dict()
 
     def state_dict(self) -> dict:
-        return {"format": self.checkpoint_format, "stage": self.stage, "step": self.step, "epoch": self.epoch,
-                "batch_in_epoch": self.batch_in_epoch, "world_size": self.world.world_size,
-                "config": self.config, "model": self.model_state(), "optimizer": self.optimizer.state_dict(),
-                "torch_rng": torch.get_rng_state()}
+        state = {"format": self.checkpoint_format, "stage": self.stage, "step": self.step, "epoch": self.epoch,
+                 "batch_in_epoch": self.batch_in_epoch, "world_size": self.world.world_size,
+                 "config": self.config, "model": self.model_state(), "optimizer": self.optimizer.state_dict(),
+                 "torch_rng": torch.get_rng_state()}
+        if self.ema is not None:
+            state["ema"] = self.ema
+        return state
 
     def save(self) -> Path:
         """Write ``last.pt`` (and ``ckpt_<step>.pt`` on checkpoint steps) atomically; the checkpoint
@@ -450,11 +531,25 @@ class Trainer:
         if every and self.step % every == 0:
             with atomic_path(self.out_dir / f"ckpt_{self.step:06d}.pt") as tmp:
                 torch.save(state, tmp)
-            keep = int(self.config["train"]["keep_checkpoints"])
-            kept = sorted(self.out_dir.glob("ckpt_*.pt"))
-            for old in kept[:-keep] if keep > 0 else []:
-                old.unlink()
+            self._prune()
         return last
+
+    def _prune(self) -> None:
+        """Delete the ``ckpt_<step>.pt`` files beyond the ``train.keep_last`` newest (0 = keep
+        all), except those of every ``train.keep_every``-th step (0 = none such)."""
+        t = self.config["train"]
+        keep_last, keep_every = int(t["keep_last"]), int(t["keep_every"])
+        if keep_last <= 0:
+            return
+        steps = {}
+        for path in self.out_dir.glob("ckpt_*.pt"):
+            digits = path.stem[len("ckpt_"):]
+            if digits.isdigit():
+                steps[path] = int(digits)
+        by_step = sorted(steps, key=steps.__getitem__)
+        for old in by_step[:-keep_last]:
+            if not (keep_every and steps[old] % keep_every == 0):
+                old.unlink()
 
     # -- data --------------------------------------------------------------------------------------
     def _epoch_steps(self, epoch: int) -> list[list[list[int]]]:
@@ -535,9 +630,8 @@ class Trainer:
         return value
 
     def learning_rate(self, step: int) -> float:
-        t = self.config["train"]
-        warmup = int(t["warmup_steps"])
-        return float(t["lr"]) * (min(1.0, (step + 1) / warmup) if warmup > 0 else 1.0)
+        """The rate of optimiser step ``step`` (0-based): :func:`scheduled_lr` of the config."""
+        return scheduled_lr(self.config["train"], step)
 
     def train(self, steps: int | None = None,
               on_step: Callable[[int, float], None] | None = None) -> list[float]:
@@ -583,6 +677,7 @@ class Trainer:
         if clip > 0:
             torch.nn.utils.clip_grad_norm_([p for p in self.model.parameters() if p.requires_grad], clip)
         self.optimizer.step()
+        self._update_ema()
         return mean_over_ranks(value, self.world, self.device)
 
     def _train(self, steps: int | None, on_step: Callable[[int, float], None] | None) -> list[float]:
@@ -664,8 +759,14 @@ def load_for_sampling(checkpoint: str | Path, device: str = "auto",
     if isinstance(encoder, torch.nn.Module):
         encoder.to(dev).eval()
     model = build_model(ckpt["config"], ckpt["stage"], encoder)
-    model.load_state_dict(ckpt["model"])
+    model.load_state_dict(averaged_weights(ckpt))
     return model.to(dev).eval(), encoder, ckpt["config"], ckpt["stage"]
+
+
+def averaged_weights(ckpt: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+    """A checkpoint's weights for sampling: its ``model`` with the EMA of the trained parameters in
+    their place when it holds one (``train.ema_decay``), else its ``model`` as it is."""
+    return {**ckpt["model"], **(ckpt.get("ema") or {})}
 
 
 @torch.no_grad()
