@@ -20,7 +20,7 @@ def convert_cmd(
     vae: Path | None = typer.Option(
         None, "--vae", help="recammaster (required): a Wan2.1 VAE folder, for each video's <video>.tensors.pth."),
     text_encoder: Path | None = typer.Option(
-        None, "--text-encoder", help="recammaster: the umT5 folder (the empty prompt's embedding)."),
+        None, "--text-encoder", help="recammaster: the folder with umT5 in text_encoder/ and tokenizer/, for the empty prompt's embedding (default: the --vae folder, as paradrive encode)."),
     device: str | None = typer.Option(
         None, "--device", help="recammaster: where the VAE and umT5 run: auto, cpu, cuda[:n] (encode.device)."),
     num_frames: int | None = typer.Option(

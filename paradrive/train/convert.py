@@ -295,12 +295,11 @@ def _recammaster_encoders(vae: Path | None, text_encoder: Path | None, device: s
     from paradrive.wan.vae import load_vae
 
     if vae is None:
-        raise ValueError("convert recammaster needs --vae DIR (and --text-encoder DIR): ReCamMaster's data_process "
+        raise ValueError("convert recammaster needs --vae DIR (its text_encoder/ too, or --text-encoder DIR): ReCamMaster's data_process "
                          "caches only the videos metadata.csv lists (each pair's cam02, the target) and its loader "
                          "then fails on every cam01 (the source) it needs beside it, retrying forever; with --vae "
                          "both videos' <video>.tensors.pth are written here")
-    if text_encoder is None:
-        raise ValueError("--vae needs --text-encoder: the cached tensors hold the empty prompt's embedding")
+    text_encoder = text_encoder or vae   # as paradrive encode: a Wan2.1 folder holds both
     settings = StageRegistry().resolve(None, {"encode": {"device": device} if device else {}}).typed("encode")
     dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16}[settings.compute_dtype]
     where = resolve_device(settings.device)
