@@ -295,7 +295,8 @@ def _recammaster_encoders(vae: Path | None, text_encoder: Path | None, device: s
     from paradrive.wan.vae import load_vae
 
     if vae is None:
-        raise ValueError("convert recammaster needs --vae DIR (its text_encoder/ too, or --text-encoder DIR): ReCamMaster's data_process "
+        raise ValueError("convert recammaster needs --vae DIR (its text_encoder/ too, or --text-encoder DIR): "
+                         "ReCamMaster's data_process "
                          "caches only the videos metadata.csv lists (each pair's cam02, the target) and its loader "
                          "then fails on every cam01 (the source) it needs beside it, retrying forever; with --vae "
                          "both videos' <video>.tensors.pth are written here")
