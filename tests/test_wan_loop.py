@@ -69,10 +69,14 @@ def test_a_latent_cache_of_another_shape_is_refused_in_one_line(encoded, wan_fol
     assert "Traceback" not in out and not (tmp_path / "r" / "stage1" / "last.pt").exists()
 
 
-def test_a_cache_of_another_vae_is_named(encoded, tmp_path):
+def test_a_cache_of_another_vae_is_named(encoded, wan_folder, tmp_path):
+    import shutil
+
     from paradrive.wan.vae import make_tiny_vae
 
     make_tiny_vae(seed=1).save_pretrained(tmp_path / "other-vae")
+    for part in ("text_encoder", "tokenizer"):   # a whole Wan2.1 folder whose VAE is another
+        shutil.copytree(wan_folder / part, tmp_path / "other-vae" / part)
     out = train(encoded, tmp_path / "r", 1, tmp_path / "other-vae", "--set", "data.input=latents", code=2)
     assert "encoded by the VAE in" in out and f"model.vae {tmp_path / 'other-vae'} is another" in out
 
