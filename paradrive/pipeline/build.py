@@ -28,7 +28,8 @@ from paradrive.pipeline.progress import ProgressSink
 from paradrive.pipeline.scenes import SceneInput, check_present, distinct_scenes
 from paradrive.pipeline.runner import (
     MARKER_DIR, StageResult, damaged_outputs, expand_outputs, fingerprint,
-    load_entry, local_sha256, local_size, marker_path, read_marker, scene_dir_for, stage_fingerprint,
+    load_entry, local_sha256, local_size, marker_path, peak_rss_mb, read_marker, scene_dir_for,
+    stage_fingerprint,
     summary_of,
     typed_params, written_outputs,
 )
@@ -38,6 +39,7 @@ from paradrive.splits import Selection
 from paradrive.contracts.base import BuildContext
 from paradrive.contracts.layout import BuildLayout
 from paradrive.contracts.records import StageMarker
+from paradrive.io import no_room_message
 from paradrive.storage import DataRoot, file_stats, matches
 from paradrive.uri import parse_uri
 
@@ -213,9 +215,6 @@ def _failed(exc: Exception, label: str, stage: str, build: str, seconds: float,
     ParaDriveError, a file system or value error; a full disk names the folder, the room there
     and the room needed), else a crash with its traceback in the log. Its seconds and peak
     memory are recorded as a finished stage's are."""
-    from paradrive.io import no_room_message
-    from paradrive.pipeline.runner import peak_rss_mb
-
     if isinstance(exc, (ParaDriveError, OSError, ValueError)):
         error = (str(exc) if isinstance(exc, ParaDriveError)
                  else no_room_message(exc, f"build {build}: {stage}", elsewhere="pass another --manifests")
