@@ -227,16 +227,16 @@ def stage_params(stage: str, overrides: dict | None = None, profile: str | None 
 
 @pytest.fixture(scope="session")
 def wan_builds(tmp_path_factory, smoke_scene):
-    """Seed 7's smoke scene cut into 5-frame clips (what the Wan smoke config trains on, so a
-    generated video has a clip's frame count): a training build ``train`` and an inference set
-    ``infer`` of the same clips. Its ingest and fit are ``smoke_scene``'s, copied."""
+    """Seed 7's smoke scene in the smoke profile's 9-frame clips (what the Wan smoke config trains
+    on, so a generated video has a clip's frame count), with no setting changed: a training build
+    ``train`` and an inference set ``infer`` of the same clips. Its ingest and fit are
+    ``smoke_scene``'s, copied."""
     from paradrive.pipeline import StageRegistry, run_build
 
     root = tmp_path_factory.mktemp("wan_builds")
     shutil.copytree(smoke_scene["data_dir"], root / "data", symlinks=True)
-    clips = {"render": {"clip_frames": 5, "batch_frames": 5}}
     for build, kind in (("train", "training"), ("infer", "inference")):
-        config = StageRegistry().resolve("smoke", {**clips, "manifest": {"kind": kind}})
+        config = StageRegistry().resolve("smoke", {"manifest": {"kind": kind}})
         report = run_build(config, list(SMOKE_SCENES[:1]), root / "data", manifests_dir=root / "manifests",
                            build=build)
         assert not report.failures(), [r.error for r in report.failures()]

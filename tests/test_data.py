@@ -466,9 +466,9 @@ def test_smoke_build_feeds_the_adapter_and_verifies(smoke_build):
     ds = PairDataset(build, verify_checksums=True, pose_format="recammaster")
     assert len(ds) == 72 * len(smoke_build["scene_uris"])
     s = ds[len(ds) // 2]
-    assert s["target"].shape == (8, 3, 96, 160) and s["camera"].shape == (2, 12)
+    assert s["target"].shape == (9, 3, 96, 160) and s["camera"].shape == (3, 12)
     t = s["rel_pose"][:, :3, 3]
-    assert torch.allclose(t.norm(dim=1), torch.tensor(abs(s["offset_m"])).expand(8), atol=1e-4)
+    assert torch.allclose(t.norm(dim=1), torch.tensor(abs(s["offset_m"])).expand(9), atol=1e-4)
     result = invoke(build, "--verify", "--json")
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["verify"]["ok"]

@@ -33,7 +33,7 @@ def test_a_one_frame_waymo_record_fails_after_ingest_naming_its_frames_and_the_f
     result = build(tmp_path, "--scene", f"waymo:{record}")
     assert result.exit_code != 0, result.output
     scene_dir = tmp_path / "data" / "scenes" / "waymo-1234"
-    message = ("scene waymo-1234: it has 1 frame, and a clip needs 8 (render.clip_frames) "
+    message = ("scene waymo-1234: it has 1 frame, and a clip needs 9 (render.clip_frames) "
                f"({scene_dir / 'scene.json'}); set a shorter render.clip_frames (at most 1) "
                "or use another scene")
     assert message in " ".join(result.output.split())
@@ -70,7 +70,7 @@ def test_the_plan_shows_a_scene_that_can_give_no_clip_and_spends_nothing_past_it
     config = StageRegistry().resolve("smoke")
     plan = plan_build(config, ["synthetic:demo?seed=3&frames=5", "synthetic:demo?seed=4&frames=10"], None)
     assert list(plan.unfit) == ["synthetic-demo-s3-frames5"]
-    assert "it has 5 frames, and a clip needs 8" in plan.unfit["synthetic-demo-s3-frames5"]
+    assert "it has 5 frames, and a clip needs 9" in plan.unfit["synthetic-demo-s3-frames5"]
     alone = plan_build(config, ["synthetic:demo?seed=4&frames=10"], None)
     assert plan.seconds["fit"] == alone.seconds["fit"] and plan.pairs == alone.pairs
     assert plan.seconds["ingest"] > alone.seconds["ingest"]

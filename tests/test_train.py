@@ -21,11 +21,11 @@ from paradrive.data import to_unit_range
 from paradrive.train.trainer import CONFIG_DIR, collate, open_dataset, parse_set, trainable_mask
 from test_manifest import scenes_entry, write_clip_scene
 
-FRAMES, HEIGHT, WIDTH = 4, 32, 48
+FRAMES, HEIGHT, WIDTH = 5, 32, 48
 
 
 def tiny_config(**train) -> dict:
-    """The smoke config shrunk further: 4 frames of 32 x 48 -> 2 latent frames of 4 x 6 tokens."""
+    """The smoke config shrunk further: 5 frames of 32 x 48 -> 3 latent frames of 4 x 6 tokens."""
     cfg = load_config("smoke", {"data": {"num_frames": FRAMES, "height": HEIGHT, "width": WIDTH},
                                 "model": {"dim": 32, "depth": 2, "heads": 2},
                                 "train": {"batch_size": 2, "lr": 3e-3, "save_every": 0, **train}})

@@ -26,8 +26,8 @@ from paradrive.wan.vae import (decode_latents, encode_video, latent_frames, load
                                make_tiny_vae)
 
 ROOT = Path(__file__).resolve().parents[1]
-# the smoke clips (8 frames of 160x96) at a quarter of their size: 5 frames encoded (the most of
-# the form 4k + 1), 2 latent frames of 3x5; the killed encode takes the first frame alone
+# the smoke clips (9 frames of 160x96) at a quarter of their size: all 9 encoded (4k + 1),
+# 3 latent frames of 3x5; the killed encode takes the first frame alone
 SETTINGS = dict(text_encoder=None, device="cpu", dtype="bfloat16", compute_dtype="float32", batch=4,
                 shard_pairs=20, num_frames=None, size=(24, 40), resize="crop")
 KILLED = dict(size=(24, 40), num_frames=1, shard_pairs=40, batch=8)
@@ -96,9 +96,9 @@ def test_adapter_latents_equal_a_direct_encode_of_the_same_frames(encoded, wan_f
     from paradrive.data import PairDataset
 
     doc = encoded["doc"]
-    assert doc["num_frames"] == 5 and doc["latent_frames"] == latent_frames(5) == 2
-    assert doc["latent_shape"] == [16, 2, 3, 5] and doc["dtype"] == "bfloat16"
-    pixels = PairDataset(encoded["build"], num_frames=5, output_size=(24, 40), pose_format="recammaster")
+    assert doc["num_frames"] == 9 and doc["latent_frames"] == latent_frames(9) == 3
+    assert doc["latent_shape"] == [16, 3, 3, 5] and doc["dtype"] == "bfloat16"
+    pixels = PairDataset(encoded["build"], num_frames=9, output_size=(24, 40), pose_format="recammaster")
     latent = PairDataset(encoded["build"], latents=True)
     vae = load_vae(wan_folder, "cpu")
     for i in (0, len(latent) - 1):
@@ -107,12 +107,12 @@ def test_adapter_latents_equal_a_direct_encode_of_the_same_frames(encoded, wan_f
         for role in ("target", "source", "condition"):
             direct = _normalised_mean(vae, frames[role].permute(1, 0, 2, 3)[None])[0]
             got = sample[f"{role}_latents"]
-            assert got.shape == (16, 2, 3, 5) and got.dtype == torch.float32
+            assert got.shape == (16, 3, 3, 5) and got.dtype == torch.float32
             # stored in bfloat16 (8 significant bits): within its rounding of the direct encode
             torch.testing.assert_close(got, direct, rtol=2 ** -8, atol=1e-5)
             assert torch.equal(got, got.to(torch.bfloat16).float())
         assert torch.allclose(sample["camera"], frames["camera"])
-        assert torch.allclose(sample["rel_pose"], frames["rel_pose"][[0, 4]])
+        assert torch.allclose(sample["rel_pose"], frames["rel_pose"][[0, 4, 8]])
         assert sample["text_embedding"].shape == (512, 32)
         assert sample["offset_m"] == frames["offset_m"]
     halves = PairDataset(encoded["build"], latents=True, dtype="bfloat16")[0]
@@ -133,8 +133,8 @@ def test_collated_latents_are_batches_of_videos(encoded):
 
     ds = PairDataset(encoded["build"], latents=True)
     batch = cache.collate_latents([ds[0], ds[1], ds[2]])
-    assert batch["target_latents"].shape == (3, 16, 2, 3, 5)
-    assert batch["camera"].shape == (3, 2, 12) and batch["rel_pose"].shape == (3, 2, 4, 4)
+    assert batch["target_latents"].shape == (3, 16, 3, 3, 5)
+    assert batch["camera"].shape == (3, 3, 12) and batch["rel_pose"].shape == (3, 3, 4, 4)
     assert batch["text_embedding"].shape == (3, 512, 32)
     assert batch["pair_id"] == ds.pair_ids[:3] and batch["offset_m"].shape == (3,)
 

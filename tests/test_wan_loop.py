@@ -1,6 +1,7 @@
 """The whole Wan loop with the tiny smoke models: build -> encode -> train stage 1 -> train stage 2
--> generate -> eval, through the commands; and the trainer's check of a latent cache against its
-own settings (frames, size, VAE)."""
+-> generate -> eval, through the commands, on the smoke profile and the smoke config with no
+setting changed (`encode --vae tiny` is the smoke config's VAE); and the trainer's check of a
+latent cache against its own settings (frames, size, VAE)."""
 
 from __future__ import annotations
 
@@ -26,24 +27,27 @@ def run(*args: str, code: int = 0) -> str:
 
 
 @pytest.fixture(scope="module")
-def encoded(wan_builds, wan_folder, tmp_path_factory):
-    """A copy of the 5-frame training build with its latent cache (48 x 80, the smoke config's)."""
+def encoded(wan_builds, tmp_path_factory):
+    """A copy of the smoke training build with its latent cache, as the smoke profile encodes it
+    with the smoke config's tiny VAE (9 frames of 48 x 80)."""
     build = tmp_path_factory.mktemp("encoded") / "train"
     shutil.copytree(wan_builds["train"], build, symlinks=True)
-    run("encode", str(build), "--vae", str(wan_folder), "--device", "cpu", "--set", "encode.num_frames=5",
-        "--set", "encode.size=[48,80]")
+    run("encode", str(build), "--profile", "smoke", "--vae", "tiny", "--device", "cpu")
     return build
 
 
-def train(build, out, stage: int, wan_folder, *extra: str, code: int = 0) -> str:
+def train(build, out, stage: int, *extra: str, vae=None, code: int = 0) -> str:
+    """``train --model wan --config smoke``: its own tiny VAE and text stand-in unless ``vae``
+    names a Wan folder (then its umT5 too)."""
+    folders = ["--vae", str(vae), "--text-encoder", str(vae)] if vae is not None else []
     return run("train", "--build", str(build), "--model", "wan", "--config", "smoke", "--out", str(out),
-               "--stage", str(stage), "--vae", str(wan_folder), "--text-encoder", str(wan_folder), *extra, code=code)
+               "--stage", str(stage), *folders, *extra, code=code)
 
 
-def test_build_encode_train_both_stages_generate_and_eval(encoded, wan_builds, wan_folder, tmp_path):
+def test_build_encode_train_both_stages_generate_and_eval(encoded, wan_builds, tmp_path):
     runs = tmp_path / "runs"
-    assert "note:" not in train(encoded, runs, 1, wan_folder)          # the cache fits: read as it is
-    train(encoded, runs, 2, wan_folder)
+    assert "note:" not in train(encoded, runs, 1)          # the cache fits: read as it is
+    train(encoded, runs, 2)
     videos = tmp_path / "videos"
     out = run("generate", "--build", str(wan_builds["infer"]), "--checkpoint", str(runs / "stage2"),
               "--out", str(videos))
@@ -61,10 +65,10 @@ def test_build_encode_train_both_stages_generate_and_eval(encoded, wan_builds, w
     assert len(scores["rows"]) == len(rows) and not scores["missing"]
 
 
-def test_a_latent_cache_of_another_shape_is_refused_in_one_line(encoded, wan_folder, tmp_path):
-    out = train(encoded, tmp_path / "r", 1, wan_folder, "--set", "data.input=latents", "--set", "data.num_frames=1",
+def test_a_latent_cache_of_another_shape_is_refused_in_one_line(encoded, tmp_path):
+    out = train(encoded, tmp_path / "r", 1, "--set", "data.input=latents", "--set", "data.num_frames=1",
                 "--set", "data.height=32", "--set", "data.width=48", code=2)
-    assert "encoded at 5 frames, this run reads 1 (data.num_frames)" in out
+    assert "encoded at 9 frames, this run reads 1 (data.num_frames)" in out
     assert "encoded at 48x80, this run reads 32x48" in out and "paradrive encode" in out
     assert "Traceback" not in out and not (tmp_path / "r" / "stage1" / "last.pt").exists()
 
@@ -77,24 +81,23 @@ def test_a_cache_of_another_vae_is_named(encoded, wan_folder, tmp_path):
     make_tiny_vae(seed=1).save_pretrained(tmp_path / "other-vae")
     for part in ("text_encoder", "tokenizer"):   # a whole Wan2.1 folder whose VAE is another
         shutil.copytree(wan_folder / part, tmp_path / "other-vae" / part)
-    out = train(encoded, tmp_path / "r", 1, tmp_path / "other-vae", "--set", "data.input=latents", code=2)
-    assert "encoded by the VAE in" in out and f"model.vae {tmp_path / 'other-vae'} is another" in out
+    out = train(encoded, tmp_path / "r", 1, "--set", "data.input=latents", vae=tmp_path / "other-vae", code=2)
+    assert "encoded by the VAE in tiny" in out and f"model.vae {tmp_path / 'other-vae'} is another" in out
 
 
-def test_auto_input_encodes_on_the_fly_when_the_cache_does_not_fit_and_says_so(encoded, wan_builds, wan_folder,
-                                                                                tmp_path):
-    out = train(encoded, tmp_path / "r", 1, wan_folder, "--steps", "1", "--set", "data.num_frames=1",
+def test_auto_input_encodes_on_the_fly_when_the_cache_does_not_fit_and_says_so(encoded, wan_builds, tmp_path):
+    out = train(encoded, tmp_path / "r", 1, "--steps", "1", "--set", "data.num_frames=1",
                 "--set", "data.height=32", "--set", "data.width=48")
     assert "note:" in out and "encoding the videos on the fly instead (data.input=auto)" in out
     assert "stage 1: 1 steps" in out
-    # a model of one-frame clips cannot make the inference set's 5-frame videos: refused before any
+    # a model of one-frame clips cannot make the inference set's 9-frame videos: refused before any
     refused = run("generate", "--build", str(wan_builds["infer"]), "--checkpoint", str(tmp_path / "r" / "stage1"),
                   "--out", str(tmp_path / "v"), code=2)
-    assert "its clips have [5] frames, the model generates 1" in refused and not (tmp_path / "v").exists()
+    assert "its clips have [9] frames, the model generates 1" in refused and not (tmp_path / "v").exists()
 
 
-def test_generate_reports_a_row_it_cannot_read_and_makes_the_others(encoded, wan_builds, wan_folder, tmp_path):
-    train(encoded, tmp_path / "runs", 1, wan_folder, "--steps", "1")
+def test_generate_reports_a_row_it_cannot_read_and_makes_the_others(encoded, wan_builds, tmp_path):
+    train(encoded, tmp_path / "runs", 1, "--steps", "1")
     infer = tmp_path / "infer"
     shutil.copytree(wan_builds["infer"], infer, symlinks=True)
     rows = PairDataset(infer)
@@ -111,11 +114,11 @@ def test_generate_reports_a_row_it_cannot_read_and_makes_the_others(encoded, wan
     assert made == sorted(f"{pid}.mp4" for pid in rows.pair_ids[1:3])
 
 
-def test_an_unreadable_cache_is_named_and_auto_reads_the_videos(encoded, wan_folder, tmp_path):
+def test_an_unreadable_cache_is_named_and_auto_reads_the_videos(encoded, tmp_path):
     build = tmp_path / "train"
     shutil.copytree(encoded, build, symlinks=True)
     (build / "latents" / "index.json").write_text("{ not json")
-    out = train(build, tmp_path / "r", 1, wan_folder, "--set", "data.input=latents", code=2)
+    out = train(build, tmp_path / "r", 1, "--set", "data.input=latents", code=2)
     assert "its latent cache" in out and "cannot be read" in out and "is not valid JSON" in out
-    auto = train(build, tmp_path / "a", 1, wan_folder, "--steps", "1")
+    auto = train(build, tmp_path / "a", 1, "--steps", "1")
     assert "cannot be read" in auto and "encoding the videos on the fly" in auto and "stage 1: 1 steps" in auto

@@ -49,7 +49,7 @@ def weights(path) -> dict:
 
 def test_wan_configs_resolve_by_name_and_are_checked():
     smoke = load_wan_config("smoke")
-    assert smoke["model"]["transformer"] == "tiny" and smoke["data"]["num_frames"] == 5
+    assert smoke["model"]["transformer"] == "tiny" and smoke["data"]["num_frames"] == 9
     default = load_wan_config(None)
     assert (default["data"]["num_frames"], default["data"]["height"], default["data"]["width"]) == (121, 480, 832)
     assert default["train"]["steps"] == 6000 and default["train"]["lr"] == 1e-4
@@ -185,25 +185,25 @@ def test_training_reads_a_builds_cached_latents_without_the_vae(wan_builds, wan_
     from paradrive.wan.encode import EncodeSettings, encode_build
     from paradrive.train.wan import open_wan_dataset
 
-    build = copy_tree(wan_builds["train"], "train")   # one scene of 5-frame clips: half the smoke build's videos
+    build = copy_tree(wan_builds["train"], "train")   # one scene of the smoke clips: half the smoke build's videos
     encode_build(build, EncodeSettings(vae=str(wan_folder), text_encoder=None, device="cpu",
                                        dtype="bfloat16", compute_dtype="float32", batch=2, shard_pairs=20,
-                                       num_frames=5, size=(48, 80), resize="crop"))   # small: fast
+                                       num_frames=None, size=(48, 80), resize="crop"))   # small: fast
     cfg = load_wan_config("smoke", {"model": {"vae": None, "text_encoder": None}})   # no folders: latents only
     dataset = open_wan_dataset(build, cfg)
     assert "target_latents" in dataset[0] and "target" not in dataset[0]
     trainer = WanTrainer(cfg, 1, tmp_path / "run", dataset)
     z = trainer.latents(collate([dataset[0]]))
-    assert z["camera"].shape == (1, 2, 12)   # ΔT per latent frame: the lateral offset, no rotation
-    assert torch.equal(z["camera"][0], dataset[0]["rel_pose"][:, :3, :4].reshape(2, 12))
+    assert z["camera"].shape == (1, 3, 12)   # ΔT per latent frame: the lateral offset, no rotation
+    assert torch.equal(z["camera"][0], dataset[0]["rel_pose"][:, :3, :4].reshape(3, 12))
     losses = trainer.train(2)
     assert len(losses) == 2 and all(torch.isfinite(torch.tensor(losses)))
     assert trainer._vae is None   # never loaded: the cache holds the latents and the text embedding
 
 
 def test_settings_the_model_cannot_read_are_refused_before_any_step(tmp_path):
-    few = load_wan_config("smoke", {"model": {"max_frames": 1}})   # 5-frame clips: 2 latent frames
-    with pytest.raises(ConfigError, match="need 2 .*set model.max_frames=2"):
+    few = load_wan_config("smoke", {"model": {"max_frames": 2}})   # 9-frame clips: 3 latent frames
+    with pytest.raises(ConfigError, match="need 3 .*set model.max_frames=3"):
         WanTrainer(few, 1, tmp_path / "a", LatentPairs())
     odd = load_wan_config("smoke", {"data": {"height": 40}})       # a 5-row latent grid, patches of 2
     with pytest.raises(ConfigError, match="multiples of 16x16"):

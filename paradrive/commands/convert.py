@@ -17,30 +17,50 @@ def convert_cmd(
     build: Path = typer.Argument(..., metavar="BUILD", help="A build folder (<manifests>/<build>)."),
     out: Path = typer.Argument(..., metavar="OUT", help=(
         "The folder to write: created whole when the export is complete (an earlier export there is replaced).")),
-    vae: Path | None = typer.Option(
-        None, "--vae", help="recammaster (required): a Wan2.1 VAE folder, for each video's <video>.tensors.pth."),
+    vae: str | None = typer.Option(
+        None, "--vae", help="recammaster: a Wan2.1 VAE folder (or 'tiny', the smoke config's) for each video's <video>.tensors.pth; not needed when the build's latent cache fits (480x832, cropped, enough frames)."),
     text_encoder: Path | None = typer.Option(
         None, "--text-encoder", help="recammaster: the folder with umT5 in text_encoder/ and tokenizer/, for the empty prompt's embedding (default: the --vae folder, as paradrive encode)."),
     device: str | None = typer.Option(
         None, "--device", help="recammaster: where the VAE and umT5 run: auto, cpu, cuda[:n] (encode.device)."),
     num_frames: int | None = typer.Option(
-        None, "--num-frames", min=1, help="pixels: frames per video (default: the whole clip)."),
+        None, "--num-frames", min=1, help="pixels: frames per video (default: the whole clip); recammaster: frames encoded, 4k + 1 (default 81, the frames its loader reads cameras for)."),
+    size: str | None = typer.Option(
+        None, "--size", metavar="HxW", help="pixels: frame size (default: as stored); recammaster: only 480x832, the grid its DiT reads (the default)."),
     limit: int | None = typer.Option(
         None, "--limit", min=1, help="Only the first N pairs (in pair_id order): a quick look at the layout."),
 ) -> None:
     """Hand a build to another trainer: ReCamMaster's, DiffSynth-Studio's or diffusers' layout."""
     from paradrive.train.convert import convert_build
 
+    notes: list[str] = []
     try:
-        count = convert_build(fmt, build, out, vae=vae, text_encoder=text_encoder,
-                              num_frames=num_frames, limit=limit, device=device)
+        counts = convert_build(fmt, build, out, vae=vae, text_encoder=text_encoder, num_frames=num_frames,
+                               size=parse_size(size), limit=limit, device=device, notes=notes)
     except (ValueError, FileNotFoundError, ConfigError) as exc:
         fail(str(exc), EXIT_USAGE)
     except ParaDriveError as exc:
         fail(str(exc), EXIT_FAILED)
     except OSError as exc:   # a full disk, a file-size limit, a folder that went away
         fail(write_failure(out, exc), EXIT_FAILED)
-    typer.echo(f"{count} pairs of {build} -> {out} ({fmt})")
+    for note in notes:
+        typer.echo(f"note: {note}", err=True)
+    line = f"{counts['pairs']} pairs of {build} -> {out} ({fmt})"
+    if "videos" in counts:
+        line += (f": {counts['videos']} distinct videos' latents ({counts['encoded']} encoded, "
+                 f"{counts['from_cache']} from the build's latent cache), {counts['bytes'] / 1e6:.1f} MB, "
+                 f"linked into each pair")
+    typer.echo(line)
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """``HxW`` as (H, W); ValueError in one line otherwise."""
+    if text is None:
+        return None
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        fail(f"--size {text}: write it as HxW, e.g. 480x832", EXIT_USAGE)
+    return int(parts[0]), int(parts[1])
 
 
 def write_failure(out: Path, exc: OSError) -> str:

@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from paradrive.data import PairDataset
+from paradrive.latents import has_latents
 from paradrive.io import atomic_path, path_inside, write_json, write_text
 from paradrive.pairs import build_file
 from paradrive.train.trainer import collate, frames_on
@@ -54,6 +55,8 @@ from paradrive.train.wan import relative_camera, to_channels_first
 
 FORMATS = ("recammaster", "diffsynth", "pixels")
 SOURCE_CAMERA, TARGET_CAMERA = "cam01", "cam02"
+# the other cameras ReCamMaster's loader may draw as the condition: the source again
+_CONDITION_CAMERAS = tuple(f"cam{k:02d}" for k in range(3, 11))
 # The empty prompt as a metadata cell: pandas (how DiffSynth-Studio's and ReCamMaster's loaders
 # read metadata.csv) reads an empty cell as NaN, which their tokenizer refuses; their Wan prompter
 # strips whitespace first (clean='whitespace'), so one space encodes exactly as the empty prompt.
@@ -87,10 +90,14 @@ def recammaster_text(matrix: np.ndarray) -> str:
 
 
 def recammaster_extrinsics(target_c2w: np.ndarray, source_c2w: np.ndarray) -> dict[str, dict[str, str]]:
-    """``{"frame<k>": {"cam01": source, "cam02": target}}`` for every frame of the clip."""
-    return {f"frame{k}": {SOURCE_CAMERA: recammaster_text(recammaster_matrix(s)),
-                          TARGET_CAMERA: recammaster_text(recammaster_matrix(t))}
-            for k, (t, s) in enumerate(zip(target_c2w, source_c2w))}
+    """``{"frame<k>": {"cam01": source, "cam02": target, "cam03" … "cam10": source}}`` for every
+    frame of the clip (the condition cameras ReCamMaster's loader may draw are all the source)."""
+    frames = {}
+    for k, (t, s) in enumerate(zip(target_c2w, source_c2w)):
+        source = recammaster_text(recammaster_matrix(s))
+        frames[f"frame{k}"] = {SOURCE_CAMERA: source, TARGET_CAMERA: recammaster_text(recammaster_matrix(t)),
+                               **{cam: source for cam in _CONDITION_CAMERAS}}
+    return frames
 
 
 def _pair_c2w(row: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -124,36 +131,111 @@ def _pair_folders(ds: PairDataset, root: Path, build: str | Path,
 
 
 # -- ReCamMaster ------------------------------------------------------------------------------------
-def to_recammaster(build: str | Path, out: str | Path, vae: Any = None,
-                   text_embedding: torch.Tensor | None = None, limit: int | None = None) -> int:
-    """Write ReCamMaster's layout for every pair (the first ``limit``; see the module
-    docstring); with ``vae`` (a Wan VAE) and ``text_embedding`` ((L, D), the empty prompt's) also
-    the cached ``.tensors.pth``. Returns the number of pairs."""
-    from paradrive.wan.vae import encode_video
+# What ReCamMaster's unmodified TensorDataset and DiT read: latents of 480x832 frames (its DiT's 30x52
+# token grid), the cameras of frames range(81)[::4] (21 latent frames), and a condition camera drawn
+# among cam01..cam10 (found by substituting the number in the target's path)
+RECAMMASTER_SIZE = (480, 832)
+RECAMMASTER_FRAMES = 81
+RECAMMASTER_CAMERAS = 10
+LATENTS_FOLDER = "latents"   # OUT/latents/<video sha256>.tensors.pth: each distinct video once
+
+
+def check_recammaster_size(size: tuple[int, int] | None) -> None:
+    """ValueError for a size ReCamMaster cannot read, before any work."""
+    if size is not None and tuple(size) != RECAMMASTER_SIZE:
+        raise ValueError(f"--size {size[0]}x{size[1]}: ReCamMaster's DiT reads a 30x52 token grid, the latents "
+                         f"of 480x832 frames, and nothing else; leave --size out (480x832), or use convert "
+                         f"pixels / diffsynth for another size")
+
+
+def recammaster_frames(build: str | Path, num_frames: int | None) -> int:
+    """Frames each video is encoded at: ``num_frames`` (4k + 1, at most every clip's), by default
+    the 81 ReCamMaster's loader reads cameras for; ValueError before any work otherwise."""
+    from paradrive.wan.vae import TEMPORAL_FACTOR
 
     ds = PairDataset(build, dtype="uint8")
+    shortest = min(int(ds.row(i)["num_frames"]) for i in range(len(ds)))
+    frames = RECAMMASTER_FRAMES if num_frames is None else int(num_frames)
+    if (frames - 1) % TEMPORAL_FACTOR:
+        raise ValueError(f"--num-frames {frames} is not 4k + 1 (Wan's VAE encodes the first frame alone, then "
+                         f"groups of 4): use 81, ReCamMaster's, or e.g. {1 + (shortest - 1) // 4 * 4}")
+    if frames > shortest:
+        raise ValueError(f"the build {build} has clips of {shortest} frames, and ReCamMaster reads {frames} "
+                         f"(its loader takes the cameras of frames range({frames})[::4]): pass --num-frames "
+                         f"{1 + (shortest - 1) // 4 * 4} and make that range({1 + (shortest - 1) // 4 * 4}) "
+                         f"in its train_recammaster.py")
+    return frames
+
+
+class RecamLatents:
+    """Each distinct video's ReCamMaster latents, once: from the build's encode cache when it
+    fits (480x832, cropped, at least ``frames`` frames, by the same VAE), else by the VAE.
+
+    ``vae`` / ``text_embedding``: the loaded VAE and the empty prompt's (L, D) embedding (None
+    when the cache serves every video). ``encoded`` / ``from_cache`` count the videos each way."""
+
+    def __init__(self, build: str | Path, frames: int, vae: Any = None, text_embedding: torch.Tensor | None = None,
+                 cache: PairDataset | None = None):
+        from paradrive.wan.vae import latent_frames
+
+        self.build, self.frames, self.vae = build, frames, vae
+        self.latent_frames = latent_frames(frames)
+        self.cache = cache
+        self.text = text_embedding if cache is None or cache.latents is None else cache.latents.text_embedding
+        self.pixels = PairDataset(build, dtype="uint8", num_frames=frames, output_size=RECAMMASTER_SIZE,
+                                  resize="crop")
+        self.encoded = self.from_cache = 0
+
+    def tensors(self, i: int, role: str) -> dict[str, Any]:
+        """Pair ``i``'s ``role`` video as ReCamMaster's cached dict: ``latents`` (16, T', 60, 104)
+        bf16, ``prompt_emb`` ``{"context": (1, L, D)}`` bf16, ``image_emb`` ``{}``."""
+        from paradrive.wan.vae import encode_video
+
+        if self.cache is not None:   # causal in time: the first T' latent frames are those of the first frames
+            latents = self.cache[i][f"{role}_latents"][:, :self.latent_frames]
+            self.from_cache += 1
+        else:
+            if self.vae is None or self.text is None:
+                raise ValueError("the cached tensors need a VAE and the empty prompt's embedding: pass --vae")
+            video = to_channels_first(frames_on(self.pixels[i][role][None], self.vae.device))
+            latents = encode_video(self.vae, video)[0]
+            self.encoded += 1
+        assert self.text is not None
+        return {"latents": latents.to(torch.bfloat16).cpu(),
+                "prompt_emb": {"context": self.text[None].to(torch.bfloat16).cpu()}, "image_emb": {}}
+
+
+def to_recammaster(build: str | Path, out: str | Path, latents: RecamLatents | None = None,
+                   limit: int | None = None) -> dict[str, int]:
+    """Write ReCamMaster's layout for every pair (the first ``limit``; see the module
+    docstring); with ``latents`` also the cached ``.tensors.pth``, each distinct video's written
+    once under ``OUT/latents/`` and hard-linked as every pair's ``cam01`` (the source; ``cam03`` …
+    ``cam10`` too, the condition cameras ReCamMaster's loader may draw) and ``cam02`` (the
+    target). Returns the counts: pairs, videos (distinct), encoded, from_cache, bytes (of the
+    distinct files)."""
+    ds = PairDataset(build, dtype="uint8")
     out = Path(out)
-    names = []
+    names, written = [], {}
     for i, pair_id, row, folder in _pair_folders(ds, out / "train", build, limit):
         videos = {SOURCE_CAMERA: _video(ds, row, "source"), TARGET_CAMERA: _video(ds, row, "target")}
         for cam, src in videos.items():
             _place(src, folder / "videos" / f"{cam}.mp4")
         target_c2w, source_c2w = _pair_c2w(row)
         write_json(folder / "cameras" / "camera_extrinsics.json", recammaster_extrinsics(target_c2w, source_c2w))
-        if vae is not None:
-            if text_embedding is None:
-                raise ValueError("the cached tensors need the empty prompt's embedding: pass text_embedding")
-            sample = ds[i]
-            for cam, role in ((SOURCE_CAMERA, "source"), (TARGET_CAMERA, "target")):
-                video = to_channels_first(frames_on(sample[role][None], vae.device))
-                cached = {"latents": encode_video(vae, video)[0].to(torch.bfloat16).cpu(),
-                          "prompt_emb": {"context": text_embedding[None].to(torch.bfloat16).cpu()},
-                          "image_emb": {}}
-                with atomic_path(folder / "videos" / f"{cam}.mp4.tensors.pth") as tmp:
-                    torch.save(cached, tmp)
+        if latents is not None:
+            for cams, role in (([SOURCE_CAMERA, *_CONDITION_CAMERAS], "source"), ([TARGET_CAMERA], "target")):
+                sha = str(row[f"{role}_sha256"])
+                if sha not in written:
+                    written[sha] = out / LATENTS_FOLDER / f"{sha}.tensors.pth"
+                    with atomic_path(written[sha]) as tmp:
+                        torch.save(latents.tensors(i, role), tmp)
+                for cam in cams:
+                    _place(written[sha], folder / "videos" / f"{cam}.mp4.tensors.pth")
         names.append(f"{pair_id}/videos/{TARGET_CAMERA}.mp4")
     _write_csv(out / "metadata.csv", ["file_name", "text"], [{"file_name": n, "text": EMPTY_PROMPT} for n in names])
-    return len(names)
+    return {"pairs": len(names), "videos": len(written),
+            "encoded": latents.encoded if latents else 0, "from_cache": latents.from_cache if latents else 0,
+            "bytes": sum(p.stat().st_size for p in written.values())}
 
 
 # -- DiffSynth-Studio -------------------------------------------------------------------------------
@@ -259,49 +341,93 @@ def check_output(out: Path) -> None:
         raise ValueError(f"OUT {out}: {above} cannot be written by this user; pass another OUT")
 
 
-def convert_build(fmt: str, build: Path, out: Path, *, vae: Path | None = None,
+def convert_build(fmt: str, build: Path, out: Path, *, vae: Path | str | None = None,
                   text_encoder: Path | None = None, num_frames: int | None = None,
-                  limit: int | None = None, device: str | None = None) -> int:
+                  size: tuple[int, int] | None = None, limit: int | None = None,
+                  device: str | None = None, notes: list[str] | None = None) -> dict[str, int]:
     """Write ``build`` into ``out`` in the layout ``fmt`` names (one of :data:`FORMATS`), whole
-    or not at all; the number of pairs written. ``device``: where the VAE and text encoder run
-    (default: the encode stage's ``device``). Usage errors (ValueError, FileNotFoundError,
-    ConfigError) come before any work."""
+    or not at all; its counts (``pairs``; for recammaster also ``videos``, ``encoded``,
+    ``from_cache``, ``bytes``). ``device``: where the VAE and text encoder run (default: the
+    encode stage's ``device``). ``notes``: what a user should know (a latent cache not used, and
+    why). Usage errors (ValueError, FileNotFoundError, ConfigError) come before any work."""
     if fmt not in FORMATS:
         raise ValueError(f"format {fmt!r}: use one of {', '.join(FORMATS)}")
     if not build.is_dir():
         raise FileNotFoundError(f"{build}: no such build folder (run 'paradrive build' first)")
+    if fmt == "diffsynth" and (size is not None or num_frames is not None):
+        raise ValueError("convert diffsynth hands over the build's own videos: --size and --num-frames are for "
+                         "recammaster and pixels")
     check_output(out)
-    model, embedding = None, None
+    latents = None
     if fmt == "recammaster":
-        model, embedding = _recammaster_encoders(vae, text_encoder, device)
+        check_recammaster_size(size)
+        latents = recammaster_latents(build, recammaster_frames(build, num_frames), vae, text_encoder, device,
+                                      notes if notes is not None else [])
     with atomic_path(out) as tmp:
         tmp.mkdir(parents=True)
         if fmt == "diffsynth":
-            count = to_diffsynth(build, tmp, limit)
+            counts = {"pairs": to_diffsynth(build, tmp, limit)}
         elif fmt == "pixels":
-            count = to_pixels(build, tmp, num_frames=num_frames, limit=limit)
+            counts = {"pairs": to_pixels(build, tmp, num_frames=num_frames, output_size=size, limit=limit)}
         else:
-            count = to_recammaster(build, tmp, model, embedding, limit)
-        write_json(tmp / MARKER, {"format": fmt, "build": str(build), "pairs": count})
-    return count
+            counts = to_recammaster(build, tmp, latents, limit)
+        write_json(tmp / MARKER, {"format": fmt, "build": str(build), **counts})
+    return counts
 
 
-def _recammaster_encoders(vae: Path | None, text_encoder: Path | None, device: str | None) -> tuple[Any, Any]:
-    """The VAE and the empty prompt's embedding ReCamMaster's cached tensors need, on ``device``
-    in the encode stage's compute dtype; ValueError without ``vae``."""
+def recammaster_latents(build: Path, frames: int, vae: Path | str | None, text_encoder: Path | None,
+                        device: str | None, notes: list[str]) -> RecamLatents:
+    """Where the export's latents come from: the build's encode cache when it fits (then no VAE
+    is loaded), else the VAE (``vae``, with umT5 from ``text_encoder`` or the VAE's folder), on
+    ``device`` in the encode stage's compute dtype. ValueError when neither is there."""
     from paradrive.devices import resolve_device
     from paradrive.contracts.specs import StageRegistry
-    from paradrive.wan.text import empty_prompt_embedding
-    from paradrive.wan.vae import load_vae
+    from paradrive.wan.text import empty_prompt_embedding, tiny_text_embedding
+    from paradrive.wan.vae import TINY, TINY_SEED, load_vae
 
+    why = _cache_misfit(build, frames, vae)
+    if why is None:
+        return RecamLatents(build, frames, cache=PairDataset(build, latents=True, dtype="bfloat16"))
     if vae is None:
-        raise ValueError("convert recammaster needs --vae DIR (its text_encoder/ too, or --text-encoder DIR): "
-                         "ReCamMaster's data_process "
-                         "caches only the videos metadata.csv lists (each pair's cam02, the target) and its loader "
-                         "then fails on every cam01 (the source) it needs beside it, retrying forever; with --vae "
-                         "both videos' <video>.tensors.pth are written here")
-    text_encoder = text_encoder or vae   # as paradrive encode: a Wan2.1 folder holds both
+        raise ValueError(f"convert recammaster needs --vae DIR (its text_encoder/ too, or --text-encoder DIR), "
+                         f"or a latent cache of the build that fits (its {why}): ReCamMaster's data_process "
+                         f"caches only the videos metadata.csv lists (each pair's cam02, the target) and its "
+                         f"loader then fails on every cam01 (the source) it needs beside it, retrying forever; "
+                         f"with --vae both videos' <video>.tensors.pth are written here")
+    if has_latents(build):
+        notes.append(f"the build's latent cache is not used: its {why}; encoding with --vae {vae}")
     settings = StageRegistry().resolve(None, {"encode": {"device": device} if device else {}}).typed("encode")
     dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16}[settings.compute_dtype]
     where = resolve_device(settings.device)
-    return load_vae(vae, where, dtype), empty_prompt_embedding(text_encoder, where, dtype)
+    text = text_encoder or vae   # as paradrive encode: a Wan2.1 folder holds both
+    if str(text) == TINY:
+        from paradrive.wan.recam import tiny_transformer_config
+
+        embedding = tiny_text_embedding(TINY_SEED, int(tiny_transformer_config()["text_dim"]))
+    else:
+        embedding = empty_prompt_embedding(text, where, dtype)
+    return RecamLatents(build, frames, load_vae(vae, where, dtype), embedding)
+
+
+def _cache_misfit(build: Path, frames: int, vae: Path | str | None) -> str | None:
+    """Why the build's latent cache cannot serve a ReCamMaster export of ``frames`` frames (as
+    what follows "its" in a sentence), None when it can."""
+    from paradrive.errors import ParaDriveError
+    from paradrive.latents import read_latents_index
+    from paradrive.wan.vae import vae_checksum
+
+    if not has_latents(build):
+        return "latent cache is missing (paradrive encode BUILD --vae DIR makes one)"
+    try:
+        doc = read_latents_index(build)
+    except ParaDriveError as exc:
+        return f"latent cache cannot be read ({exc})"
+    differ = []
+    if list(doc["size"]) != list(RECAMMASTER_SIZE) or doc["resize"] != "crop":
+        differ.append(f"frames were encoded at {doc['size'][0]}x{doc['size'][1]} ({doc['resize']}), ReCamMaster "
+                      f"reads 480x832 (crop)")
+    if int(doc["num_frames"]) < frames:
+        differ.append(f"videos were encoded at {doc['num_frames']} frames, the export needs {frames}")
+    if vae is not None and vae_checksum(vae) != doc["vae"]["sha256"]:
+        differ.append(f"VAE was {doc['vae']['path']}, not --vae {vae}")
+    return "; ".join(differ) or None

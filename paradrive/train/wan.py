@@ -125,7 +125,7 @@ def check_shape(config: Mapping[str, Any], model: ReCamDrivingWan) -> None:
 def cache_mismatch(build_dir: str | Path, config: Mapping[str, Any]) -> str | None:
     """Why the build's latent cache cannot feed this run (its frames, size or VAE differ from the
     config's, or it is unreadable), as what follows "the cache" in a sentence; None when it fits."""
-    from paradrive.wan.vae import folder_checksum, vae_folder
+    from paradrive.wan.vae import vae_checksum
 
     d = config["data"]
     try:
@@ -141,8 +141,8 @@ def cache_mismatch(build_dir: str | Path, config: Mapping[str, Any]) -> str | No
     if int(d["frame_stride"]) != 1:
         differ.append(f"every frame, this run reads every {d['frame_stride']}th (data.frame_stride)")
     vae = config["model"]["vae"]
-    if vae not in (None, TINY):
-        own = folder_checksum(vae_folder(vae))
+    if vae is not None:
+        own = vae_checksum(vae, int(config["seed"]))
         if own != doc["vae"]["sha256"]:
             differ.append(f"by the VAE in {doc['vae']['path']} (sha256 {doc['vae']['sha256'][:12]}…), this run's "
                           f"model.vae {vae} is another (sha256 {own[:12]}…)")
@@ -450,10 +450,10 @@ def empty_text_embedding(config: Mapping[str, Any], text_dim: int) -> torch.Tens
     if source is None:
         raise ConfigError("model.text_encoder is not set: pass --text-encoder DIR (umT5 of the Wan2.1 "
                           "diffusers folder) for a pixel build, or encode the build with 'paradrive encode'")
+    from paradrive.wan.text import empty_prompt_embedding, tiny_text_embedding
+
     if source == TINY:
-        g = torch.Generator().manual_seed(int(config["seed"]) + 7)
-        return torch.randn(TINY_TEXT_TOKENS, text_dim, generator=g, device="cpu")
-    from paradrive.wan.text import empty_prompt_embedding
+        return tiny_text_embedding(int(config["seed"]), text_dim, TINY_TEXT_TOKENS)
 
     embedding = empty_prompt_embedding(source, "cpu")
     if embedding.shape[-1] != text_dim:

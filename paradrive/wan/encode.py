@@ -34,9 +34,10 @@ from paradrive.pairs import build_file, read_index, read_pairs
 from paradrive.contracts.records import IndexRecord
 from paradrive.video import each_frame
 from paradrive import latents as cache
-from paradrive.wan.text import EMBEDDING_FORM, empty_prompt_embedding, text_encoder_folders
-from paradrive.wan.vae import (LATENT_CONVENTION, TEMPORAL_FACTOR, encode_video, folder_checksum, latent_frames,
-                               latent_shape, load_vae, vae_folder)
+from paradrive.wan.recam import tiny_transformer_config
+from paradrive.wan.text import EMBEDDING_FORM, empty_prompt_embedding, text_encoder_folders, tiny_text_embedding
+from paradrive.wan.vae import (LATENT_CONVENTION, TEMPORAL_FACTOR, TINY, TINY_SEED, encode_video, folder_checksum,
+                               latent_frames, latent_shape, load_vae, vae_checksum)
 
 __all__ = ["EncodeSettings", "encode_build"]
 
@@ -83,6 +84,8 @@ def _vae_path(settings: EncodeSettings) -> str:
 def _text_path(settings: EncodeSettings) -> str:
     """The text encoder's folder: ``text_encoder``, else the VAE's when it is a whole Wan folder."""
     path = settings.text_encoder or _vae_path(settings)
+    if path == TINY:
+        return path
     if settings.text_encoder is None and not (Path(path) / "text_encoder").is_dir():
         raise ConfigError(f"encode.text_encoder is not set and the VAE folder {path} holds no "
                           f"text_encoder/: pass --set encode.text_encoder=DIR (a Wan2.1 diffusers "
@@ -205,13 +208,17 @@ def _shards(rows: pa.Table, shard_pairs: int) -> Iterator[pa.Table]:
 def _text(settings: EncodeSettings, folder: Path, device: torch.device, log: logging.Logger) -> dict:
     """The text embedding's file (written unless this encoder's is there) and its record."""
     path = _text_path(settings)
-    encoder_dir, tokenizer_dir = text_encoder_folders(path)
-    sums = {"encoder_sha256": folder_checksum(encoder_dir), "tokenizer_sha256": folder_checksum(tokenizer_dir)}
+    if path == TINY:   # the tiny transformer's stand-in for umT5, as `train --config smoke` draws it
+        tiny = tiny_text_embedding(TINY_SEED, int(tiny_transformer_config()["text_dim"]))
+        sums = {"encoder_sha256": hashlib.sha256(tiny.numpy().tobytes()).hexdigest(), "tokenizer_sha256": TINY}
+    else:
+        encoder_dir, tokenizer_dir = text_encoder_folders(path)
+        sums = {"encoder_sha256": folder_checksum(encoder_dir), "tokenizer_sha256": folder_checksum(tokenizer_dir)}
     rel = f"text/empty-prompt-{_digest(sums)[:12]}.safetensors"
     target = folder / rel
     if not target.is_file():
         log.info("encode: text embedding of the empty prompt from %s", path)
-        written = cache.write_text_embedding(target, empty_prompt_embedding(
+        written = cache.write_text_embedding(target, tiny if path == TINY else empty_prompt_embedding(
             path, device, _COMPUTE_DTYPES[settings.compute_dtype]))
     else:
         written = {"bytes": target.stat().st_size, "sha256": sha256_file(target)}
@@ -249,7 +256,7 @@ def encode_build(build_dir: str | Path, settings: EncodeSettings, *, log: loggin
     log = log or logging.getLogger("paradrive.encode")
     build_dir = Path(build_dir)
     index = read_index(build_dir)
-    vae_sha256 = folder_checksum(vae_folder(_vae_path(settings)))
+    vae_sha256 = vae_checksum(_vae_path(settings))
     # the rows of the version it read, each shard checked against its sha256 in the index
     rows = read_pairs(build_dir, _COLUMNS, index, verify=True)
     if rows.num_rows == 0:

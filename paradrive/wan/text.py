@@ -23,8 +23,8 @@ import torch
 from paradrive.errors import ConfigError
 from paradrive.wan.vae import first_line, weight_errors
 
-__all__ = ["MAX_SEQUENCE_LENGTH", "EMBEDDING_FORM", "text_encoder_folders", "make_tiny_text_encoder",
-           "empty_prompt_embedding"]
+__all__ = ["MAX_SEQUENCE_LENGTH", "EMBEDDING_FORM", "text_encoder_folders", "tiny_text_embedding",
+           "make_tiny_text_encoder", "empty_prompt_embedding"]
 
 MAX_SEQUENCE_LENGTH = 512
 EMBEDDING_FORM = ("umT5 last hidden state of the empty prompt, tokenised to 512 tokens; rows after "
@@ -50,6 +50,14 @@ def text_encoder_folders(path: str | os.PathLike) -> tuple[Path, Path]:
                           f"pass a local folder in Wan2.1's diffusers layout holding text_encoder/ "
                           f"(umT5) and tokenizer/ (e.g. Wan2.1-T2V-1.3B-Diffusers)")
     return encoder, tokenizer
+
+
+def tiny_text_embedding(seed: int, text_dim: int, tokens: int = 8) -> torch.Tensor:
+    """The empty prompt's stand-in for the tiny random transformer (``text_encoder: tiny``): a
+    fixed random (tokens, text_dim) float32 on the CPU drawn from ``seed``; the training loop and
+    ``encode --vae tiny`` draw the same one."""
+    g = torch.Generator(device="cpu").manual_seed(int(seed) + 7)
+    return torch.randn(tokens, text_dim, generator=g, device="cpu")
 
 
 def make_tiny_text_encoder(directory: str | os.PathLike, seed: int = 0) -> Path:

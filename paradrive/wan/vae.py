@@ -24,13 +24,18 @@ import torch
 from paradrive.errors import ConfigError
 from paradrive.io import sha256_file
 
-__all__ = ["LATENT_CONVENTION", "TEMPORAL_FACTOR", "SPATIAL_FACTOR", "tiny_vae_config", "make_tiny_vae",
-           "vae_folder", "load_vae", "encode_video", "decode_latents", "latent_frames", "latent_shape",
-           "folder_checksum"]
+__all__ = ["LATENT_CONVENTION", "TEMPORAL_FACTOR", "SPATIAL_FACTOR", "TINY", "TINY_SEED", "tiny_vae_config",
+           "make_tiny_vae", "vae_folder", "load_vae", "vae_checksum", "encode_video", "decode_latents",
+           "latent_frames", "latent_shape", "folder_checksum"]
 
 LATENT_CONVENTION = "posterior mean, (z - latents_mean) / latents_std per channel (the VAE config's)"
 TEMPORAL_FACTOR = 4
 SPATIAL_FACTOR = 8
+# The name that stands for the tiny random VAE wherever a VAE folder is asked for (``encode --vae
+# tiny``, ``model.vae: tiny`` in the smoke training config): the weights make_tiny_vae draws from
+# TINY_SEED, the training configs' default seed, so a cache encoded with it fits `train --config smoke`
+TINY = "tiny"
+TINY_SEED = 0
 _WAN_DOWNLOAD_HINT = ("pass a local folder holding the VAE's config.json and weights (diffusers' "
                       "layout, e.g. Wan2.1-T2V-1.3B-Diffusers or its vae/ folder)")
 
@@ -69,9 +74,12 @@ def vae_folder(path: str | os.PathLike) -> Path:
 def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu",
              dtype: torch.dtype = torch.float32) -> Any:
     """``AutoencoderKLWan`` from a local folder (see :func:`vae_folder`) on ``device`` in ``dtype``,
-    in eval mode; ConfigError naming the folder when it holds no loadable Wan VAE."""
+    in eval mode; ConfigError naming the folder when it holds no loadable Wan VAE. :data:`TINY`
+    gives the tiny random VAE of the smoke configs."""
     from diffusers import AutoencoderKLWan
 
+    if str(path) == TINY:
+        return make_tiny_vae(TINY_SEED).to(device=torch.device(device), dtype=dtype).eval()
     folder = vae_folder(path)
     try:
         vae = AutoencoderKLWan.from_pretrained(folder, local_files_only=True, torch_dtype=dtype,
@@ -80,6 +88,20 @@ def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu",
         raise ConfigError(f"Wan VAE folder {folder} could not be loaded ({first_line(exc)}); "
                           f"{_WAN_DOWNLOAD_HINT}") from exc
     return vae.to(device=torch.device(device)).eval()
+
+
+def vae_checksum(path: str | os.PathLike, seed: int = TINY_SEED) -> str:
+    """What names a VAE's weights in a latent cache: the :func:`folder_checksum` of its folder, or
+    for :data:`TINY` the sha256 of the tiny VAE's tensors drawn from ``seed`` (names, dtypes, shapes
+    and bytes in name order)."""
+    if str(path) != TINY:
+        return folder_checksum(vae_folder(path))
+    digest = hashlib.sha256()
+    for name, tensor in sorted(make_tiny_vae(seed).state_dict().items()):
+        values = tensor.detach().to("cpu").contiguous()
+        digest.update(f"{name}\0{values.dtype}\0{tuple(values.shape)}\n".encode())
+        digest.update(values.numpy().tobytes())
+    return digest.hexdigest()
 
 
 def weight_errors() -> tuple[type[BaseException], ...]:
