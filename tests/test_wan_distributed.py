@@ -142,3 +142,34 @@ def test_a_killed_two_process_run_resumes_to_the_same_result(wan_builds, two_pro
     for name in a:
         assert a[name].numpy().tobytes() == b[name].numpy().tobytes(), name
     assert losses(out) == losses(ddp)
+
+
+def torchrun(args: list[str]) -> subprocess.CompletedProcess:
+    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                             "-m", "paradrive.cli", *args],
+                            env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return result
+
+
+def test_a_sharded_run_trains_as_ddp_and_writes_the_same_whole_checkpoints(wan_builds, two_process_run, tmp_path):
+    """train.fsdp: the weights, gradients and moments sharded over two gloo processes (stage 1: a
+    block's frozen and trained weights in one unit). Stopped at step 2 and resumed (the resumed
+    moments cut into shards again), it ends where the DDP run does, in the same checkpoint form."""
+    ddp, _ = two_process_run
+    out = tmp_path / "fsdp"
+    args = [*train_args(wan_builds["train"], out, 1), "--set", "train.fsdp=true"]
+    torchrun([*args, "--steps", "2"])
+    half = torch.load(out / "stage1" / "last.pt", weights_only=True)
+    assert half["step"] == 2 and half["config"]["train"]["fsdp"] is True
+    assert all(type(t) is torch.Tensor for t in half["model"].values())          # whole tensors, not shards
+    torchrun(args)                                                                   # resumes to step 4
+    np.testing.assert_allclose(losses(out), losses(ddp), rtol=1e-6)
+    mine, theirs = (torch.load(run / "stage1" / "last.pt", weights_only=True) for run in (out, ddp))
+    assert mine["model"].keys() == theirs["model"].keys()
+    for name in theirs["model"]:
+        torch.testing.assert_close(mine["model"][name], theirs["model"][name], rtol=1e-5, atol=1e-6, msg=name)
+    assert mine["optimizer"]["state"].keys() == theirs["optimizer"]["state"].keys()
+    for i, moments in theirs["optimizer"]["state"].items():
+        for key, value in moments.items():
+            torch.testing.assert_close(mine["optimizer"]["state"][i][key], value, rtol=1e-5, atol=1e-7)

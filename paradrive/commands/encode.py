@@ -18,7 +18,7 @@ from paradrive.io import no_room_message
 def encode_cmd(
     build: Path = typer.Argument(..., help="The build folder (<manifests>/<build>, holding index.json)."),
     vae: str | None = typer.Option(None, "--vae", help=(
-        "Local folder with Wan2.1's VAE (its vae/ folder or the whole diffusers folder); sets encode.vae.")),
+        "Local folder with Wan2.1's VAE (its vae/ folder or the whole diffusers folder), or 'tiny' (the smoke training config's); sets encode.vae.")),
     text_encoder: str | None = typer.Option(None, "--text-encoder", help=(
         "Local folder with umT5 in text_encoder/ and tokenizer/ (default: the --vae folder); "
         "sets encode.text_encoder.")),

@@ -365,6 +365,7 @@ class Trainer:
         self.notes: list[str] = []   # what a user should read: a fallback to an earlier checkpoint
         self._rotate = True           # the next save keeps the last.pt it replaces as previous.pt
         self._ddp: torch.nn.Module | None = None
+        self._sharded = False   # train.fsdp: the model's tensors are shards (DTensors) from the first step
         t = self.config["train"]
         self.batch_size, self.accumulation = int(t["batch_size"]), int(t["grad_accumulation"])
         need = self.batch_size * self.accumulation
@@ -508,20 +509,27 @@ class Trainer:
         return self.model.state_dict()
 
     def state_dict(self) -> dict:
+        """The checkpoint's contents: whole tensors, gathered from every process when the model is
+        sharded (then every process must call it)."""
+        from paradrive.train.sharding import whole
+
         state = {"format": self.checkpoint_format, "stage": self.stage, "step": self.step, "epoch": self.epoch,
                  "batch_in_epoch": self.batch_in_epoch, "world_size": self.world.world_size,
-                 "config": self.config, "model": self.model_state(), "optimizer": self.optimizer.state_dict(),
-                 "torch_rng": torch.get_rng_state()}
+                 "config": self.config, "model": whole(self.model_state()),
+                 "optimizer": whole(self.optimizer.state_dict()), "torch_rng": torch.get_rng_state()}
         if self.ema is not None:
-            state["ema"] = self.ema
+            state["ema"] = whole(self.ema)
         return state
 
     def save(self) -> Path:
         """Write ``last.pt`` (and ``ckpt_<step>.pt`` on checkpoint steps) atomically; the checkpoint
-        it replaces stays as ``previous.pt``, the fallback of a damaged ``last.pt``. Rank 0 only."""
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        it replaces stays as ``previous.pt``, the fallback of a damaged ``last.pt``. Rank 0 writes;
+        with a sharded model every process calls it (its tensors are gathered first)."""
         state = self.state_dict()
         last = self.out_dir / "last.pt"
+        if not self.world.main:
+            return last
+        self.out_dir.mkdir(parents=True, exist_ok=True)
         with atomic_path(last) as tmp:
             torch.save(state, tmp)
             if last.exists() and self._rotate:
@@ -641,12 +649,20 @@ class Trainer:
             return self._train(steps, on_step)
 
     def _wrap(self) -> None:
-        """DDP around the model in a run of several processes (once)."""
-        if self.world.distributed and self._ddp is None:
-            from torch.nn.parallel import DistributedDataParallel
+        """DDP around the model in a run of several processes (once); with ``train.fsdp`` the
+        model sharded over them instead (:mod:`paradrive.train.sharding`)."""
+        if not self.world.distributed or self._ddp is not None or self._sharded:
+            return
+        if self.config["train"].get("fsdp"):
+            from paradrive.train.sharding import shard_training
 
-            ids = [self.device.index] if self.device.type == "cuda" else None
-            self._ddp = DistributedDataParallel(self.model, device_ids=ids)
+            self.optimizer, self.ema = shard_training(self.model, self.optimizer, self.ema)
+            self._sharded = True
+            return
+        from torch.nn.parallel import DistributedDataParallel
+
+        ids = [self.device.index] if self.device.type == "cuda" else None
+        self._ddp = DistributedDataParallel(self.model, device_ids=ids)
 
     def _write_run_files(self) -> None:
         """config.yaml (with the stage and the world size) and metrics.jsonl cut at the resumed
@@ -711,8 +727,9 @@ class Trainer:
                     on_step(self.step, value)
                 if self.step >= total or (save_every and self.step % save_every == 0) \
                         or (every_ckpt and self.step % every_ckpt == 0):
-                    if self.world.main:
+                    if self.world.main or self._sharded:
                         self.save()
+                    if self.world.main:
                         stop_point(f"train:stage{self.stage}-saved-{self.step}")
                     barrier(self.world)
                 if self.step >= total:
