@@ -1,4 +1,5 @@
-"""Inference sets: the true novel views of synthetic scenes, and scoring generated videos.
+"""Inference sets: the true novel views of synthetic scenes, and where a model's generated
+videos are found (their scoring is :mod:`paradrive.scoring`).
 
 An inference build (``manifest.kind: inference``) has one row per (scene, camera, clip, offset):
 the recording as source, the final checkpoint's shifted render as condition and, for a synthetic
@@ -104,72 +105,5 @@ def resized(frames: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.stack([crop_resize(f, out) for f in frames])
 
 
-def score_videos(build_dir: str | Path, videos_dir: str | Path) -> dict:
-    """PSNR / SSIM of each generated video (one per row, named by pair_id) against the row's
-    true novel view (resized to the video's size), and their means per offset. Rows without a
-    target cannot be scored."""
-    from paradrive.video import decode_frames
-    from paradrive.errors import ParaDriveError
-    from paradrive.metrics import frames_quality
-    from paradrive.pairs import build_file, read_index, read_pairs
-
-    build_dir, videos_dir = Path(build_dir), Path(videos_dir)
-    index = read_index(build_dir)
-    if index.kind != "inference":
-        raise ParaDriveError(f"{build_dir}: a {index.kind} build; scoring "
-                             f"needs an inference set (paradrive build --kind inference)")
-    rows = read_pairs(build_dir, ["pair_id", "offset_m", "target_uri"], index, verify=True).to_pylist()
-    scored, missing, no_target = [], [], 0
-    for row in rows:
-        if row["target_uri"] is None:
-            no_target += 1
-            continue
-        video = generated_video(videos_dir, row["pair_id"])
-        if video is None:
-            missing.append(row["pair_id"])
-            continue
-        truth = decode_frames(build_file(build_dir, row["target_uri"], "target", index))
-        pred = decode_frames(video)
-        if len(pred) != len(truth):
-            raise ParaDriveError(f"{video}: {len(pred)} frames, the target has {len(truth)}; "
-                                 f"generate the build's frame count")
-        truth = resized(truth, pred.shape[2], pred.shape[1])
-        scored.append({"pair_id": row["pair_id"], "offset_m": float(row["offset_m"]),
-                       **dict(zip(("psnr", "ssim"), frames_quality(pred, truth)))})
-    by_offset: dict[float, list[dict]] = {}
-    for r in scored:
-        by_offset.setdefault(r["offset_m"], []).append(r)
-    return {"build": str(build_dir), "videos": str(videos_dir), "rows": scored,
-            "missing": missing, "rows_without_target": no_target,
-            "by_offset": [{"offset_m": d, "videos": len(rs),
-                           "psnr": float(np.mean([r["psnr"] for r in rs])),
-                           "ssim": float(np.mean([r["ssim"] for r in rs]))}
-                          for d, rs in sorted(by_offset.items())]}
-
-
-def plot_scores(doc: dict, path: str | Path) -> None:
-    """PSNR and SSIM against the lateral offset."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from paradrive.io import atomic_path
-
-    offsets = [r["offset_m"] for r in doc["by_offset"]]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    ax1.plot(offsets, [r["psnr"] for r in doc["by_offset"]], "o-")
-    ax2.plot(offsets, [r["ssim"] for r in doc["by_offset"]], "s-")
-    for ax, label in ((ax1, "PSNR vs true view (dB)"), (ax2, "SSIM vs true view")):
-        ax.set_xlabel("lateral offset (m, left > 0)")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"{Path(doc['videos']).name} against {Path(doc['build']).name}")
-    fig.tight_layout()
-    with atomic_path(Path(path)) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
-
-
-__all__ = ["TRUTH_CODEC", "generated_video", "no_truth", "plot_scores", "score_videos",
-           "truth_file", "truth_renderer"]
+__all__ = ["TRUTH_CODEC", "generated_video", "no_truth", "resized", "truth_file",
+           "truth_renderer"]

@@ -47,9 +47,11 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "stages": ("paradrive.stages.*", "paradrive.inference"),
     # running stages over scenes: the runner, the build, executors, locks, the ledger, the plan
     "pipeline": ("paradrive.pipeline.*",),
-    # what users run on builds and scenes: evaluation, inspection, the viewer, the trainers
+    # what users run on builds and scenes: evaluation, inspection, the viewer, the trainers,
+    # the scoring of generated videos
     "applications": (
         "paradrive.evaluation", "paradrive.inspection", "paradrive.view", "paradrive.train.*",
+        "paradrive.scoring.*",
     ),
     # the command line: one module per command, and the app that gathers them
     "commands": ("paradrive.cli", "paradrive.commands.*"),

@@ -173,11 +173,11 @@ def test_eval_build_scores_the_targets_themselves_as_perfect(inference_build, tm
 def test_eval_build_scores_the_conditions_as_eval_scores_the_final_checkpoint(inference_build,
                                                                              tmp_path):
     from paradrive.evaluation import evaluate_scene
-    from paradrive.inference import score_videos
+    from paradrive.scoring.run import ScoreSettings, score_videos
 
     rows = [r for r in read_pairs(inference_build["dir"]).to_pylist() if r["scene_id"] == SCENE]
     videos = videos_folder(inference_build["dir"], rows, "condition", tmp_path / "videos")
-    doc = score_videos(inference_build["dir"], videos)
+    doc = score_videos(inference_build["dir"], videos, ScoreSettings(metrics=("psnr",)))
     assert len(doc["missing"]) == 24  # the other scene's rows
     params = inference_build["config"].params
     truth = evaluate_scene(inference_build["data_dir"] / "scenes" / SCENE,

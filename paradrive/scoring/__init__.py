@@ -1,0 +1,3 @@
+"""Scoring generated videos where no true novel view exists: camera accuracy, temporal
+consistency, view consistency and visual quality (``paradrive eval --build … --videos …
+--metrics …``). One module per metric; the networks load from local weight files only."""
