@@ -3,7 +3,7 @@ two sizes and the plan's estimate of them, the metric scale's error and its repo
 uncertainty, held-out PSNR, mask coverage, ingest time and memory; prints JSON (``--out``
 writes it too).
 
-    .venv/bin/python bench/bench_video.py [--parts ruler,ingest,sizes,synthetic,heldout,masks,memory]
+    .venv/bin/python bench/bench_video.py [--parts ruler,ingest,sizes,synthetic,kitti,heldout,masks,memory]
         [--clip ../shared/realdata/udacity-freeway] [--height-m 1.23] [--busy] [--out FILE]
 
 Parts (all by default; ``memory`` and ``heldout`` take longest):
@@ -24,6 +24,10 @@ Parts (all by default; ``memory`` and ``heldout`` take longest):
   own size, in the same run.
 * ``synthetic``: the demo street's front camera (130 frames at 320x192, ``paradrive export
   video``) ingested: scale error against the street's truth and the reported uncertainty.
+* ``kitti``: the KITTI snippet's frames (``../shared/realdata/kitti-odometry-snippet``) ingested
+  without and with their intrinsics: the focal found, the path's length and its trajectory error
+  after a rigid and a similarity alignment against the GPS/INS poses, the stated uncertainty and
+  the error's ratio to it.
 * ``heldout``: the clip and the street ingested and fitted with the smoke profile and every 8th
   frame held out (``fit.holdout_every=8``): PSNR on the held-out frames.
 * ``masks``: the moving masks against the clip's two cars boxed by hand, and the masks' shares
@@ -61,7 +65,11 @@ VIDEO = "freeway-shadows-1280x720.mp4"
 PERIOD_M = 14.63
 LANE_M = 3.66
 STREET = "synthetic:demo?seed=7&frames=130&width=320&height=192"
-PARTS = ("ruler", "ingest", "sizes", "synthetic", "heldout", "masks", "memory")
+KITTI = REPO.parent / "shared" / "realdata" / "kitti-odometry-snippet"
+# the snippet's rectified camera (calib.txt, P0) and KITTI's mount height
+KITTI_INTRINSICS = "fx=718.856&fy=718.856&cx=607.1928&cy=185.2157"
+KITTI_HEIGHT_M = 1.65
+PARTS = ("ruler", "ingest", "sizes", "synthetic", "kitti", "heldout", "masks", "memory")
 
 
 # --------------------------------------------------------------------------- the clip's ruler
@@ -355,9 +363,52 @@ def part_synthetic(workdir: Path) -> dict:
     c2w = np.array(out.pop("c2w"))
     truth = SyntheticStreet(name="demo", seed=7, frames=130, width=320, height=192).c2w("front")
     video = out.pop("video")
-    return {**out, "uri": uri, "scale_error": path_length(c2w) / path_length(truth) - 1,
+    first, last = video["kept"]   # the steady run SfM placed: its own stretch of the truth
+    error = path_length(c2w) / path_length(truth[first:last + 1]) - 1
+    return {**out, "uri": uri, "kept": video["kept"], "scale_error": error,
             "uncertainty": video["scale"]["uncertainty"],
+            "ratio": abs(error) / video["scale"]["uncertainty"],
             "sfm_s_a_frame": video["sfm"]["seconds"] / video["sampled"]}
+
+
+def rigid_error(found: np.ndarray, truth: np.ndarray, *, scale: bool = False) -> float:
+    """RMS distance (units of ``truth``) between the centres ``found`` and ``truth`` (N, 3)
+    after the rigid motion (with ``scale``: the similarity) that fits them best (Kabsch)."""
+    a, b = found - found.mean(0), truth - truth.mean(0)
+    u, sv, vt = np.linalg.svd(a.T @ b)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    rotation = vt.T @ d @ u.T
+    s = float((sv * np.diag(d)).sum() / (a ** 2).sum()) if scale else 1.0
+    return float(np.sqrt(((s * a @ rotation.T - b) ** 2).sum(1).mean()))
+
+
+def part_kitti(folder: Path, workdir: Path) -> dict:
+    """The KITTI snippet's frames ingested without and with their intrinsics: focal, frames
+    registered, path length and trajectory error against the GPS/INS poses, stated uncertainty."""
+    truth = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
+    out = {}
+    for name, query in (("no_intrinsics", f"height_m={KITTI_HEIGHT_M}"),
+                        ("intrinsics", f"{KITTI_INTRINSICS}&height_m={KITTI_HEIGHT_M}")):
+        uri = f"video:{folder / 'image_l'}?{query}"
+        got = _child("ingest", {"uri": uri, "out": str(workdir / f"kitti-{name}")})
+        if "error" in got:
+            out[name] = got
+            continue
+        centres = np.array(got.pop("c2w"))[:, :3, 3]
+        video = got.pop("video")
+        first, last = video["kept"]
+        true = truth[first:last + 1]
+        length = float(np.linalg.norm(np.diff(true, axis=0), axis=1).sum())
+        error = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()) / length - 1
+        scale = video["scale"]
+        out[name] = {**got, "uri": uri, "registered": video["registered"],
+                     "fx": video["intrinsics"]["fx"], "path_error": error,
+                     "uncertainty": scale["uncertainty"], "ratio": abs(error) / scale["uncertainty"],
+                     "parts": scale["parts"], "weights": scale["weights"],
+                     "ate_rigid_of_path": rigid_error(centres, true) / length,
+                     "ate_similarity_of_path": rigid_error(centres, true, scale=True) / length,
+                     "focal_seconds": video["sfm"].get("focal_seconds")}
+    return out
 
 
 def part_heldout(uris: dict[str, str], workdir: Path) -> dict:
@@ -442,9 +493,9 @@ def main() -> None:
                     "height_m": args.height_m}
     if not (args.clip / VIDEO).is_file():   # a clone without the real recordings: the street only
         result["clip"] = f"not found: {args.clip / VIDEO}; its parts are skipped"
-        parts = [p for p in parts if p in ("synthetic",)]
+        parts = [p for p in parts if p in ("synthetic", "kitti")]
     with every_core(args.busy):
-        ruler = measure_ruler(args.clip) if parts != ["synthetic"] else {}
+        ruler = measure_ruler(args.clip) if set(parts) - {"synthetic", "kitti"} else {}
         result["ruler"] = ruler
         if args.write_ruler and ruler:
             args.write_ruler.write_text(json.dumps(ruler, indent=1) + "\n")
@@ -455,6 +506,9 @@ def main() -> None:
             result["sizes"] = part_sizes(args.clip, workdir)
         if "synthetic" in parts:
             result["synthetic"] = part_synthetic(workdir)
+        if "kitti" in parts:
+            result["kitti"] = (part_kitti(KITTI, workdir) if (KITTI / "image_l").is_dir()
+                               else f"not found: {KITTI}")
         if "heldout" in parts:
             result["heldout"] = part_heldout({"clip": clip_uri(args.clip, args.height_m),
                                               "street": street_video(workdir)}, workdir)

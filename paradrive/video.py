@@ -8,6 +8,12 @@ Two codecs are supported:
 Frames are stamped with ``pts = i`` in a ``1/fps`` time base, so decoding yields them in order
 with no frame dropped or duplicated. Every file is written under a temporary name and renamed.
 
+Frames are read by their timestamps: frame ``i`` is the ``i``-th frame the file presents (its
+``i``-th smallest timestamp), whatever its rate, so a variable-frame-rate file (a phone's, or
+one cut and joined) decodes as readily as a constant-rate one, and :func:`frame_times` gives
+when each is shown. A seek goes to the timestamp of the first wanted frame, read from the
+file's packets (demuxed, not decoded: a few milliseconds for a 200-frame 720p clip).
+
 The same frames and settings give the same bytes at a given encoder thread count: on a CPU with
 AVX-512, x264's AVX-512 functions made the output depend on what the process's heap held before
 (the same frames encoded after other work, or under ``MALLOC_PERTURB_``, came out different), so
@@ -18,7 +24,6 @@ repeatable one.
 from __future__ import annotations
 
 import functools
-import math
 import os
 import re
 from collections.abc import Callable, Iterable, Sequence
@@ -31,7 +36,12 @@ import numpy as np
 from paradrive.errors import ParaDriveError
 from paradrive.io import atomic_path, sha256_file
 
-__all__ = ["CODECS", "container_suffix", "encode_video", "decode_frames", "each_frame"]
+__all__ = ["CODECS", "container_suffix", "encode_video", "decode_frames", "each_frame",
+           "frame_times"]
+
+# B-frames are reordered over at most 16 frames in H.264 and HEVC: packets read this far past a
+# frame fix its place among the presented frames
+REORDER_MARGIN = 64
 
 # codec -> (container suffix, FFmpeg container format, default pixel format)
 CODECS = {
@@ -67,8 +77,13 @@ def _rate(fps: float) -> Fraction:
 
 def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float, *,
                  codec: str = "libx264", crf: int = 18, preset: str = "medium",
-                 pix_fmt: str | None = None, threads: int = 0, gop: int | None = None) -> dict:
+                 pix_fmt: str | None = None, threads: int = 0, gop: int | None = None,
+                 times: Sequence[float] | None = None) -> dict:
     """Encode uint8 RGB frames (H, W, 3), all the same size, into ``path``.
+
+    times: when each frame is shown (seconds, increasing; one per frame) for a variable-rate
+    file, stamped in a 1/90000 s time base with ``fps`` as the stream's nominal rate; None =
+    frame ``i`` at ``i / fps``.
 
     codec: ``libx264`` (``crf``, ``preset``, ``pix_fmt`` default ``yuv420p``, whose 2x2 chroma
     needs even width and height) or ``ffv1`` (lossless; ``crf`` and ``preset`` are ignored).
@@ -87,6 +102,8 @@ def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: flo
         raise ValueError(f"{path}: a {codec} stream goes in a '{suffix}' file")
     pix_fmt = str(pix_fmt or default_pix)
     rate = _rate(fps)
+    base = Fraction(1) / rate if times is None else Fraction(1, 90000)
+    stamps = None if times is None else _stamps(path, times)
     count, size = 0, (0, 0)
     with atomic_path(path) as tmp:
         with av.open(str(tmp), mode="w", format=fmt) as container:
@@ -103,41 +120,99 @@ def encode_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: flo
                         raise ValueError(f"{path}: {pix_fmt} needs even width and height, got "
                                          f"{w}x{h}; choose an even output size")
                     stream = container.add_stream(codec, rate=rate)
+                    if stamps is not None:
+                        stream.time_base = stream.codec_context.time_base = base
                     stream.width, stream.height = w, h
                     stream.pix_fmt = pix_fmt
                     stream.thread_count = int(threads)
-                    if gop:
-                        stream.codec_context.gop_size = int(gop)
-                    if codec == "libx264":
-                        stream.options = {"crf": str(int(crf)), "preset": str(preset),
-                                          **x264_params()}
-                        if gop:
-                            stream.options = {**stream.options, "keyint_min": str(int(gop))}
-                    else:
-                        stream.options = {"level": "3", "slicecrc": "1"}
+                    _set_options(stream, codec, crf, preset, gop)
                 elif frame.shape[:2] != size:
                     raise ValueError(f"{path}: frame {count} is {frame.shape[1]}x{frame.shape[0]}, "
                                      f"the first was {size[1]}x{size[0]}")
+                if stamps is not None and count >= len(stamps):
+                    raise ValueError(f"{path}: more frames than the {len(stamps)} times given")
                 vf = av.VideoFrame.from_ndarray(frame, format="rgb24")
-                vf.pts = count
-                vf.time_base = Fraction(1) / rate
+                vf.pts = count if stamps is None else stamps[count]
+                vf.time_base = base
                 for packet in stream.encode(vf):
                     container.mux(packet)
                 count += 1
             if stream is None:
                 raise ValueError(f"{path}: no frames to encode")
+            if stamps is not None and count != len(stamps):
+                raise ValueError(f"{path}: {len(stamps)} times given for {count} frames")
             for packet in stream.encode(None):
                 container.mux(packet)
     return {"frames": count, "width": int(size[1]), "height": int(size[0]),
             "bytes": path.stat().st_size, "sha256": sha256_file(path)}
 
 
+def _stamps(path: Path, times: Sequence[float]) -> list[int]:
+    """``times`` (s) in a 1/90000 s time base; ValueError where they do not increase."""
+    stamps = [int(round(float(t) * 90000)) for t in times]
+    if any(b <= a for a, b in zip(stamps, stamps[1:])):
+        raise ValueError(f"{path}: times must increase by at least 1/90000 s, got "
+                         f"{list(times)[:8]}...")
+    return stamps
+
+
+def _set_options(stream: Any, codec: str, crf: int, preset: str, gop: int | None) -> None:
+    """The encoder's options: x264's quality, speed and keyframes, or FFV1's checksums."""
+    if gop:
+        stream.codec_context.gop_size = int(gop)
+    if codec == "libx264":
+        stream.options = {"crf": str(int(crf)), "preset": str(preset), **x264_params()}
+        if gop:
+            stream.options = {**stream.options, "keyint_min": str(int(gop))}
+    else:
+        stream.options = {"level": "3", "slicecrc": "1"}
+
+
 # --------------------------------------------------------------------------- decoding
 
-def _frame_index(frame, start_pts: int, time_base, rate) -> int | None:
-    if frame.pts is None or not rate:
+def _presented(container, stream, upto: int | None = None) -> list[int] | None:
+    """The timestamps (``stream.time_base`` units) of the frames ``stream`` presents, sorted: entry
+    ``i`` is frame ``i``'s. Read from the packets (no decoding), all of them or up to ``upto``
+    frames plus the reordering margin. Packets the container marks to discard (an edit list's
+    lead-in) present nothing; None where a packet carries no timestamp."""
+    stamps: list[int] = []
+    for packet in container.demux(stream):
+        if not packet.size or packet.is_discard:
+            continue
+        stamp = packet.pts if packet.pts is not None else packet.dts
+        if stamp is None:
+            return None
+        stamps.append(int(stamp))
+        if upto is not None and len(stamps) > upto + REORDER_MARGIN:
+            break
+    return sorted(stamps)
+
+
+def frame_times(path: str | Path) -> tuple[np.ndarray, float] | None:
+    """When each frame of ``path`` is presented: (F,) float64 seconds from the first frame, in
+    frame order (frame ``i`` as :func:`each_frame` numbers it), and the rate the header gives
+    (frames a second, 0 where it gives none); None where the packets carry no timestamps.
+    Raises ParaDriveError naming the file when it cannot be read."""
+    import av
+
+    path = Path(path)
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                raise ParaDriveError(f"{path}: no video stream; give a video file")
+            stream = container.streams.video[0]
+            rate = float(stream.average_rate or stream.guessed_rate or 0)
+            stamps = _presented(container, stream)
+            base = stream.time_base
+    except MemoryError:
+        raise
+    except (av.error.FFmpegError, OSError) as exc:
+        raise ParaDriveError(f"{path}: cannot read the video's timestamps ({exc}); the file is "
+                             f"missing or corrupt") from exc
+    if stamps is None or not stamps or base is None:
         return None
-    return int(round(float((frame.pts - start_pts) * time_base * rate)))
+    ticks = np.asarray(stamps, dtype=np.int64) - stamps[0]
+    return ticks * float(base), rate
 
 
 def decode_frames(path: str | Path, indices: Sequence[int] | None = None, *,
@@ -145,7 +220,9 @@ def decode_frames(path: str | Path, indices: Sequence[int] | None = None, *,
                   threads: int = 1, stats: dict | None = None) -> np.ndarray:
     """Frames of a video as uint8 (F, H, W, 3) RGB, in the order of ``indices``.
 
-    indices: 0-based frame numbers (repeats allowed); None = every frame.
+    indices: 0-based frame numbers (repeats allowed): frame ``i`` is the ``i``-th the file
+    presents, by its timestamps (for a constant-rate file, the one at ``i / fps``); None = every
+    frame.
     size: (height, width) to resize to while converting (swscale, area filter); None = as stored.
     seek: seek to the keyframe at or before the first index (False decodes from the start; the
     result is the same, only slower).
@@ -252,21 +329,28 @@ class _FrameWalk:
                                      f"for its scene, or `paradrive inspect --verify` the build") from exc
 
     def _decode(self, container, stream, seek: bool) -> set[int] | None:
-        rate = stream.average_rate or stream.guessed_rate
-        start = stream.start_time or 0
-        tb = stream.time_base
+        """Decoded from the start, frame ``i`` is the ``i``-th presented; after a seek, the frame
+        whose timestamp is the ``i``-th smallest of the file's packets."""
         first = 0 if self.wanted is None else self.wanted[0]
-        sought = bool(seek and first and rate and tb)
-        if sought:
-            target = start + int(math.floor(first / float(rate) / float(tb)))
-            container.seek(target, stream=stream, backward=True, any_frame=False)
+        place: dict[int, int] | None = None
+        if seek and first and self.wanted is not None:
+            stamps = _presented(container, stream, self.wanted[-1])
+            if stamps is None or first >= len(stamps):
+                return None   # nothing to seek to by timestamp: decode from the start
+            place = {stamp: i for i, stamp in enumerate(stamps)}
+            container.seek(stamps[first], stream=stream, backward=True, any_frame=False)
         for counter, frame in enumerate(container.decode(stream), start=1):
-            idx = _frame_index(frame, start, tb, rate)
             if self.stats is not None:
                 self.stats["decoded"] = self.stats.get("decoded", 0) + 1
-            if sought and counter == 1 and (idx is None or idx > first):
-                return None
-            if self._take(counter - 1 if idx is None else idx, frame):
+            if place is None:
+                idx = counter - 1
+            else:
+                found = place.get(frame.pts if frame.pts is not None else -1)
+                if found is None or (counter == 1 and found > first):
+                    # past the packets read (all wanted ones were before), or the seek overshot
+                    return None if not self.got else self.got
+                idx = found
+            if self._take(idx, frame):
                 break
         return self.got
 

@@ -405,3 +405,17 @@ def test_running_out_of_memory_is_reported_as_memory_not_a_corrupt_file(tmp_path
         out = done.stdout.strip()
         assert "out of memory decoding its 3840x2160 frames (24.9 MB each)" in out, done.stdout + done.stderr
         assert "address-space limit" in out and "resources.memory_gb" in out and "corrupt" not in out
+
+
+def test_a_straight_drive_without_intrinsics_asks_for_the_field_of_view(tmp_path):
+    """The straight street exported without intrinsics: every focal tried maps it about as well
+    (a straight drive leaves the focal free), so the scene is refused before the clip is mapped,
+    in one line that names the focal length and what would fix it."""
+    bare = export_scene(STREET, "video", tmp_path / "bare", params_of(), with_intrinsics=False)
+    with pytest.raises(SceneError) as info:
+        ingest(bare, tmp_path / "scene", params_of())
+    err = info.value
+    assert "the focal length could not be measured from the frames" in str(err), str(err)
+    assert "the metric scale would be uncertain by 93%" in str(err)
+    assert "fov_deg=" in err.fix and "fx=&fy=&cx=&cy=" in err.fix
+    assert not (tmp_path / "scene").exists()

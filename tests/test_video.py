@@ -7,7 +7,7 @@ import pytest
 
 from video_probe import probe_video
 
-from paradrive.video import container_suffix, decode_frames, each_frame, encode_video
+from paradrive.video import container_suffix, decode_frames, each_frame, encode_video, frame_times
 
 
 def _frames(n: int = 9, h: int = 48, w: int = 64) -> list[np.ndarray]:
@@ -174,3 +174,31 @@ def test_a_pass_converts_every_frame_through_one_swscale_context(tmp_path):
             sys.setprofile(None)
         assert calls["VideoReformatter.reformat"] == 4 and len(contexts) == 1
         assert calls["VideoFrame.reformat"] == 0
+
+
+def test_a_variable_rate_file_is_decoded_by_its_timestamps(tmp_path):
+    """Frames [4, 10, 16, 20, 23] of a VFR file, sought and decoded from the start, are the
+    frames written there, and frame_times gives when each is shown."""
+    times = np.cumsum(np.r_[0.0, np.tile([0.04, 0.06, 0.033, 0.067], 6)[:23]])
+    frames = [np.full((48, 64, 3), 10 * i, np.uint8) for i in range(24)]
+    for name in ("vfr.mp4", "vfr.mkv"):
+        path = tmp_path / name
+        encode_video(path, frames, 25.0, times=times, preset="ultrafast", gop=6,
+                     codec="libx264" if name.endswith("mp4") else "ffv1")
+        got, _ = frame_times(path)
+        np.testing.assert_allclose(got, times, atol=5e-4)   # Matroska keeps milliseconds
+        picks = [4, 10, 16, 20, 23]
+        for seek in (True, False):
+            decoded = decode_frames(path, picks, seek=seek)
+            np.testing.assert_allclose(decoded[:, 0, 0, 0], 10 * np.asarray(picks), atol=3)
+        assert len(decode_frames(path)) == 24
+        stats: dict = {}   # a seek by timestamp starts at the keyframe before frame 20 (18)
+        np.testing.assert_allclose(decode_frames(path, [20], stats=stats)[:, 0, 0, 0], 200, atol=3)
+        assert stats["decoded"] < 12
+
+
+def test_a_constant_rate_file_is_timed_by_its_frame_numbers(tmp_path):
+    encode_video(tmp_path / "c.mp4", _frames(9), 29.97, preset="ultrafast")
+    times, rate = frame_times(tmp_path / "c.mp4")
+    np.testing.assert_allclose(times, np.arange(9) * 1001 / 30000, atol=1e-4)
+    assert rate == pytest.approx(29.97, rel=1e-3)

@@ -70,10 +70,16 @@ def test_the_distance_driven_agrees_with_the_dash_ruler(freeway_build):
 def test_the_scale_s_uncertainty_is_recorded_and_accepted(freeway_build):
     scene, _ = scene_of(freeway_build)
     scale = scene["video"]["scale"]
-    motion = scale["road_motion"]
     assert 0 < scale["uncertainty"] < 0.05
-    assert scale["uncertainty"] == pytest.approx(np.sqrt(motion["scatter"] ** 2 + motion["drift"] ** 2
-                                                         + (motion["band"] or 0) ** 2))
+    # both halves measured by both cues; the road's motion, the surer one, carries the scale
+    assert [r["carried_by"] for r in scale["ranges"]] == [["road motion", "road points"]] * 2
+    assert scale["weights"]["road motion"] > 0.5
+    # the calibrated camera adds no focal part: the halves' uncertainties, weighted by their
+    # lengths and summed, are the whole figure
+    assert "focal" not in scale["parts"]
+    assert scale["uncertainty"] == pytest.approx(scale["parts"]["ranges"])
+    assert min(r["uncertainty"] for r in scale["ranges"]) <= scale["uncertainty"] \
+        <= max(r["uncertainty"] for r in scale["ranges"])
     # the SfM points alone would be a worse ruler here: the road motion is what sets the scale
     assert scale["by_height"] != scale["by_road_points"]
 

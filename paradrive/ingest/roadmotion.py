@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -54,7 +54,7 @@ from paradrive import geometry
 from paradrive.ingest.egomask import blur
 from paradrive.ingest.sfm import level_with_path
 
-__all__ = ["RoadMotion", "road_motion_height", "still_pixels"]
+__all__ = ["RoadMotion", "road_motion_height", "still_pixels", "summarise"]
 
 LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -64,7 +64,9 @@ class RoadMotion:
     """The camera's height above the road (model units): the median over frame ``pairs`` of
     their ``heights``; ``spread`` is the heights' interquartile range over the median, ``scatter``
     the median's standard error and ``drift`` half the difference between the medians of the
-    first and the second half of the pairs, both relative to the height."""
+    first and the second half of the pairs, both relative to the height. ``near_heights`` /
+    ``far_heights``: each pair's height from the near and the far half of the road pixels alone
+    (NaN where that half did not align)."""
 
     height: float
     heights: np.ndarray
@@ -73,12 +75,44 @@ class RoadMotion:
     scatter: float
     drift: float
     band: float | None
+    near_heights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    far_heights: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def uncertainty(self) -> float:
         """The height's relative uncertainty: scatter, drift and band (where both halves of the
         road could be aligned) combined."""
         return float(np.sqrt(self.scatter ** 2 + self.drift ** 2 + (self.band or 0.0) ** 2))
+
+    def within(self, first: int, last: int, min_pairs: int = 5) -> RoadMotion | None:
+        """The same figures from the pairs that start in frames ``first``..``last`` only; None
+        where fewer than ``min_pairs`` do."""
+        keep = [k for k, (i, _) in enumerate(self.pairs) if first <= i <= last]
+        near = self.near_heights if len(self.near_heights) else np.full(len(self.pairs), np.nan)
+        far = self.far_heights if len(self.far_heights) else np.full(len(self.pairs), np.nan)
+        return summarise(self.heights[keep], near[keep], far[keep],
+                         [self.pairs[k] for k in keep], min_pairs)
+
+
+def summarise(values: np.ndarray, near_h: np.ndarray, far_h: np.ndarray,
+              used: list[tuple[int, int]], min_pairs: int) -> RoadMotion | None:
+    """The median height of frame pairs ``used`` (their heights ``values``, in the order along
+    the video; ``near_h`` / ``far_h`` those of the two halves of the road pixels) and its
+    uncertainty's parts; None where fewer than ``min_pairs``."""
+    if len(values) < min_pairs:
+        return None
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    half = len(values) // 2
+    # a median's standard error: 1.2533 sigma / sqrt(n), sigma from the IQR (1.349 sigma)
+    scatter = 1.2533 * (q3 - q1) / 1.349 / np.sqrt(len(values)) / median
+    drift = abs(np.median(values[half:]) - np.median(values[:half])) / (2 * median)
+    both = np.isfinite(near_h) & np.isfinite(far_h)
+    band = (abs(np.median(far_h[both]) - np.median(near_h[both])) / (2 * median)
+            if both.sum() >= min_pairs else None)
+    return RoadMotion(height=float(median), heights=np.asarray(values), pairs=list(used),
+                      spread=float((q3 - q1) / median), scatter=float(scatter), drift=float(drift),
+                      band=None if band is None else float(band), near_heights=np.asarray(near_h),
+                      far_heights=np.asarray(far_h))
 
 
 def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: np.ndarray,
@@ -146,17 +180,7 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     if len(heights) < min_pairs:
         return None
     values, near_h, far_h = np.array(heights).T
-    q1, median, q3 = np.percentile(values, [25, 50, 75])
-    half = len(values) // 2
-    # a median's standard error: 1.2533 sigma / sqrt(n), sigma from the IQR (1.349 sigma)
-    scatter = 1.2533 * (q3 - q1) / 1.349 / np.sqrt(len(values)) / median
-    drift = abs(np.median(values[half:]) - np.median(values[:half])) / (2 * median)
-    both = np.isfinite(near_h) & np.isfinite(far_h)
-    band = (abs(np.median(far_h[both]) - np.median(near_h[both])) / (2 * median)
-            if both.sum() >= min_pairs else None)
-    return RoadMotion(height=float(median), heights=values, pairs=used,
-                      spread=float((q3 - q1) / median), scatter=float(scatter), drift=float(drift),
-                      band=None if band is None else float(band))
+    return summarise(values, near_h, far_h, used, min_pairs)
 
 
 def _mean_elsewhere(gray: dict[int, np.ndarray], total: np.ndarray, frames: np.ndarray,

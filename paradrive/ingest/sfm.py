@@ -9,7 +9,8 @@ A video has no calibration and no LiDAR, so its poses come from the images alone
    single-threaded with fixed seeds so that one video always gives the same poses. Known
    intrinsics are held fixed: with focal refinement on, forward motion leaves the focal length
    poorly constrained and bundle adjustment drifts it far from the truth. Unknown ones are
-   estimated as one shared SIMPLE_RADIAL camera.
+   estimated as one shared SIMPLE_RADIAL camera (the video reader finds the focal length first
+   instead, :mod:`paradrive.ingest.focal`, and passes it as known).
 2. :func:`fit_road_plane`: a RANSAC plane through the points seen below and ahead of the camera,
    among roughly level planes, and a first measure of the camera's height above it (the lowest
    dense layer of points in the ego lane, in reconstruction units). :func:`level_with_path`
@@ -22,11 +23,16 @@ A video has no calibration and no LiDAR, so its poses come from the images alone
    world whose origin is the first ego pose with z up, and an ego frame level with the road
    (x forward, y left, z up) under the camera, so a lateral shift moves along the road surface.
 
+4. :func:`steady_runs` splits the registered frames where the camera's step jumps (a frame SfM
+   placed wrongly), and :func:`without_drift` evens out the scale along the path with a scale
+   measured per range of frames (:mod:`paradrive.ingest.scalecue`).
+
 Nothing here knows a scene folder; errors are :class:`SfmError` and the reader names the scene.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,8 +42,8 @@ import numpy as np
 from paradrive import geometry
 
 __all__ = ["SfmError", "Intrinsics", "Reconstruction", "RoadPlane", "MetricRig", "reconstruct",
-           "registered_runs", "fit_road_plane", "level_with_path", "metric_rig", "path_length",
-           "format_runs"]
+           "mapping_options", "registered_runs", "steady_runs", "fit_road_plane", "level_with_path",
+           "metric_rig", "path_length", "without_drift", "format_runs"]
 
 
 class SfmError(ValueError):
@@ -91,7 +97,7 @@ class Reconstruction:
         return np.isfinite(self.c2w[:, 0, 0])
 
 
-def _options(known: bool, seed: int):
+def mapping_options(known: bool, seed: int):
     """pycolmap's options for a deterministic, single-threaded run of the whole pipeline."""
     import pycolmap
 
@@ -154,7 +160,7 @@ def reconstruct(image_dir: Path, names: list[str], work_dir: Path, *,
             repr(float(v)) for v in (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
     else:
         reader.camera_model = "SIMPLE_RADIAL"
-    extraction, matching, pairing, mapping = _options(intrinsics is not None, seed)
+    extraction, matching, pairing, mapping = mapping_options(intrinsics is not None, seed)
     pycolmap.extract_features(database, image_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
@@ -226,6 +232,37 @@ def registered_runs(registered: np.ndarray) -> list[tuple[int, int]]:
     return runs
 
 
+def steady_runs(c2w: np.ndarray, runs: list[tuple[int, int]], *, times: np.ndarray | None = None,
+                max_ratio: float = 2.0, still: float = 0.2) -> list[tuple[int, int]]:
+    """``runs`` (inclusive frame ranges of ``c2w`` (n, 4, 4)) split where the camera's speed
+    between frames jumps: a step per second over ``max_ratio`` times the one before it, or under
+    its inverse. ``times`` (n,) seconds of the frames (a variable-rate video's or one with frames
+    dropped, whose steps span unequal intervals); None = evenly spaced. A vehicle's speed changes
+    by under 1 g: at 10 frames a second that is under 1 m/s from one step to the next, so two
+    consecutive speeds differ by a factor 2 only at a walking pace or below; such a jump is a
+    frame SfM placed wrongly (seen: 5 steps of a 130-frame synthetic street 3 to 10 times their
+    neighbours', the path 23 % long). Speeds both under ``still`` of the run's median (near a
+    standstill, where SfM's noise dominates the step) are not compared."""
+    out: list[tuple[int, int]] = []
+    for first, last in runs:
+        centres = c2w[first:last + 1, :3, 3]
+        steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+        if times is not None:
+            steps = steps / np.maximum(np.diff(np.asarray(times, dtype=np.float64)[first:last + 1]), 1e-9)
+        if len(steps) < 2:
+            out.append((first, last))
+            continue
+        floor = still * float(np.median(steps))
+        start = first
+        for k in range(1, len(steps)):
+            a, b = steps[k - 1], steps[k]
+            if max(a, b) > floor and max(a, b) > max_ratio * max(min(a, b), 1e-12):
+                out.append((start, first + k))   # the frame between the two steps ends a run
+                start = first + k
+        out.append((start, last))
+    return out
+
+
 def format_runs(runs: list[tuple[int, int]]) -> str:
     """``0-41, 45-90`` (or ``none``) for messages."""
     return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs) or "none"
@@ -250,6 +287,20 @@ class RoadPlane:
     height: float
     inliers: int
     candidates: int
+    depths: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def within(self, first: int, last: int, min_points: int = 12) -> tuple[float, float, int] | None:
+        """The height from the points whose overhead camera is frame ``first``..``last`` only
+        (``depths``: each deciding point's depth below it, ``frames`` that camera's frame), its
+        standard error (relative) and the points' count; None under ``min_points``."""
+        inside = (self.frames >= first) & (self.frames <= last)
+        n = int(inside.sum())
+        if n < min_points:
+            return None
+        depth = self.depths[inside]
+        height = float(depth.mean())
+        return height, float(depth.std(ddof=1) / np.sqrt(n) / height), n
 
 
 def _camera_local(rec: Reconstruction) -> np.ndarray:
@@ -312,7 +363,7 @@ def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000
     if normal @ down > 0:  # point it up, towards the cameras
         normal, offset = -normal, -offset
     rough = float(np.median(centres @ normal + offset))
-    depth, sideways = _depth_below_overhead_camera(pts, centres, normal)
+    depth, sideways, over = _depth_below_overhead_camera(pts, centres, normal)
     seen = rec.point_views[below] >= min_views
 
     def in_lane(height: float) -> np.ndarray:
@@ -333,18 +384,22 @@ def fit_road_plane(rec: Reconstruction, *, seed: int = 0, iterations: int = 2000
     if layer.sum() < min_points:
         raise SfmError(f"only {int(layer.sum())} points lie on the lowest surface under the "
                        f"camera, {min_points} are needed to measure its height")
+    frame_of = np.flatnonzero(rec.registered)
     return RoadPlane(normal=normal, offset=float(offset), height=float(depth[near][layer].mean()),
-                     inliers=int(layer.sum()), candidates=int(below.sum()))
+                     inliers=int(layer.sum()), candidates=int(below.sum()),
+                     depths=depth[near][layer], frames=frame_of[over[near][layer]])
 
 
 def _depth_below_overhead_camera(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
-                                 chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+                                 chunk: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point: its depth along ``up`` below the camera centre nearest to it across ``up`` (the
-    camera over it), and that horizontal distance; infinite distance for points whose nearest
-    camera is the first or the last (they lie beyond the path's ends). Chunked: (points x
+    camera over it), that horizontal distance and that camera's index in ``centres``; infinite
+    distance for points whose nearest camera is the first or the last (they lie beyond the
+    path's ends). Chunked: (points x
     cameras) distances of a long video would not fit in memory at once."""
     depth = np.empty(len(points))
     sideways = np.empty(len(points))
+    over = np.empty(len(points), dtype=np.int64)
     for start in range(0, len(points), chunk):
         d = centres[None] - points[start:start + chunk, None]
         along = d @ up
@@ -354,7 +409,8 @@ def _depth_below_overhead_camera(points: np.ndarray, centres: np.ndarray, up: np
         depth[start:start + chunk] = along[rows, j]
         ends = (j == 0) | (j == len(centres) - 1)
         sideways[start:start + chunk] = np.where(ends, np.inf, across[rows, j])
-    return depth, sideways
+        over[start:start + chunk] = j
+    return depth, sideways, over
 
 
 def _lowest_layer(depth: np.ndarray, bandwidth: float, min_share: float) -> np.ndarray:
@@ -421,6 +477,25 @@ def _plane_through(points: np.ndarray) -> tuple[np.ndarray, float]:
     _, _, vt = np.linalg.svd(points - centre)
     normal = vt[-1] / np.linalg.norm(vt[-1])
     return normal, float(-normal @ centre)
+
+
+def without_drift(rec: Reconstruction, first: int, ratio: np.ndarray) -> Reconstruction:
+    """``rec`` with its scale made even along frames ``first``.. ``first + len(ratio) - 1``:
+    ``ratio`` (F,) is each frame's scale over the whole path's (metres per unit there over the
+    mean), so each step between two frames is stretched by the ratio at its middle, and each
+    point by the ratio of the frame that first saw it, about that camera. Rotations, and the
+    frames outside the range, are kept (those follow the range's ends rigidly)."""
+    c2w = rec.c2w.copy()
+    run = c2w[first:first + len(ratio)]
+    centres = run[:, :3, 3].copy()
+    mid = np.r_[ratio[0], 0.5 * (ratio[1:] + ratio[:-1])]
+    steps = np.diff(centres, axis=0, prepend=centres[:1]) * mid[:, None]
+    moved = centres[0] + np.cumsum(steps, axis=0)
+    run[:, :3, 3] = moved
+    frame = np.clip(rec.point_frame - first, 0, len(ratio) - 1)
+    before = centres[frame]
+    points = moved[frame] + ratio[frame][:, None] * (rec.points - before)
+    return dataclasses.replace(rec, c2w=c2w, points=points)
 
 
 def level_with_path(up: np.ndarray, c2w: np.ndarray) -> np.ndarray:

@@ -3,7 +3,8 @@
 A dashcam video (any container PyAV reads) or a folder of frames (sorted by name) becomes a
 canonical scene with one camera, ``front``: frames sampled over ``[start, end)`` seconds,
 undistorted with the camera's lens model, poses from :mod:`paradrive.ingest.sfm` in metres (the
-road plane and the camera's height above it, or a speed / GPS track beside the video), the
+road plane and the camera's height above it measured by independent cues per frame range,
+:mod:`paradrive.ingest.scalecue`, or a speed / GPS track beside the video), the
 triangulated points stored where LiDAR points go (``lidar/<frame>.npy``, each point under every
 frame that sees it) so the fit starts from them, no actors.
 
@@ -18,9 +19,10 @@ range is a usage error, raised before any work):
   p1, p2, k3`` (OpenCV's radial-tangential model), or ``calib=FILE.json`` holding the same keys
   (and the ``width``/``height`` they were calibrated at), or ``fov_deg`` (horizontal, centred
   principal point): known intrinsics are held fixed and the frames are undistorted with
-  :mod:`paradrive.ingest.undistort` (the code the Waymo reader uses); without them SfM
-  estimates one shared camera with radial distortion, the images are undistorted and the
-  estimate is reported;
+  :mod:`paradrive.ingest.undistort` (the code the Waymo reader uses); without them the focal
+  length is found from the frames (:mod:`paradrive.ingest.focal`: a pinhole held fixed at
+  candidate focals, the reprojection error's minimum on a bend) and reported, and a drive that
+  turns too little to show it is refused, asking for ``fov_deg=``;
 - ``height_m``: the camera's height above the road (default 1.5 m, a car's dashcam);
 - ``start``, ``end``: the time range in seconds;
 - ``truth``: the ``synthetic:`` URI the video was rendered from (``paradrive export video``), so
@@ -55,12 +57,18 @@ import numpy as np
 
 from paradrive.errors import ConfigError, ParaDriveError, SceneError
 from paradrive.ingest.common import fps_from, save_points
+from paradrive.ingest.frameclock import Clock, frames_at, read_clock
+from paradrive.ingest import scale_roadmotion, scale_roadpoints
+from paradrive.ingest.focal import (FOV_RANGE_DEG, MIN_RISE, FocalEstimate, estimate_focal,
+                                   focal_of_fov)
 from paradrive.ingest.roadmotion import RoadMotion, road_motion_height
+from paradrive.ingest.scalecue import (CombinedScale, ScaleError, combine, format_range, profile,
+                                       split_ranges)
 from paradrive.ingest.undistort import distortion_is_zero, undistort_image
 from paradrive.ingest.videomasks import write_video_masks
 from paradrive.ingest.sfm import (Intrinsics, Reconstruction, RoadPlane, SfmError, fit_road_plane,
                                   format_runs, level_with_path, metric_rig, path_length, reconstruct,
-                                  registered_runs)
+                                  registered_runs, steady_runs, without_drift)
 from paradrive.scene import Camera, Frame, FrameCamera, Scene, write_image
 from paradrive.uri import SceneURI
 
@@ -77,10 +85,16 @@ MIN_PATH_M = 1.0
 FRAME_SUFFIXES = (".jpg", ".jpeg", ".png")
 INTRINSICS = ("fx", "fy", "cx", "cy")
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")
-# the scale's relative uncertainty where the road's motion cannot be measured and the SfM points
-# alone give the height: they were 3-5 % off on the synthetic street and up to 6 % on a real
-# freeway clip (docs/scene-layout.md, "A real freeway clip")
-ROAD_POINTS_UNCERTAINTY = 0.1
+# the scale is measured per range of the kept frames, by each cue on its own: the halves of the
+# run, each at least this many frames (the road's motion pairs 40 frames over the run, so a
+# half of a short clip still holds the 5 pairs it needs); a half's scale against the other's
+# shows SfM's drift along the video
+SCALE_RANGES = 2
+SCALE_RANGE_FRAMES = 16
+# without intrinsics the focal length is searched on at most this many of the SfM frames,
+# evenly spaced (about 17 mappings of them: 70 s for 26 frames of a real KITTI bend on one
+# core), before the whole clip is mapped with it held fixed
+FOCAL_FRAMES = 40
 # a speed or GPS track is taken at its word: a speedometer or a phone's GPS is good to about 1 %
 TRACK_UNCERTAINTY = 0.01
 
@@ -305,8 +319,10 @@ def _fold_radius(dist: tuple[float, ...], K: Intrinsics, width: int, height: int
 
 @dataclass
 class Footage:
-    """The sampled frames of a video file (or folder ``files``): their source frame numbers and
-    times (s), the frames' size, the rate sampled at and the source's own (None for a folder)."""
+    """The sampled frames of a video file (or folder ``files``): their source frame numbers (the
+    file's presented frames, repeats included) and times (s from the first frame, the file's
+    timestamps), the frames' size, the rate sampled at and the source's own (of the frames that
+    remain once repeats are dropped; None for a folder)."""
 
     path: Path
     source_frames: list[int]
@@ -316,13 +332,18 @@ class Footage:
     fps: float
     native_fps: float | None
     files: list[Path] | None = None
+    # a file's clock (frameclock): its frames' times, and the repeats dropped before sampling
+    clock: Clock | None = None
 
     @property
     def skipped(self) -> int:
-        """Source frames within the sampled range that were not sampled."""
+        """Source frames within the sampled range that were not sampled (repeats dropped are
+        not counted: no rate brings them back)."""
         if not self.source_frames:
             return 0
-        return self.source_frames[-1] - self.source_frames[0] + 1 - len(self.source_frames)
+        first, last = self.source_frames[0], self.source_frames[-1]
+        repeats = 0 if self.clock is None else sum(first <= i <= last for i in self.clock.repeated)
+        return last - first + 1 - len(self.source_frames) - repeats
 
 
 def sample_times(count: int, rate: float, fps: float, start: float, end: float | None) -> list[int]:
@@ -336,20 +357,30 @@ def sample_times(count: int, rate: float, fps: float, start: float, end: float |
     return sorted(set(int(i) for i in picks))
 
 
-def sample(path: Path, opts: VideoOptions, params: IngestParams, *, scene_id: str) -> Footage:
-    """Which frames of the video file or folder to take; SceneErrors name the file."""
+def sample(path: Path, opts: VideoOptions, params: IngestParams, *, scene_id: str,
+           repeats: bool = True) -> Footage:
+    """Which frames of the video file or folder to take, by the file's timestamps and, with
+    ``repeats``, without its repeated frames (:mod:`paradrive.ingest.frameclock`: one decoding
+    pass); SceneErrors name the file."""
     if not path.exists():
         raise SceneError("video file is missing", scene_id=scene_id, path=path,
                          fix="check the path in the scene URI")
     if path.is_dir():
         return _folder(path, opts, params, scene_id=scene_id)
-    count, rate, width, height = _probe(path, scene_id=scene_id)
+    header = _probe(path, scene_id=scene_id)
+    _, _, width, height = header
+    clock = read_clock(path, header, scene_id=scene_id, detect=repeats)
+    rate = clock.fps   # of the frames that remain
     fps = opts.fps if opts.fps is not None else min(rate, params.video_max_fps)
-    wanted = sample_times(count, rate, fps, opts.start, opts.end)
+    uniform = not clock.repeated and not clock.variable_rate
+    wanted = sample_times(len(clock.times), rate, fps, opts.start, opts.end) if uniform \
+        else frames_at(clock, fps, opts.start, opts.end)
     if not wanted:
-        raise SceneError(f"no frame of the {count / rate:.2f} s video lies in the time range",
-                         scene_id=scene_id, path=path, fix="give start/end within the video")
-    return Footage(path, wanted, np.asarray(wanted) / rate, width, height, min(fps, rate), rate)
+        raise SceneError(f"no frame of the {clock.times[-1] + 1 / rate:.2f} s video lies in the "
+                         f"time range", scene_id=scene_id, path=path,
+                         fix="give start/end within the video")
+    return Footage(path, wanted, clock.times[wanted], width, height, min(fps, rate), rate,
+                   clock=clock)
 
 
 def planned_frames(uri: SceneURI, params: IngestParams) -> tuple[int, int, int] | None:
@@ -358,7 +389,7 @@ def planned_frames(uri: SceneURI, params: IngestParams) -> tuple[int, int, int] 
     ingest could take is a ConfigError."""
     opts = options_of(uri)
     try:
-        footage = sample(Path(uri.path), opts, params, scene_id=uri.scene_id)
+        footage = sample(Path(uri.path), opts, params, scene_id=uri.scene_id, repeats=False)
     except SceneError:
         return None
     frames = len(footage.source_frames)
@@ -591,14 +622,18 @@ def _sfm_input(footage: Footage, K: Intrinsics | None, dist: tuple[float, ...], 
 
 # --------------------------------------------------------------------------- the scene
 
-def _kept_run(rec: Reconstruction, *, scene_id: str, path: Path) -> tuple[int, int]:
-    """The longest contiguous run of registered frames; SceneError when it is too short."""
+def _kept_run(rec: Reconstruction, times: np.ndarray, *, scene_id: str, path: Path) -> tuple[int, int]:
+    """The longest contiguous run of registered frames whose speeds do not jump
+    (:func:`~paradrive.ingest.sfm.steady_runs`, on the frames' own ``times``, seconds);
+    SceneError when it is too short."""
     runs = registered_runs(rec.registered)
+    steady = steady_runs(rec.c2w, runs, times=times)
     n = len(rec.registered)
-    best = max(runs, key=lambda r: (r[1] - r[0], -r[0]), default=None)
+    best = max(steady, key=lambda r: (r[1] - r[0], -r[0]), default=None)
     if best is None or best[1] - best[0] + 1 < MIN_FRAMES:
-        raise SceneError(f"structure from motion registered frames {format_runs(runs)} of 0-{n - 1}: "
-                         f"no contiguous run of {MIN_FRAMES} frames", scene_id=scene_id, path=path,
+        jumps = "" if steady == runs else f", in steady runs {format_runs(steady)}"
+        raise SceneError(f"structure from motion registered frames {format_runs(runs)} of 0-{n - 1}"
+                         f"{jumps}: no contiguous run of {MIN_FRAMES} frames", scene_id=scene_id, path=path,
                          fix="lower fps= (more motion between frames), give the intrinsics "
                              "(fx=&fy=&cx=&cy= or fov_deg=), or trim start=/end= to the moving part")
     return best
@@ -624,11 +659,46 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
     work = out_dir / "sfm"
     try:
         sfm_in = _sfm_input(footage, K, dist, work, params, scene_id=scene_id)
+        focal = None
+        if sfm_in.intrinsics is None:  # nobody calibrated it: the focal from the frames
+            focal = _focal(sfm_in, work / "focal", params, scene_id=scene_id, path=path)
+            if (not focal.observable and not track_path(path).is_file()
+                    and _focal_uncertainty(focal) > params.video_max_scale_uncertainty):
+                raise SceneError(_unmeasured_focal(focal), scene_id=scene_id, path=path,
+                                 fix="give fov_deg= (the horizontal field of view) or "
+                                     "fx=&fy=&cx=&cy=, or a speed or GPS track as <stem>.csv")
+            sfm_in.intrinsics = focal.intrinsics(*sfm_in.size)
         rec = _reconstruct(sfm_in, work, scene_id=scene_id, path=path)
-        first, last = _kept_run(rec, scene_id=scene_id, path=path)
-        return _scene(uri, rec, sfm_in, footage, opts, (first, last), out_dir, params, scene_id)
+        first, last = _kept_run(rec, footage.times, scene_id=scene_id, path=path)
+        return _scene(uri, rec, sfm_in, footage, opts, (first, last), out_dir, params, scene_id,
+                      focal=focal)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _focal(sfm_in: SfmInput, work: Path, params: IngestParams, *, scene_id: str,
+           path: Path) -> FocalEstimate:
+    """The focal length of an uncalibrated camera from its SfM frames (:mod:`paradrive.ingest.focal`)."""
+    try:
+        return estimate_focal(sfm_in.folder, sfm_in.names, work, sfm_in.size,
+                              max_frames=FOCAL_FRAMES)
+    except MemoryError as exc:
+        raise _out_of_memory(path, scene_id, "searching the focal length") from exc
+    except SfmError as exc:
+        raise SceneError(f"the focal length could not be found: {exc}", scene_id=scene_id,
+                         path=path, fix="give fov_deg= (the horizontal field of view) or "
+                                        "fx=&fy=&cx=&cy=, or trim start=/end= to where it drives"
+                         ) from exc
+
+
+def _unmeasured_focal(focal: FocalEstimate) -> str:
+    """Why the frames gave no focal length, in one line, with the search's figures."""
+    errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
+                       if math.isfinite(t.error))
+    return (f"the focal length could not be measured from the frames: the drive turns too "
+            f"little to show it (mean reprojection error over {focal.frames} frames: {errors}; "
+            f"no single minimum that a focal one step away raises by {MIN_RISE:.0%}), so the "
+            f"metric scale would be uncertain by {_focal_uncertainty(focal):.0%}")
 
 
 def _reconstruct(sfm_in: SfmInput, work: Path, *, scene_id: str, path: Path) -> Reconstruction:
@@ -657,25 +727,53 @@ def _no_road(exc: SfmError, footage: Footage) -> str:
 def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
            image: Callable[[int], np.ndarray], K_image: np.ndarray, opts: VideoOptions,
            footage: Footage, params: IngestParams, scene_id: str, *,
-           ego: np.ndarray | None = None) -> tuple[float, float, dict]:
-    """Metres per model unit, from the camera's height above the road (measured by the road's
-    motion, else by the SfM points on it) or from the track where there is one; that height in
-    model units; what was measured (``uncertainty``: the scale's relative uncertainty).
-    ``ego``: the pixels that move with the camera (any size), left out of the road's motion.
-    SceneError where that uncertainty is above ``ingest.video_max_scale_uncertainty``."""
+           ego: np.ndarray | None = None,
+           focal: FocalEstimate | None = None) -> tuple[float, float, np.ndarray, dict]:
+    """Metres per model unit, from the camera's height above the road measured by independent
+    cues per frame range (:mod:`paradrive.ingest.scalecue`: the road's motion, the road's SfM
+    points), or from the track where there is one; that height in model units; what was
+    measured (``uncertainty``: the scale's relative uncertainty, biases and the estimated focal
+    length's included); each kept frame's scale over the whole path's (a scale per range takes
+    out SfM's drift along the video; ones with a track). ``ego``: the pixels that move with the
+    camera (any size), left out of the road's motion. SceneError where no cue measured the
+    scale, where cues contradict each other, or where the uncertainty is above
+    ``ingest.video_max_scale_uncertainty``."""
     start = time.perf_counter()
     motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height, ego=ego)
     seconds = time.perf_counter() - start
-    camera_height = motion.height if motion is not None else plane.height
-    by_height = opts.height_m / camera_height
-    doc: dict[str, Any] = {"source": "height", "height_m": opts.height_m, "by_height": by_height,
-                           "height_from": "road motion" if motion is not None else "road points",
-                           "by_road_points": opts.height_m / plane.height,
-                           "uncertainty": motion.uncertainty if motion is not None
-                           else ROAD_POINTS_UNCERTAINTY}
+    ranges = split_ranges(run.stop - run.start, SCALE_RANGE_FRAMES, SCALE_RANGES)
+    cues = [cue for frames in ranges for cue in (
+        scale_roadmotion.measure(motion, frames, opts.height_m),
+        scale_roadpoints.measure(plane, frames, opts.height_m, offset=run.start))]
+    common = {} if focal is None else {"focal": _focal_uncertainty(focal)}
+    steps = np.r_[0.0, np.linalg.norm(np.diff(rec.c2w[run][:, :3, 3], axis=0), axis=1)]
+    lengths = [float(steps[a + 1:b + 1].sum()) + 1e-12 for a, b in ranges]
+    track = track_path(footage.path)
+    try:
+        combined: CombinedScale | None = combine(cues, ranges, lengths=lengths, common=common)
+    except ScaleError as exc:
+        if not track.is_file():
+            raise SceneError(str(exc), scene_id=scene_id, path=footage.path,
+                             fix="give a speed or GPS track as <stem>.csv (t,speed_mps or "
+                                 "t,lat,lon), or trim start=/end= to where the camera sees the "
+                                 "road") from exc
+        combined, failed = None, str(exc)   # the track sets the scale; the cues are recorded
+    doc: dict[str, Any] = {"source": "height", "height_m": opts.height_m,
+                           "by_road_points": opts.height_m / plane.height}
+    if combined is not None:
+        by_height = combined.scale
+        doc.update(by_height=by_height,
+                   height_from=max((scale_roadmotion.NAME, scale_roadpoints.NAME),
+                                   key=combined.weight_of),
+                   weights={name: combined.weight_of(name) for name in
+                            (scale_roadmotion.NAME, scale_roadpoints.NAME)},
+                   uncertainty=combined.uncertainty, **combined.doc())
+    else:
+        by_height = doc["by_road_points"]
+        doc.update(by_height=by_height, height_from=scale_roadpoints.NAME, cues_failed=failed)
+    camera_height = opts.height_m / by_height
     if motion is not None:
         doc["road_motion"] = _motion_doc(motion, seconds)
-    track = track_path(footage.path)
     if track.is_file():
         times = footage.times[run]
         metres, kind = track_distance(track, float(times[0]), float(times[-1]), scene_id=scene_id)
@@ -684,12 +782,21 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
                    height_vs_track=by_height / by_track - 1.0,
                    camera_height_by_track_m=camera_height * by_track,
                    uncertainty=TRACK_UNCERTAINTY)
-        return by_track, camera_height, doc
+        return by_track, camera_height, np.ones(run.stop - run.start), doc
+    assert combined is not None   # no track: a failed combination raised above
     if doc["uncertainty"] > params.video_max_scale_uncertainty:
-        raise SceneError(_uncertain(doc, motion, params), scene_id=scene_id, path=footage.path,
-                         fix="give a speed or GPS track as <stem>.csv (t,speed_mps or t,lat,lon), "
-                             "a longer clip, or more frames (a higher fps=)")
-    return by_height, camera_height, doc
+        raise SceneError(_uncertain(doc, combined, params), scene_id=scene_id, path=footage.path,
+                         fix=_uncertain_fix(combined))
+    return by_height, camera_height, profile(combined, run.stop - run.start), doc
+
+
+def _focal_uncertainty(focal: FocalEstimate) -> float:
+    """The estimated focal length's relative uncertainty as the scale's: its own where the frames
+    constrain it, else half the searched range in log focal (any focal searched is as likely)."""
+    if focal.observable:
+        return focal.uncertainty
+    low, high = (focal_of_fov(100, fov) for fov in FOV_RANGE_DEG[::-1])
+    return math.log(high / low) / 2
 
 
 def _motion_doc(motion: RoadMotion, seconds: float) -> dict[str, Any]:
@@ -699,25 +806,32 @@ def _motion_doc(motion: RoadMotion, seconds: float) -> dict[str, Any]:
             "seconds": seconds}
 
 
-def _uncertain(doc: dict[str, Any], motion: RoadMotion | None, params: IngestParams) -> str:
-    """Why the scale cannot be trusted, in one line."""
-    if motion is None:
-        return (f"the metric scale is uncertain by {doc['uncertainty']:.0%} (above "
-                f"ingest.video_max_scale_uncertainty = {params.video_max_scale_uncertainty:g}): "
-                f"the road's motion could not be measured, and the SfM points alone give the "
-                f"height")
-    band = "" if motion.band is None else \
-        f" and differs by {motion.band:.1%} between the near and the far road"
+def _uncertain(doc: dict[str, Any], combined: CombinedScale, params: IngestParams) -> str:
+    """Why the scale cannot be trusted, in one line: the figure, its parts, each range's cues."""
+    parts = ", ".join(f"{name} {value:.1%}" for name, value in
+                      sorted(combined.parts.items(), key=lambda kv: -kv[1])
+                      if value > 0 and name != "between_ranges")   # taken out, not added
+    ranges = "; ".join(
+        f"{format_range(r.frames)}: " + ", ".join(
+            f"{c.name} {c.uncertainty:.1%}" if c.scale is not None else f"{c.name} not measured ({c.why})"
+            for c in r.cues) for r in combined.ranges)
     return (f"the metric scale is uncertain by {doc['uncertainty']:.1%} (above "
-            f"ingest.video_max_scale_uncertainty = {params.video_max_scale_uncertainty:g}): the "
-            f"camera height measured by the road's motion over {len(motion.pairs)} frame pairs "
-            f"scatters by {motion.scatter:.1%} and drifts by {motion.drift:.1%} along the "
-            f"video{band}")
+            f"ingest.video_max_scale_uncertainty = {params.video_max_scale_uncertainty:g}): "
+            f"{parts}; {ranges}")
+
+
+def _uncertain_fix(combined: CombinedScale) -> str:
+    fix = ("give a speed or GPS track as <stem>.csv (t,speed_mps or t,lat,lon), a longer clip, "
+           "or more frames (a higher fps=)")
+    if combined.parts.get("focal", 0.0) >= combined.parts["ranges"]:
+        fix = (f"the focal length could not be measured from these frames (the drive turns "
+               f"too little to show it): give fov_deg= or fx=&fy=&cx=&cy=; or {fix}")
+    return fix
 
 
 def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footage,
            opts: VideoOptions, kept: tuple[int, int], out_dir: Path, params: IngestParams,
-           scene_id: str) -> Scene:
+           scene_id: str, *, focal: FocalEstimate | None = None) -> Scene:
     path = Path(uri.path)
     run = slice(kept[0], kept[1] + 1)
     try:
@@ -743,8 +857,9 @@ def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footag
     # on the real clip its scale is 0.58 % uncertain so, 1.1 % with the video's ego mask instead
     ego = None
     up = level_with_path(plane.normal, rec.c2w[run])
-    scale, camera_height, scale_doc = _scale(rec, run, plane, up, image, small.K(), opts, footage,
-                                             params, scene_id, ego=ego)
+    scale, camera_height, ratio, scale_doc = _scale(rec, run, plane, up, image, small.K(), opts,
+                                                    footage, params, scene_id, ego=ego, focal=focal)
+    rec = without_drift(rec, kept[0], ratio)
     rig = metric_rig(rec.c2w[run], up, camera_height, scale)
     travelled = path_length(rig.c2w)
     if travelled < MIN_PATH_M:
@@ -761,6 +876,13 @@ def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footag
         _save_model_points(rec, rig, kept, out_dir)
     video = _video_doc(uri, rec, sfm_in, footage, opts, kept, (K, dist), scale, scale_doc, travelled,
                        plane)
+    if focal is not None:
+        video["intrinsics"].update(estimated=True, given_by="focal search",
+                                   focal_search=focal.doc())
+        # the search is SfM work too: the plan counts it at the rate this scene measured
+        video["sfm"].update(seconds=video["sfm"]["seconds"] + focal.seconds,
+                            focal_seconds=focal.seconds)
+        video["sfm_seconds"] = video["sfm"]["seconds"]
 
     def stored(k: int) -> np.ndarray:
         from paradrive.scene import read_image
@@ -819,6 +941,8 @@ def _video_doc(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Fo
              "models": rec.models}
     if opts.truth:
         video["truth"] = opts.truth
+    if footage.clock is not None:
+        video["clock"] = footage.clock.doc()
     return video
 
 
