@@ -120,7 +120,7 @@ def test_a_video_of_another_frame_count_is_that_row_s_error(inference_build, tmp
     (("--metrics", "fid"), "--fid-weights"),
     (("--metrics", "tce,bogus"), "unknown metric 'bogus'"),
     (("--fvd-weights", "nowhere.pt"), "nowhere.pt: no such file"),
-    (("--flow-weights", "raft.pth"), "OpenCV's DIS"),
+    (("--flow-weights", "raft.pth"), "--flow-weights raft.pth: no such file"),
 ])
 def test_a_bad_metric_or_weights_is_refused_before_any_video_is_read(inference_build, tmp_path,  # noqa: F811
                                                                     args, says):

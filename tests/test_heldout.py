@@ -24,7 +24,7 @@ from conftest import stage_params
 # a few iterations of the smoke profile on a tiny street: enough for measurable renders
 TINY_FIT = {"checkpoints": [10, 20], "init_points": 1500, "sky_points": 200,
             "refine_start_iter": 5, "refine_every": 5, "refine_stop_iter": 15, "eval_views": 4}
-TINY_RENDER = {"condition_checkpoints": [10], "source_checkpoint": 20}
+TINY_RENDER = {"condition_checkpoints": [10], "source_checkpoint": 20, "clip_frames": 8}   # the 8-frame scene
 TINY_INGEST = {"synthetic_frames": 8, "synthetic_width": 80, "synthetic_height": 48}
 HOLDOUT = {"holdout_every": 3, "holdout_cameras": ["front_left"]}
 
@@ -148,7 +148,7 @@ def test_fit_records_and_eval_reports_held_out_quality_on_every_dataset(fmt, tmp
 
 
 def test_eval_of_a_real_log_without_held_out_views_says_how_to_get_them(tmp_path):
-    config = StageRegistry().resolve("smoke", {"ingest": TINY_INGEST, "fit": TINY_FIT})
+    config = StageRegistry().resolve("smoke", {"ingest": TINY_INGEST, "fit": TINY_FIT, "render": TINY_RENDER})
     uri = _scene_uri("waymo", tmp_path, config)
     report = run_build(config, [uri], tmp_path / "data", stages=["ingest", "fit"],
                        manifests_dir=tmp_path / "manifests", build="plain")

@@ -160,11 +160,11 @@ def test_the_plan_counts_the_longitudinal_pairs_the_build_made(long_build):
     moved = plan_build(StageRegistry().resolve("smoke", {"render": LONG}), [short], None)
     assert lateral.pairs > 0 and moved.pairs < lateral.pairs and not lateral.unfit
     assert list(moved.unfit) == ["synthetic-demo-s7-frames16"]
-    assert "for 6 of its 16 frames (5..10), a clip needs 8" in moved.unfit["synthetic-demo-s7-frames16"]
+    assert "for 6 of its 16 frames (5..10), a clip needs 9" in moved.unfit["synthetic-demo-s7-frames16"]
 
 
 def test_a_scene_too_short_for_its_longitudinal_windows_fails_before_its_fit(tmp_path):
-    # 10 frames at 0.8 m: ±4 m keeps only frames 5..4 on the path, so no 8-frame clip
+    # 10 frames at 0.8 m: ±4 m keeps only frames 5..4 on the path, so no 9-frame clip
     result = CliRunner().invoke(app, [
         "build", "--profile", "smoke", "--scene", SCENE, "--set", "ingest.synthetic_frames=10",
         "--set", "ingest.synthetic_width=48", "--set", "ingest.synthetic_height=32",
@@ -173,7 +173,7 @@ def test_a_scene_too_short_for_its_longitudinal_windows_fails_before_its_fit(tmp
     assert result.exit_code != 0, result.output
     text = " ".join(result.output.split())
     assert "camera front: its longitudinal sources stay on the recorded path (7.2 m) for 0 of its 10 " \
-        "frames, a clip needs 8" in text
+        "frames, a clip needs 9" in text
     assert "smaller render.longitudinal_offsets_m" in text
     (scene_dir,) = (tmp_path / "data" / "scenes").iterdir()
     assert not (scene_dir / "gs").exists()

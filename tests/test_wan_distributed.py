@@ -66,6 +66,17 @@ def trained(path) -> dict[str, torch.Tensor]:
     return torch.load(path, weights_only=True)["model"]
 
 
+def assert_adam_close(a: torch.Tensor, b: torch.Tensor, name: str) -> None:
+    """Weights of two runs whose gradients differ only by the order of a sum: nearly every
+    element within float rounding, and none further than AdamW can move it, lr a step for each
+    run (a gradient near zero has an update of either sign: m / sqrt(v) is about +-1 for it)."""
+    lr = load_wan_config("smoke")["train"]["lr"]
+    diff = (a - b).abs()
+    close = diff <= 1e-6 + 1e-5 * b.abs()
+    assert float(diff.max()) <= 2 * lr * STEPS, (name, float(diff.max()))
+    assert float(close.float().mean()) >= 0.99, (name, int((~close).sum()), a.numel())
+
+
 def losses(run) -> list[float]:
     return [json.loads(line)["loss"] for line in (run / "stage1" / "metrics.jsonl").read_text().splitlines()]
 
@@ -104,7 +115,7 @@ def test_two_processes_average_to_one_process_on_the_same_global_batch(wan_build
     a, b = trained(ddp / "stage1" / "last.pt"), trained(single / "stage1" / "last.pt")
     assert a.keys() == b.keys()
     for name in a:
-        torch.testing.assert_close(a[name], b[name], rtol=1e-5, atol=1e-6, msg=name)
+        assert_adam_close(a[name], b[name], name)
     # rank 0 alone wrote the run folder and printed; the run records its world size
     assert yaml.safe_load((ddp / "stage1" / "config.yaml").read_text())["world_size"] == 2
     lines = [json.loads(line) for line in (ddp / "stage1" / "metrics.jsonl").read_text().splitlines()]
@@ -168,7 +179,7 @@ def test_a_sharded_run_trains_as_ddp_and_writes_the_same_whole_checkpoints(wan_b
     mine, theirs = (torch.load(run / "stage1" / "last.pt", weights_only=True) for run in (out, ddp))
     assert mine["model"].keys() == theirs["model"].keys()
     for name in theirs["model"]:
-        torch.testing.assert_close(mine["model"][name], theirs["model"][name], rtol=1e-5, atol=1e-6, msg=name)
+        assert_adam_close(mine["model"][name], theirs["model"][name], name)
     assert mine["optimizer"]["state"].keys() == theirs["optimizer"]["state"].keys()
     for i, moments in theirs["optimizer"]["state"].items():
         for key, value in moments.items():

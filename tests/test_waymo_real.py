@@ -133,7 +133,7 @@ def test_a_build_of_the_one_frame_segment_is_refused_as_too_short_before_any_fit
     assert result.exit_code == 1, result.output
     scene_dir = tmp_path / "data" / "scenes" / SCENE_ID
     lines = [line.strip() for line in result.output.splitlines()]
-    assert (f"failed fit      {SCENE_ID} — scene {SCENE_ID}: it has 1 frame, and a clip needs 8 "
+    assert (f"failed fit      {SCENE_ID} — scene {SCENE_ID}: it has 1 frame, and a clip needs 9 "
             f"(render.clip_frames) ({scene_dir / 'scene.json'}); set a shorter render.clip_frames (at "
             f"most 1) or use another scene") in lines
     assert f"blocked render   {SCENE_ID} — not run: fit failed" in lines

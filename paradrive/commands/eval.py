@@ -53,12 +53,9 @@ def _score_settings(metrics: str | None, weights: dict[str, Path | None], flow_w
 
     from paradrive.scoring.camera import CameraSettings
     from paradrive.scoring.features import check_weights
+    from paradrive.scoring.flow import FlowSettings
     from paradrive.scoring.run import WEIGHT_FREE, ScoreSettings
 
-    if flow_weights is not None:
-        raise ConfigError(f"--flow-weights {flow_weights}: RAFT / SEA-RAFT are not part of this "
-                          f"version; TCE runs OpenCV's DIS flow, which needs no weights (leave "
-                          f"--flow-weights out)")
     if metrics:
         chosen = tuple(dict.fromkeys(m.strip().replace("-", "_") for m in metrics.split(",")
                                      if m.strip()))
@@ -67,7 +64,12 @@ def _score_settings(metrics: str | None, weights: dict[str, Path | None], flow_w
     checked = tuple(check_weights(m, weights.get(m)) for m in chosen if m in weights)
     camera = CameraSettings() if camera_stride is None else replace(CameraSettings(),
                                                                     stride=camera_stride)
-    return ScoreSettings(metrics=chosen, camera=camera, weights=checked, device=device,
+    flow = FlowSettings()
+    if flow_weights is not None:
+        from paradrive.scoring.raft import raft_settings
+
+        flow = raft_settings(flow_weights)   # checked here, before any video is read
+    return ScoreSettings(metrics=chosen, camera=camera, flow=flow, weights=checked, device=device,
                          cache=cache)
 
 
@@ -147,7 +149,7 @@ def eval_cmd(
     fvd_weights: Path | None = typer.Option(None, "--fvd-weights", help="FVD's I3D weights file (Kinetics-400 RGB I3D); never downloaded."),
     clip_weights: Path | None = typer.Option(None, "--clip-weights", help="CLIP-V's CLIP model folder (Hugging Face layout); never downloaded."),
     iq_weights: Path | None = typer.Option(None, "--iq-weights", help="IQ's MUSIQ weights file (VBench's imaging quality); never downloaded."),
-    flow_weights: Path | None = typer.Option(None, "--flow-weights", help="RAFT / SEA-RAFT weights for TCE: not supported in this version (TCE uses OpenCV's DIS flow)."),
+    flow_weights: Path | None = typer.Option(None, "--flow-weights", help="TCE's flow from RAFT's original weights file (raft-things.pth, or raft-small.pth; SEA-RAFT's are refused), 12 iterations; never downloaded (default: OpenCV's DIS, no weights)."),
     device: str = typer.Option("auto", "--device", help="With --build: where the networks run (auto: CUDA when present)."),
     cache: Path | None = typer.Option(None, "--cache", help="With --build: the per-video results and features cache (default <out>/scores-cache)."),
     camera_stride: int | None = typer.Option(None, "--camera-stride", help="With --build: locate every n-th frame for RErr / TErr (default 4)."),

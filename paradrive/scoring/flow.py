@@ -9,7 +9,8 @@ over the T − 1 pairs. As WorldScore computes it: every pixel of the centre cro
 ``crop_px`` / 2 pixels at each border (30 px in all, its default), the backward flow read at the
 nearest pixel of x̂_t+1 clipped into the crop, frames at the video's own resolution.
 
-The paper's flow is SEA-RAFT. The flow here is OpenCV's DIS (dense inverse search, its
+The paper's flow is SEA-RAFT. Given ``--flow-weights``, the flow is RAFT's
+(:mod:`paradrive.scoring.raft`); without, it is OpenCV's DIS (dense inverse search, its
 ``MEDIUM`` preset, on the grey frames), which needs no weights: a substitute, whose errors are not
 SEA-RAFT's, so its TCE compares models scored the same way, not a number of the paper's table.
 """
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -31,10 +33,12 @@ Flow = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 @dataclass(frozen=True)
 class FlowSettings:
-    """How TCE is measured: WorldScore's 30-pixel crop (15 a side) and the flow that runs."""
+    """How TCE is measured: WorldScore's 30-pixel crop (15 a side) and the flow that runs
+    (``weights``: a RAFT weights file, :mod:`paradrive.scoring.raft`; None: DIS)."""
 
     crop_px: int = 30
     method: str = FLOW_METHOD
+    weights: Path | None = None
 
     def key(self) -> dict:
         return {"crop_px": self.crop_px, "method": self.method}

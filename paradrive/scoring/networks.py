@@ -37,6 +37,9 @@ PUBLISHED_AT: dict[str, str] = {
               "https://huggingface.co/openai/clip-vit-large-patch14",
     "iq": "musiq_spaq_ckpt-358bb6af.pth (VBench's imaging quality; musiq_koniq_ckpt-e95806b9.pth has "
           "the same layout), from https://github.com/chaofengc/IQA-PyTorch/releases (tag v0.1-weights)",
+    # TCE's optional RAFT flow (paradrive.scoring.raft), not a feature metric
+    "flow": "raft-things.pth (or raft-small.pth, raft-sintel.pth, raft-kitti.pth) of the original RAFT, "
+            "from https://github.com/princeton-vl/RAFT (its download_models.sh, models.zip)",
 }
 
 # one parameter every published file of that network holds (a wrong file is refused by it)

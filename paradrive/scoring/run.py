@@ -29,7 +29,7 @@ import numpy as np
 from paradrive.errors import ConfigError, ParaDriveError
 from paradrive.scoring.camera import CameraSettings, SourceModel, Located
 from paradrive.scoring.features import FEATURE_METRICS, Weights
-from paradrive.scoring.flow import FlowSettings
+from paradrive.scoring.flow import Flow, FlowSettings
 
 __all__ = ["METRICS", "WEIGHT_FREE", "ScoreSettings", "VideoScore", "FeatureCache",
            "score_videos", "row_score", "aggregate", "VALUE_NAMES"]
@@ -190,6 +190,7 @@ class _Scorer:
         self.settings, self.cache = settings, cache
         self.weights = {w.metric: w for w in settings.weights}
         self._extractors: dict[str, object] = {}
+        self._flow: Flow | None = None
         self._sha: dict[str, str] = {}
         self.seconds: dict[str, float] = {m: 0.0 for m in settings.metrics}
         self.computed: dict[str, int] = {m: 0 for m in settings.metrics}
@@ -208,6 +209,14 @@ class _Scorer:
             self._extractors[metric] = load_extractor(self.weights[metric],
                                                       device=self.settings.device)
         return self._extractors[metric]
+
+    def flow(self) -> Flow:
+        """TCE's flow (RAFT's network is loaded once, on the first cache miss)."""
+        if self._flow is None:
+            from paradrive.scoring.raft import flow_of
+
+            self._flow = flow_of(self.settings.flow, self.settings.device)
+        return self._flow
 
     def features_key(self, metric: str, sha: str) -> str:
         return self.cache.key(video=sha, metric=metric, weights=self.weights_sha(metric))
@@ -276,7 +285,7 @@ def _tce(sc: _Scorer, row: dict, gen_sha: str, videos: _RowVideos, score: VideoS
     from paradrive.scoring.flow import tce
 
     got = sc.cache.get(sc.cache.key(video=gen_sha, metric="tce", settings=sc.settings.flow.key()),
-                       lambda: {"pairs": tce(videos.generated, sc.settings.flow)})
+                       lambda: {"pairs": tce(videos.generated, sc.settings.flow, sc.flow())})
     return {"tce": float(np.mean(got["pairs"]))}
 
 
