@@ -79,6 +79,8 @@ def points(stage: str, rng: random.Random, reference: Path, n: int) -> list[Poin
     final = {"ingest": f"{SCENE_DIR}/images/*/*", "fit": PATTERNS["fit"],
              "render": f"{SCENE_DIR}/renders/*/*/*.png", "clip": f"{SCENE_DIR}/clips/*/*/*.mp4"}
     total = len(glob.glob(str(reference / final[stage])))
+    if stage == "render":   # the stage stops itself at its k-th frame: no race with a burst of writes
+        return [Point(stage, stop_at=f"render:frame-{rng.randint(1, max(1, total - 1))}") for _ in range(n)]
     return [Point(stage, k=rng.randint(1, max(1, total - 1)), pattern=PATTERNS[stage])
             for _ in range(n)]
 

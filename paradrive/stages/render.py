@@ -47,6 +47,7 @@ The whole ``renders/`` folder is assembled under a temporary name and renamed in
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -59,7 +60,7 @@ from pydantic import ValidationInfo, field_validator
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.exr import write_depth_exr
-from paradrive.io import atomic_path
+from paradrive.io import atomic_path, stop_point
 from paradrive.scene import Scene, load_scene, read_image, write_image
 from paradrive.contracts.base import StageContext, StageParams
 from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
@@ -251,6 +252,7 @@ class _Renderer:
         for pos in plan.frames:
             image = self.scene.load_image(pos, plan.name)
             write_image(folder / frame_file(pos), crop_resize(image, plan.out))
+            _frame_written()
             self.tick()
 
     def moving(self, plan: CameraPlan) -> list[float] | None:
@@ -308,6 +310,7 @@ class _Renderer:
 
     def write_frame(self, folder: Path, pos: int, result: dict, j: int) -> None:
         write_image(folder / frame_file(pos), result["rgb"][j])
+        _frame_written()
         if self.params.depth:
             write_depth_exr(folder / "depth" / frame_file(pos, ".exr"), result["depth"][j])
         if self.params.alpha:
@@ -354,3 +357,12 @@ def run(ctx: StageContext[Params]) -> RendersRecord:
     p = ctx.params
     with deterministic_torch(p.threads, resolve_backend(p.backend, resolve_device(p.device))):
         return render_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress)
+
+
+# frames written by this process, for the tests that stop a build at its k-th frame
+# (PARADRIVE_STOP_AT=render:frame-<k>) instead of watching the folder fill
+_FRAMES_WRITTEN = itertools.count(1)
+
+
+def _frame_written() -> None:
+    stop_point(f"render:frame-{next(_FRAMES_WRITTEN)}")
