@@ -49,7 +49,7 @@ import torch
 from paradrive.data import PairDataset
 from paradrive.latents import has_latents
 from paradrive.io import atomic_path, path_inside, write_json, write_text
-from paradrive.pairs import build_file
+from paradrive.pairs import build_file, read_pairs
 from paradrive.train.trainer import collate, frames_on
 from paradrive.train.wan import relative_camera, to_channels_first
 
@@ -153,8 +153,7 @@ def recammaster_frames(build: str | Path, num_frames: int | None) -> int:
     the 81 ReCamMaster's loader reads cameras for; ValueError before any work otherwise."""
     from paradrive.wan.vae import TEMPORAL_FACTOR
 
-    ds = PairDataset(build, dtype="uint8")
-    shortest = min(int(ds.row(i)["num_frames"]) for i in range(len(ds)))
+    shortest = min(read_pairs(build, ("num_frames",), verify=True).column("num_frames").to_pylist())
     frames = RECAMMASTER_FRAMES if num_frames is None else int(num_frames)
     if (frames - 1) % TEMPORAL_FACTOR:
         raise ValueError(f"--num-frames {frames} is not 4k + 1 (Wan's VAE encodes the first frame alone, then "
@@ -182,8 +181,7 @@ class RecamLatents:
         self.latent_frames = latent_frames(frames)
         self.cache = cache
         self.text = text_embedding if cache is None or cache.latents is None else cache.latents.text_embedding
-        self.pixels = PairDataset(build, dtype="uint8", num_frames=frames, output_size=RECAMMASTER_SIZE,
-                                  resize="crop")
+        self.pixels: PairDataset | None = None   # the frames the VAE encodes, opened when first needed
         self.encoded = self.from_cache = 0
 
     def tensors(self, i: int, role: str) -> dict[str, Any]:
@@ -197,6 +195,9 @@ class RecamLatents:
         else:
             if self.vae is None or self.text is None:
                 raise ValueError("the cached tensors need a VAE and the empty prompt's embedding: pass --vae")
+            if self.pixels is None:
+                self.pixels = PairDataset(self.build, dtype="uint8", num_frames=self.frames,
+                                          output_size=RECAMMASTER_SIZE, resize="crop")
             video = to_channels_first(frames_on(self.pixels[i][role][None], self.vae.device))
             latents = encode_video(self.vae, video)[0]
             self.encoded += 1
