@@ -6,6 +6,7 @@ import contextlib
 import errno
 import glob
 import hashlib
+import itertools
 import json
 import os
 import shutil
@@ -384,3 +385,17 @@ def stop_point(name: str) -> None:
     test sees it stopped (``waitpid`` with ``WUNTRACED``), then kills or interrupts it."""
     if os.environ.get("PARADRIVE_STOP_AT") == name:
         os.kill(os.getpid(), signal.SIGSTOP)
+
+
+def counted_stop(prefix: str) -> Callable[[], None]:
+    """A :func:`stop_point` for the k-th time something happens in this process: each call of
+    the function returned is one more (``render:frame-1``, ``render:frame-2``, ...).
+
+    A test stops a build at its k-th written frame, image or video this way instead of watching
+    the folder fill (a burst of writes can end the stage before a watcher looks)."""
+    counter = itertools.count(1)
+
+    def point() -> None:
+        stop_point(f"{prefix}-{next(counter)}")
+
+    return point

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import json
 import os
 import shutil
@@ -44,7 +45,7 @@ from paradrive.io import (PathEscapeError, is_temporary, path_inside, sha256_fil
                           temporary_name, write_json)
 from paradrive.pairs import (COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri,
                              read_index)
-from paradrive.contracts.layout import (BUILD_MARKER, INDEX_JSON, SHARD_PATTERN, VERSION_PREFIX,
+from paradrive.contracts.layout import (BUILD_MARKER, INDEX_JSON, MARKER_DIR, SHARD_PATTERN, VERSION_PREFIX,
                                         BuildLayout, SceneLayout, is_runner_file, is_version,
                                         version_name, version_number)
 from paradrive.contracts.records import ClipRecord, ClipsRecord, IndexRecord
@@ -52,6 +53,9 @@ from paradrive.streams import stream_transform
 
 if TYPE_CHECKING:
     from paradrive.contracts.params import ManifestParams
+
+# held by the one run publishing a build (``<build>/.paradrive/publish.lock``, :func:`publishing`)
+PUBLISH_LOCK = "publish.lock"
 
 # --------------------------------------------------------------------------- clips.json
 
@@ -385,7 +389,7 @@ def claim_build_folder(build_dir: str | Path, build: str) -> BuildLayout:
     """The build folder, created with the builder's marker, or an existing one that carries it.
 
     A folder holding other files and no marker is not the builder's: it is refused, so nothing in
-    it is ever deleted or replaced. Temporaries a killed publish left are removed."""
+    it is ever deleted or replaced."""
     layout = BuildLayout(Path(build_dir))
     root = layout.root
     if not layout.marker.is_file():
@@ -398,25 +402,51 @@ def claim_build_folder(build_dir: str | Path, build: str) -> BuildLayout:
                 f"{BUILD_MARKER}; choose another --build name or --manifests folder")
         root.mkdir(parents=True, exist_ok=True)
         write_json(layout.marker, {"builder": "paradrive", "build": build})
-    for stale in root.iterdir():
-        if is_temporary(stale.name):
-            if stale.is_dir() and not stale.is_symlink():
-                shutil.rmtree(stale, ignore_errors=True)
-            else:
-                stale.unlink(missing_ok=True)
     return layout
 
 
 @contextlib.contextmanager
-def staging_version(build_dir: str | Path, build: str) -> Iterator[Path]:
-    """A new version folder under a temporary name; gone unless :func:`publish` landed it."""
+def publishing(build_dir: str | Path, build: str, log=None) -> Iterator[BuildLayout]:
+    """The claimed build folder (:func:`claim_build_folder`), one publisher at a time.
+
+    Two runs of one build name (a retry started while the first still runs, a build and a
+    republish) take turns: each holds ``.paradrive/publish.lock`` (an ``flock``, which the kernel
+    drops when its holder dies, even by SIGKILL) from claiming the folder to landing its version.
+    The temporaries in the folder are then a killed publisher's, never a live one's, and are
+    removed."""
     layout = claim_build_folder(build_dir, build)
-    staging = temporary_name(layout.root / VERSION_PREFIX)
-    staging.mkdir()
+    root = layout.root
+    (root / MARKER_DIR).mkdir(parents=True, exist_ok=True)
+    fd = os.open(root / MARKER_DIR / PUBLISH_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        yield staging
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if log is not None:
+                log.warning("manifest: build %s is being published by another run; waiting for it", build)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        for stale in root.iterdir():
+            if is_temporary(stale.name):
+                if stale.is_dir() and not stale.is_symlink():
+                    shutil.rmtree(stale, ignore_errors=True)
+                else:
+                    stale.unlink(missing_ok=True)
+        yield layout
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        os.close(fd)   # drops the lock
+
+
+@contextlib.contextmanager
+def staging_version(build_dir: str | Path, build: str, log=None) -> Iterator[Path]:
+    """A new version folder under a temporary name, this run the build's one publisher
+    (:func:`publishing`); gone unless :func:`publish` landed it."""
+    with publishing(build_dir, build, log) as layout:
+        staging = temporary_name(layout.root / VERSION_PREFIX)
+        staging.mkdir()
+        try:
+            yield staging
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
 
 
 def _write_shards(staging: Path, shards: list[pa.Table], params: ManifestParams) -> list[dict]:

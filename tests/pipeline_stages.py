@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from paradrive.errors import SceneError
-from paradrive.io import temporary_name, write_json, write_text
+from paradrive.io import stop_point, temporary_name, write_json, write_text
 from paradrive.uri import parse_uri
 
 STAGES = {
@@ -192,6 +192,7 @@ def run_ingest(ctx) -> dict:
 
 @_stage("fit")
 def run_fit(ctx) -> dict:
+    stop_point("stand-in:fit")   # a test stops the build here, holding the scene's lock
     time.sleep(float(ctx.params["sleep_s"]))
     scene = (ctx.scene_dir / "scene.json").read_text()
     for c in ctx.params["checkpoints"]:

@@ -3,15 +3,16 @@
 The fault-injection suite kills a real ``paradrive build`` at a point of every stage: here once
 per stage with a fixed seed, ``bench/bench_faults.py`` N times per stage (it imports the functions
 of this module). A build runs as a process in a folder of its own
-(``data/`` and ``m/`` inside); a point is an event, never a delay:
+(``data/`` and ``m/`` inside); a point is an event, never a delay. The build stops itself there
+(``PARADRIVE_STOP_AT``), is seen stopped and is killed:
 
-- ingest, render, clip: the k-th file in the stage's temporary folder (the scene being ingested,
-  the frames being rendered, the videos being encoded);
-- fit: the k-th checkpoint PLY (the fit then resumes from ``gs/state.pt``);
-- manifest: a named step of publishing (``PARADRIVE_STOP_AT``: the process stops itself, is
-  seen stopped and is killed).
+- ingest: its k-th camera image written (``ingest:image-<k>``);
+- fit: its k-th checkpoint (``fit:checkpoint-<step>``; the fit then resumes from ``gs/state.pt``);
+- render: its k-th frame written (``render:frame-<k>``);
+- clip: its k-th video encoded (``clip:video-<k>``);
+- manifest: a named step of publishing.
 
-The build is killed with SIGKILL as soon as the event is seen. After it, a plain re-run must exit
+After the kill, a plain re-run must exit
 0, ``verify_build`` must be clean, no temporary may remain, nothing may appear in the folder
 besides ``data/`` and ``m/``, and every output must have the bytes of an uninterrupted build,
 except the files whose bytes record when or how long (``NOT_BYTE_STABLE``).
@@ -26,10 +27,10 @@ import hashlib
 import json
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,43 +47,40 @@ STAGES = ("ingest", "fit", "render", "clip", "manifest")
 # runner's own; index.json holds its creation time.
 NOT_BYTE_STABLE = (".paradrive/*", "*/.paradrive/*", "data/logs/*", "data/locks/*", "m/*/ledger.sqlite*",
                    "m/*/index.json", "*/gs/fit.json")
-POLL_S = 0.01  # how often the folder is looked at while waiting for a point's file
 
 
 @dataclass(frozen=True)
 class Point:
-    """Where a build is killed: ``stage``, and the ``k``-th file of ``pattern`` (a glob under the
-    build's folder) or the publishing step ``stop_at``."""
+    """Where a build is killed: in ``stage``, at the step ``stop_at``."""
 
     stage: str
-    k: int = 1
-    pattern: str = ""
-    stop_at: str = ""
+    stop_at: str
 
     def describe(self) -> str:
-        return f"{self.stage}: {self.stop_at or f'file {self.k} of {self.pattern}'}"
+        return f"{self.stage}: {self.stop_at}"
 
 
 SCENE_DIR = f"data/scenes/{SID}"
-PATTERNS = {"ingest": f"data/scenes/.{SID}.tmp-*/images/*/*",
-            "fit": f"{SCENE_DIR}/gs/ckpt_*.ply",
-            "render": f"{SCENE_DIR}/.renders.tmp-*/*/*/*.png",
-            "clip": f"{SCENE_DIR}/.clips.tmp-*/*/*/*.mp4"}
+# what an uninterrupted build leaves of each stage's steps, and the step's name
+WRITTEN = {"ingest": (f"{SCENE_DIR}/images/*/*", "ingest:image"),
+           "fit": (f"{SCENE_DIR}/gs/ckpt_*.ply", "fit:checkpoint"),
+           "render": (f"{SCENE_DIR}/renders/*/*/*.png", "render:frame"),
+           "clip": (f"{SCENE_DIR}/clips/*/*/*.mp4", "clip:video")}
 PUBLISH_STEPS = ("publish:first-media", "publish:before-switch")
 
 
 def points(stage: str, rng: random.Random, reference: Path, n: int) -> list[Point]:
-    """``n`` points of ``stage`` drawn with ``rng``: k among the files the uninterrupted build
-    wrote there (its last one left out: the stage must still be running)."""
+    """``n`` points of ``stage`` drawn with ``rng``: the k-th of the steps the uninterrupted build
+    made there (its last one left out: the stage must still be running); a checkpoint by its
+    iteration."""
     if stage == "manifest":
-        return [Point(stage, stop_at=rng.choice(PUBLISH_STEPS)) for _ in range(n)]
-    final = {"ingest": f"{SCENE_DIR}/images/*/*", "fit": PATTERNS["fit"],
-             "render": f"{SCENE_DIR}/renders/*/*/*.png", "clip": f"{SCENE_DIR}/clips/*/*/*.mp4"}
-    total = len(glob.glob(str(reference / final[stage])))
-    if stage == "render":   # the stage stops itself at its k-th frame: no race with a burst of writes
-        return [Point(stage, stop_at=f"render:frame-{rng.randint(1, max(1, total - 1))}") for _ in range(n)]
-    return [Point(stage, k=rng.randint(1, max(1, total - 1)), pattern=PATTERNS[stage])
-            for _ in range(n)]
+        return [Point(stage, rng.choice(PUBLISH_STEPS)) for _ in range(n)]
+    pattern, step = WRITTEN[stage]
+    files = sorted(glob.glob(str(reference / pattern)))
+    if stage == "fit":
+        steps = sorted(int(re.findall(r"\d+", Path(f).stem)[-1]) for f in files)
+        return [Point(stage, f"{step}-{rng.choice(steps[:-1] or steps)}") for _ in range(n)]
+    return [Point(stage, f"{step}-{rng.randint(1, max(1, len(files) - 1))}") for _ in range(n)]
 
 
 def environment(cache: Path) -> dict[str, str]:
@@ -104,36 +102,23 @@ def build(folder: Path, env: dict[str, str], *extra: str) -> subprocess.Complete
 
 
 def kill_at(folder: Path, env: dict[str, str], point: Point) -> bool:
-    """Run a build in ``folder`` and SIGKILL it at ``point``; False when it ended first."""
+    """Run a build in ``folder`` and SIGKILL it where it stops at ``point``; False when it ended
+    without reaching it."""
     folder.mkdir(parents=True, exist_ok=True)
-    if point.stop_at:
-        env = {**env, "PARADRIVE_STOP_AT": point.stop_at}
-    proc = subprocess.Popen(build_command(), cwd=folder, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(build_command(), cwd=folder, env={**env, "PARADRIVE_STOP_AT": point.stop_at},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        if point.stop_at:
-            _, status = os.waitpid(proc.pid, os.WUNTRACED)  # stopped at the step, or ended
-            if not os.WIFSTOPPED(status):
-                proc.returncode = os.waitstatus_to_exitcode(status)
-                return False
-            os.killpg(proc.pid, signal.SIGKILL)
-            return True
-        return _kill_when(proc, lambda: len(glob.glob(str(folder / point.pattern))) >= point.k)
+        _, status = os.waitpid(proc.pid, os.WUNTRACED)  # stopped at the step, or ended
+        if not os.WIFSTOPPED(status):
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            return False
+        os.killpg(proc.pid, signal.SIGKILL)
+        return True
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
         with contextlib.suppress(ChildProcessError):
             proc.wait()
-
-
-def _kill_when(proc: subprocess.Popen, seen: Callable[[], bool]) -> bool:
-    while proc.poll() is None:
-        if seen():
-            os.killpg(proc.pid, signal.SIGKILL)
-            return True
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(timeout=POLL_S)
-    return False
 
 
 def running_stages(folder: Path) -> list[str]:
@@ -232,3 +217,46 @@ def test_a_build_killed_in_a_stage_is_healed_by_a_plain_rerun(stage, reference, 
     if stage == "ingest":  # the scene being ingested was left under its temporary name
         assert glob.glob(str(folder / f"data/scenes/.{SID}.tmp-*"))
     assert healed(folder, env, outputs(reference)) == [], point.describe()
+
+
+
+def test_two_runs_of_one_build_publish_in_turn(env, tmp_path):
+    """Two runs of one build name over other scenes (their scene locks do not meet): the second
+    reaches publishing while the first publishes, and waits for it (the first's staging folder
+    is not taken for a killed run's); then it publishes its own version. Both exit 0, the build
+    verifies and no temporary is left."""
+    from paradrive.inspection import verify_build
+
+    folder = tmp_path / "work"
+    folder.mkdir()
+    first = subprocess.Popen(build_command(), cwd=folder, env={**env, "PARADRIVE_STOP_AT": "publish:first-media"},
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    second = None
+    try:
+        _, status = os.waitpid(first.pid, os.WUNTRACED)
+        assert os.WIFSTOPPED(status), "the first run ended before it published"
+        staging = glob.glob(str(folder / f"m/{BUILD}/.v-*.tmp-*"))
+        assert staging, "the first run holds no staging folder"
+        other = [a.replace(SCENE, "synthetic:p1?seed=4") for a in build_command()]
+        second = subprocess.Popen(other, cwd=folder, env=env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True)
+        seen = []
+        assert second.stdout is not None
+        for line in second.stdout:   # it says it waits, and waits
+            seen.append(line)
+            if "is being published by another run; waiting" in line:
+                break
+        assert second.poll() is None, "".join(seen)[-3000:]
+        assert all(Path(s).is_dir() for s in staging)   # the first run's staging is still there
+        os.kill(first.pid, signal.SIGCONT)
+        assert first.wait() == 0
+        rest = second.communicate()[0]
+        assert second.returncode == 0, ("".join(seen) + rest)[-3000:]
+    finally:
+        for proc in (first, second):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    check = verify_build(folder / "m" / BUILD)
+    assert check["ok"], check["problems"]
+    assert temporaries(folder) == []

@@ -215,26 +215,23 @@ def test_a_lease_is_renewed_while_its_holder_works(monkeypatch, tmp_path):
 # -- a holder killed with SIGKILL -----------------------------------------------------------------
 
 def test_a_build_killed_holding_a_lock_is_taken_over_at_once(data_root, stand_in, tmp_path):
-    psutil = pytest.importorskip("psutil")
     root, where = data_root["root"], data_root["flags"]
     env = environment(stand_in)
-    first = subprocess.Popen(command(SCENES[:1], "b1", where, tmp_path / "m", "--set",
-                                     "fit.sleep_s=600"),
-                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    first = subprocess.Popen(command(SCENES[:1], "b1", where, tmp_path / "m"),
+                             env={**env, "PARADRIVE_STOP_AT": "stand-in:fit"},
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        deadline = time.time() + 120
-        while ("start", "fit", IDS[0]) not in pipeline_stages.calls(root.local):
-            assert first.poll() is None and time.time() < deadline, "b1 never reached fit"
-            time.sleep(0.1)
+        _, stopped = os.waitpid(first.pid, os.WUNTRACED)   # it stops itself inside fit
+        assert os.WIFSTOPPED(stopped), "b1 ended before it reached fit"
+        assert ("start", "fit", IDS[0]) in pipeline_stages.calls(root.local)
         status = CliRunner().invoke(app, ["status", "b1", "--manifests", str(tmp_path / "m"), "--json",
                                           *data_root["status_flags"]])
         assert status.exit_code == 0, status.output
         assert [(lock["scene_id"], lock["build"], lock["pid"])
                 for lock in json.loads(status.output)["locks"]] == [(IDS[0], "b1", first.pid)]
         first.send_signal(signal.SIGKILL)
-        # not reaped yet (a zombie until this test waits for it): gone all the same
-        while psutil.Process(first.pid).status() != psutil.STATUS_ZOMBIE:
-            time.sleep(0.05)
+        # dead, not reaped (a zombie until this test waits for it): gone all the same
+        os.waitid(os.P_PID, first.pid, os.WEXITED | os.WNOWAIT)
         # --lock-timeout 0: the build succeeds only if it takes the dead build's lock at once
         second = subprocess.run(command(SCENES[:1], "b2", where, tmp_path / "m", "--lock-timeout",
                                         "0"), env=env, capture_output=True, text=True, timeout=300)
@@ -283,16 +280,20 @@ def test_two_builds_started_together_share_the_scenes_and_run_each_stage_once(da
 
 
 @pytest.mark.slow
-def test_two_real_builds_started_a_second_apart_both_verify(tmp_path):
+def test_two_real_builds_overlapping_on_shared_scenes_both_verify(tmp_path):
     """The reported case: builds b1 and b2 of the real stages over one folder and shared scenes."""
     env = environment(None)
     scenes = ["synthetic:demo?seed=7", "synthetic:demo?seed=8"]
     where = ["--data", str(tmp_path / "data"), "--profile", "smoke", *pipeline_stages.tiny_real_sets()]
-    procs = {}
-    for build, order in (("b1", scenes), ("b2", scenes[::-1])):
-        procs[build] = subprocess.Popen(command(order, build, where, tmp_path / "m"), env=env,
-                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        time.sleep(1)
+    # b1 stops itself at its first rendered frame; b2 starts then, and b1 goes on beside it
+    procs = {"b1": subprocess.Popen(command(scenes, "b1", where, tmp_path / "m"),
+                                    env={**env, "PARADRIVE_STOP_AT": "render:frame-1"},
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)}
+    _, stopped = os.waitpid(procs["b1"].pid, os.WUNTRACED)
+    assert os.WIFSTOPPED(stopped), "b1 ended before its first rendered frame"
+    procs["b2"] = subprocess.Popen(command(scenes[::-1], "b2", where, tmp_path / "m"), env=env,
+                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    os.kill(procs["b1"].pid, signal.SIGCONT)
     outputs = {b: p.communicate(timeout=600)[0] for b, p in procs.items()}
     for b, p in procs.items():
         assert p.returncode == 0, outputs[b][-3000:]

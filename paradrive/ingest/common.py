@@ -11,7 +11,7 @@ from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.ingest.undistort import distortion_is_zero, undistort_image
 from paradrive.scene import write_image
-from paradrive.io import write_bytes
+from paradrive.io import counted_stop, write_bytes
 
 # OpenCV camera axes -> "vehicle-style" camera axes (x forward, y left, z up), as a 4x4.
 OPENCV_TO_FLU = geometry.make_pose(geometry.OPENCV_TO_FLU, np.zeros(3))
@@ -87,10 +87,17 @@ def store_image(out_dir: Path, rel: str, pixels: np.ndarray, *, K=None, dist=Non
     if distortion_is_zero(dist):
         if original is not None and target.suffix.lower() in (".jpg", ".jpeg"):
             write_bytes(target, bytes(original))
+            image_written()
             return
     else:
         pixels = undistort_image(pixels, K, dist)
     write_image(target, pixels, quality=quality)
+    image_written()
+
+
+# each camera image an ingest writes, for the tests that stop a build at its k-th
+# (PARADRIVE_STOP_AT=ingest:image-<k>)
+image_written = counted_stop("ingest:image")
 
 
 def check_size(pixels: np.ndarray, width: int, height: int, *, scene_id: str, where,

@@ -12,6 +12,7 @@ import numpy as np
 from paradrive.actors import first_frames
 from paradrive.errors import ConfigError, SceneError
 from paradrive.ingest import requested_cameras, select_cameras
+from paradrive.ingest.common import image_written
 from paradrive.scene import Frame, FrameCamera, Scene, write_image
 from paradrive.synthetic.limits import LIMITS
 from paradrive.uri import SceneURI
@@ -259,6 +260,7 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
                 i = start + j
                 rel = f"images/{name}/{i:06d}.{ext}"
                 write_image(out_dir / rel, views["rgb"][j], quality=quality)
+                image_written()
                 if params.sky_masks:
                     mask = (views["sky"][j].astype(np.uint8) * 255)
                     write_image(out_dir / "masks" / "sky" / name / f"{i:06d}.png", mask)

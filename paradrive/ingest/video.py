@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from paradrive.errors import ConfigError, ParaDriveError, SceneError
-from paradrive.ingest.common import fps_from, save_points
+from paradrive.ingest.common import fps_from, image_written, save_points
 from paradrive.ingest.frameclock import Clock, frames_at, read_clock
 from paradrive.ingest import scale_roadmotion, scale_roadpoints
 from paradrive.ingest.focal import (FOV_RANGE_DEG, MIN_RISE, FocalEstimate, estimate_focal,
@@ -911,6 +911,7 @@ def _write_frames(footage: Footage, kept: tuple[int, int], K: Intrinsics, dist: 
     def store(k: int, pixels: np.ndarray) -> None:
         pixels = pixels if distortion_is_zero(dist) else undistort_image(pixels, K.K(), dist)
         write_image(out_dir / rels[k - kept[0]], pixels, quality=params.jpeg_quality)
+        image_written()
 
     each_frame(footage, store, scene_id=scene_id, only=list(range(kept[0], kept[1] + 1)))
     return rels

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from paradrive.errors import SceneError
-from paradrive.io import atomic_path
+from paradrive.io import atomic_path, counted_stop
 from paradrive.metrics import frames_quality
 from paradrive.scene import Scene, load_scene, read_image
 from paradrive.contracts.base import StageContext, StageParams
@@ -155,6 +155,7 @@ class _ClipWriter:
         info = encode_video(self.tmp_root.parent / _under(self.tmp_root, rel), frames,
                             self.scene.fps, codec=p.codec, crf=p.crf, preset=p.preset,
                             pix_fmt=p.pix_fmt if p.codec == "libx264" else None, gop=p.gop)
+        _video_written()
         source = stream.kind == "source"
         return ClipStream(file=rel, bytes=info["bytes"], sha256=info["sha256"], kind=stream.kind,
                           iteration=stream.iteration,
@@ -180,6 +181,10 @@ class _ClipWriter:
             return rel
         depth_dir.rmdir()
         return None
+
+
+# each video encoded, for the tests that stop a build at its k-th (clip:video-<k>)
+_video_written = counted_stop("clip:video")
 
 
 def _under(tmp_root: Path, rel: str) -> Path:

@@ -36,7 +36,7 @@ def build_manifest(build_dir: str | Path, scene_dirs: list[dict], params: Params
     if data_root is None:  # called without a runner: the folder the scene folders share
         roots = {Path(e["scene_dir"]).resolve().parent.parent for e in scene_dirs}
         data_root = roots.pop() if len(roots) == 1 else None
-    with staging_version(build_dir, build) as staging:
+    with staging_version(build_dir, build, log) as staging:
         rows: list[dict] = []
         media: list[MediaFile] = []
         scenes, skipped, dropped = [], [], []

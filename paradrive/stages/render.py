@@ -47,7 +47,6 @@ The whole ``renders/`` folder is assembled under a temporary name and renamed in
 
 from __future__ import annotations
 
-import itertools
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -60,7 +59,7 @@ from pydantic import ValidationInfo, field_validator
 from paradrive import geometry
 from paradrive.errors import SceneError
 from paradrive.exr import write_depth_exr
-from paradrive.io import atomic_path, stop_point
+from paradrive.io import atomic_path, counted_stop
 from paradrive.scene import Scene, load_scene, read_image, write_image
 from paradrive.contracts.base import StageContext, StageParams
 from paradrive.contracts.layout import SceneLayout, frame_file, stream_dir
@@ -359,10 +358,5 @@ def run(ctx: StageContext[Params]) -> RendersRecord:
         return render_scene(ctx.layout, ctx.params, log=ctx.log, progress=ctx.progress)
 
 
-# frames written by this process, for the tests that stop a build at its k-th frame
-# (PARADRIVE_STOP_AT=render:frame-<k>) instead of watching the folder fill
-_FRAMES_WRITTEN = itertools.count(1)
-
-
-def _frame_written() -> None:
-    stop_point(f"render:frame-{next(_FRAMES_WRITTEN)}")
+# each frame written, for the tests that stop a build at its k-th (render:frame-<k>)
+_frame_written = counted_stop("render:frame")
