@@ -183,20 +183,26 @@ def test_a_parked_camera_fails_as_static(tmp_path):
 
 def test_plan_counts_sfm_time_by_the_frames_pixels(exported, tmp_path):
     """A video not there yet is a typical dashcam's 200 frames at 720p, SfM on them at
-    ingest.video_sfm_width; one that is there is read from its header: its frames and size, and
-    SfM time goes with the pixels as the rate's power law says."""
+    ingest.video_sfm_width, and a focal search first where nothing gives its camera; one that
+    is there is read from its header: its frames and size, and SfM time goes with the pixels as
+    the rate's power law says."""
     from paradrive.pipeline import StageRegistry
     from paradrive.pipeline.budget import plan_build
 
     config = StageRegistry().resolve(None)
-    plan = plan_build(config, ["video:/clips/drive.mp4"], None)
+    model = yaml.safe_load((REPO / "stages/budget/rates.yaml").read_text())["compute"]["sfm"]
+    plan = plan_build(config, ["video:/clips/drive.mp4?fov_deg=90"], None)
     rate = plan.rates["compute:sfm"].value
     assert plan.shapes == {"typical video log": 1}
     assert plan.seconds["sfm"] == pytest.approx(200 * rate)   # 640x360: the rate's reference size
+    # without a camera the focal length is searched first, on ingest.video_focal_frames of them
+    bare = plan_build(config, ["video:/clips/drive.mp4"], None)
+    searched = config.params["ingest"]["video_focal_frames"]
+    assert bare.seconds["sfm"] == pytest.approx((200 + model["focal_search_frames"] * searched) * rate)
     uri, _ = exported   # 24 frames of 320x192, SfM at that size
     plan = plan_build(config, [uri], None)
     assert plan.shapes == {"video header": 1}
-    exponent = yaml.safe_load((REPO / "stages/budget/rates.yaml").read_text())["compute"]["sfm"]["exponent"]
+    exponent = model["exponent"]
     assert plan.seconds["sfm"] == pytest.approx(24 * rate * (320 * 192 / 230400) ** exponent)
     halved = plan_build(StageRegistry().resolve(None, {"ingest": {"video_sfm_width": 160}}), [uri], None)
     assert halved.seconds["sfm"] == pytest.approx(plan.seconds["sfm"] / 4 ** exponent)

@@ -12,8 +12,10 @@ from paradrive.ingest import scale_roadmotion, scale_roadpoints
 from paradrive.ingest.roadmotion import summarise
 from paradrive.ingest.scalecue import ScaleCue, ScaleError, combine, profile, split_ranges
 from paradrive.ingest.sfm import Reconstruction, RoadPlane, Intrinsics, without_drift
+from paradrive.stages.ingest import params_of
 
 HALVES = [(0, 49), (50, 99)]
+BIAS = params_of().video_road_points_bias   # the stage file's default
 
 
 def cue(name: str, frames: tuple[int, int], scale: float | None, sigma: float = math.inf,
@@ -128,13 +130,13 @@ def test_the_road_points_cue_counts_its_bias_beside_its_scatter():
     depths = np.r_[np.full(20, 0.5), np.full(20, 0.55)]
     plane = RoadPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0.525, 40, 100, depths=depths,
                       frames=np.r_[np.arange(20), np.arange(20) + 50])
-    first = scale_roadpoints.measure(plane, (0, 49), 1.5)
+    first = scale_roadpoints.measure(plane, (0, 49), 1.5, bias=BIAS)
     assert first.scale == pytest.approx(3.0)
-    assert first.uncertainty == pytest.approx(scale_roadpoints.SYSTEMATIC)  # no scatter there
+    assert first.uncertainty == pytest.approx(BIAS)  # no scatter there
     # frames counted from the kept run's first frame
-    second = scale_roadpoints.measure(plane, (40, 89), 1.5, offset=10)
+    second = scale_roadpoints.measure(plane, (40, 89), 1.5, offset=10, bias=BIAS)
     assert second.scale == pytest.approx(1.5 / 0.55) and second.figures["points"] == 20
-    assert scale_roadpoints.measure(plane, (0, 9), 1.5).scale is None
+    assert scale_roadpoints.measure(plane, (0, 9), 1.5, bias=BIAS).scale is None
 
 
 def test_the_road_motion_cue_is_measured_on_the_pairs_of_its_range():

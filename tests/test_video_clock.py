@@ -23,6 +23,7 @@ from paradrive.uri import parse_uri
 from paradrive.video import decode_frames, encode_video
 
 STREET = "synthetic:demo?seed=7&frames=24&width=320&height=192"
+RATIO = params_of().video_repeat_ratio   # the stage file's default
 H, W = 90, 160
 
 
@@ -74,9 +75,9 @@ def _with_repeats(frames: list[np.ndarray], after: list[int], seed: int = 1) -> 
 def test_near_duplicates_among_moving_frames_are_found_and_nothing_else():
     frames = _drive(np.full(29, 3.0))
     with_copies, copies = _with_repeats(frames, [4, 5, 12, 20, 27])
-    found = np.flatnonzero(repeated_frames(frame_changes(with_copies)))
+    found = np.flatnonzero(repeated_frames(frame_changes(with_copies), RATIO))
     assert found.tolist() == copies
-    assert not repeated_frames(frame_changes(frames)).any()
+    assert not repeated_frames(frame_changes(frames), RATIO).any()
 
 
 def test_slow_driving_braking_and_moving_off_are_not_repeats():
@@ -87,14 +88,14 @@ def test_slow_driving_braking_and_moving_off_are_not_repeats():
     braking = np.concatenate([np.linspace(3.0, 0.0, 30), np.zeros(10), np.linspace(0.0, 3.0, 30)])
     stop_and_go = frame_changes(_drive(braking, seed=2))
     assert np.nanmin(stop_and_go[1:]) < 0.1 * np.nanmax(stop_and_go[1:])
-    assert not repeated_frames(creeping).any() and not repeated_frames(stop_and_go).any()
+    assert not repeated_frames(creeping, RATIO).any() and not repeated_frames(stop_and_go, RATIO).any()
 
 
 def test_a_stopped_car_with_traffic_passing_keeps_its_frames_and_loses_its_copies():
     standing = _drive(np.zeros(29), traffic=True)
-    assert not repeated_frames(frame_changes(standing)).any()
+    assert not repeated_frames(frame_changes(standing), RATIO).any()
     with_copies, copies = _with_repeats(standing, [3, 9, 10, 22])
-    assert np.flatnonzero(repeated_frames(frame_changes(with_copies))).tolist() == copies
+    assert np.flatnonzero(repeated_frames(frame_changes(with_copies), RATIO)).tolist() == copies
 
 
 def test_a_still_picture_is_not_repeats_of_itself():
@@ -102,7 +103,7 @@ def test_a_still_picture_is_not_repeats_of_itself():
     cannot be told from repeats, and none is dropped (docs/scene-layout.md)."""
     noise_only = frame_changes(_drive(np.zeros(30)))
     frozen = frame_changes([_noisy(_scene_at(np.float64(0)), np.random.default_rng(0), 0)] * 12)
-    assert not repeated_frames(noise_only).any() and not repeated_frames(frozen).any()
+    assert not repeated_frames(noise_only, RATIO).any() and not repeated_frames(frozen, RATIO).any()
 
 
 def test_variable_rate_is_told_from_a_constant_one():
@@ -135,7 +136,7 @@ def test_the_freeway_clip_has_a_constant_rate_and_no_repeats():
     """A real 1280x720 dashcam clip: 160 frames at 25 fps, none taken for a repeat."""
     if not FREEWAY_VIDEO.is_file():
         pytest.skip(f"the real freeway clip is not here ({FREEWAY})")
-    clock = read_clock(FREEWAY_VIDEO, (160, 25.0, 1280, 720), scene_id="freeway")
+    clock = read_clock(FREEWAY_VIDEO, (160, 25.0, 1280, 720), scene_id="freeway", repeat_ratio=RATIO)
     assert clock.source == "timestamps" and len(clock.times) == 160
     assert not clock.variable_rate and clock.repeated == () and clock.fps == 25.0
     np.testing.assert_allclose(clock.times, np.arange(160) / 25.0, atol=1e-9)

@@ -39,6 +39,11 @@ class IngestParams(StageParams):
     video_folder_fps: float
     video_sfm_width: int
     video_max_scale_uncertainty: float
+    video_scale_range_frames: int
+    video_road_points_bias: float
+    video_focal_frames: int
+    video_focal_min_rise: float
+    video_repeat_ratio: float
 
 
 

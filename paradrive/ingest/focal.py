@@ -47,16 +47,12 @@ import numpy as np
 
 from paradrive.ingest.sfm import Intrinsics, SfmError, mapping_options
 
-__all__ = ["FocalTrial", "FocalEstimate", "estimate_focal", "focal_of_fov", "FOV_RANGE_DEG", "MIN_RISE"]
+__all__ = ["FocalTrial", "FocalEstimate", "estimate_focal", "focal_of_fov", "FOV_RANGE_DEG"]
 
 # the horizontal fields of view searched (degrees): a dashcam's lens lies between a narrow
 # 30 deg (a telephoto mount, rare) and 120 deg (the widest rectilinear dashcams; wider ones are
 # fisheyes, which a pinhole does not model)
 FOV_RANGE_DEG = (30.0, 120.0)
-# the focal counts as measured where a focal one coarse step (x1.6) from the best raises the
-# mean reprojection error by this share: on a straight real freeway clip it rose 3 % (the
-# reconstruction changes, not the fit of the focal), on a real KITTI bend 43 %
-MIN_RISE = 0.1
 
 
 def focal_of_fov(width: int, fov_deg: float) -> float:
@@ -104,8 +100,8 @@ class FocalEstimate:
 
 
 def estimate_focal(image_dir: Path, names: list[str], work_dir: Path, size: tuple[int, int], *,
-                   max_frames: int = 40, coarse: int = 5, refine: tuple[float, ...] = (1.2, 1.1, 1.05),
-                   min_rise: float = MIN_RISE, min_registered: float = 0.8,
+                   max_frames: int, min_rise: float, coarse: int = 5,
+                   refine: tuple[float, ...] = (1.2, 1.1, 1.05), min_registered: float = 0.8,
                    seed: int = 0) -> FocalEstimate:
     """The focal length of the images ``names`` (in time order, all ``size`` = (width, height))
     under ``image_dir``; scratch files in ``work_dir`` (removed after).
@@ -115,7 +111,8 @@ def estimate_focal(image_dir: Path, names: list[str], work_dir: Path, size: tupl
     log-spaced over :data:`FOV_RANGE_DEG` first, then around the best one at each ratio of
     ``refine``. A trial that registers under ``min_registered`` of the frames counts as failed:
     its error is that of a smaller, easier model. ``min_rise``: the relative rise of the error
-    one coarse step from the best below which the focal counts as unobservable (:data:`MIN_RISE`).
+    one coarse step from the best below which the focal counts as unobservable
+    (``ingest.video_focal_min_rise``).
 
     Raises SfmError where no focal forms a model.
     """

@@ -12,7 +12,8 @@ only repeat the one before (a clip resampled to a higher rate) and are dropped.
   of a tile's mean absolute difference, so a change in any part of the picture (a car passing one
   that stands at a light) counts as a change. A flickering sign or a clock overlay may then hide a
   repeat (it is kept); it never makes a changing frame look like one. Frame ``i`` repeats the one
-  before where it changed less than :data:`REPEAT_RATIO` of what the frames before it change and
+  before where it changed less than ``ratio`` (``ingest.video_repeat_ratio``) of what the frames
+  before it change and
   of what the frames after it change (each side: the largest change among its :data:`WINDOW`
   nearest frames, so a clip resampled up to six times its rate, five repeats in six, is found):
   the threshold follows the video's own motion and noise, not a level tuned to one clip; a flash
@@ -47,10 +48,6 @@ RATE_SLACK_S = 0.0011
 # the repeated-frame test works on grey frames this wide (pixels), in square tiles of this side
 DETECT_WIDTH = 160
 TILE_PX = 10
-# a repeat changes less than this fraction of the change on each side of it: a resampled
-# clip's copies changed 0.012-0.014 of theirs, a real dashcam clip's frames 0.52 at least
-# (docs/scene-layout.md, "Frames as they come")
-REPEAT_RATIO = 0.15
 # each side of a frame: this many frames, and its change the largest of theirs (a clip with
 # five repeats in six still finds a frame that changes on either side)
 WINDOW = 6
@@ -74,6 +71,7 @@ class Clock:
     repeated: tuple[int, ...] = ()
     seconds: float = 0.0
     detected: bool = True
+    ratio: float | None = None
 
     @property
     def kept(self) -> list[int]:
@@ -107,7 +105,7 @@ class Clock:
                                "max": float(steps.max())} if len(steps) else None,
                 "repeated_frames_dropped": list(self.repeated), "fps": self.fps,
                 "repeat_detection": {"done": self.detected, "width": DETECT_WIDTH,
-                                     "ratio": REPEAT_RATIO, "window": WINDOW,
+                                     "ratio": self.ratio, "window": WINDOW,
                                      "seconds": self.seconds}}
 
 
@@ -157,9 +155,9 @@ def frame_changes(frames: Iterable[np.ndarray]) -> np.ndarray:
     return changes.values
 
 
-def repeated_frames(changes: np.ndarray) -> np.ndarray:
+def repeated_frames(changes: np.ndarray, ratio: float) -> np.ndarray:
     """(F,) bool: the frames that repeat the one before, from their changes (F,) as
-    :func:`frame_changes` gives them: those that change less than :data:`REPEAT_RATIO` of the
+    :func:`frame_changes` gives them: those that change less than ``ratio`` of the
     frames before them and of the frames after them (each side's largest change among its
     :data:`WINDOW` nearest frames; one side at the clip's ends), where both change by
     :data:`STILL_LEVEL` at least. Both sides, so the last frames of a stop (still after,
@@ -171,7 +169,7 @@ def repeated_frames(changes: np.ndarray) -> np.ndarray:
         sides = [_level(changes[max(0, i - WINDOW): i]), _level(changes[i + 1: i + 1 + WINDOW])]
         levels = [level for level in sides if level is not None]
         out[i] = bool(levels) and min(levels) >= STILL_LEVEL \
-            and changes[i] < REPEAT_RATIO * min(levels)
+            and changes[i] < ratio * min(levels)
     return out
 
 
@@ -183,10 +181,11 @@ def _level(changes: np.ndarray) -> float | None:
 
 
 def read_clock(path: Path, header: tuple[int, float, int, int], *, scene_id: str,
-               detect: bool = True) -> Clock:
+               repeat_ratio: float, detect: bool = True) -> Clock:
     """The clock of the video at ``path`` whose header gives ``(frames, fps, width, height)``: its
     frames' times from their timestamps (else the header's rate over its frames) and, with
-    ``detect``, its repeated frames, found on one decoding pass over the whole clip at
+    ``detect``, its repeated frames (:func:`repeated_frames` at ``repeat_ratio``), found on one
+    decoding pass over the whole clip at
     :data:`DETECT_WIDTH` across.
     SceneError naming the file where it cannot be read."""
     from paradrive import video
@@ -214,8 +213,9 @@ def read_clock(path: Path, header: tuple[int, float, int, int], *, scene_id: str
         padded = np.full(len(times), np.nan)
         padded[:min(len(times), len(changes))] = changes[:len(times)]
         changes = padded
-    repeated = tuple(int(i) for i in np.flatnonzero(repeated_frames(changes)))
-    return Clock(times, source, header_fps, changes, repeated, time.perf_counter() - start)
+    repeated = tuple(int(i) for i in np.flatnonzero(repeated_frames(changes, repeat_ratio)))
+    return Clock(times, source, header_fps, changes, repeated, time.perf_counter() - start,
+                 ratio=repeat_ratio)
 
 
 def _decoded_changes(path: Path, size: tuple[int, int], *, scene_id: str) -> np.ndarray:

@@ -5,7 +5,8 @@ Per frame range, the road points whose overhead camera lies there give the heigh
 depth below it) with its standard error. The points are a biased ruler: on forward motion
 structure from motion trades a small pitch of every camera against the direction of travel,
 which lifts each point by its distance times that pitch, the same way for all of them, so the
-scatter says nothing of it. :data:`SYSTEMATIC` is that bias's size, added in quadrature.
+scatter says nothing of it. ``bias`` is that bias's size (``ingest.video_road_points_bias``),
+added in quadrature.
 """
 
 from __future__ import annotations
@@ -16,14 +17,9 @@ from paradrive.ingest.scalecue import ScaleCue
 from paradrive.ingest.sfm import RoadPlane
 
 NAME = "road points"
-# the points' height against a truth: 3-5 % short on the synthetic street, 2.5 % high on a
-# real freeway clip (6 % with COLMAP's default bundle adjustment schedule), 0.5 % on a real
-# KITTI bend (docs/scene-layout.md, "The scale's uncertainty against the truth"): one sigma of
-# 3 % covers each of them within two
-SYSTEMATIC = 0.03
 
 
-def measure(plane: RoadPlane | None, frames: tuple[int, int], height_m: float, *,
+def measure(plane: RoadPlane | None, frames: tuple[int, int], height_m: float, *, bias: float,
             offset: int = 0, why: str = "", min_points: int = 12) -> ScaleCue:
     """The cue over kept frames ``frames`` (``offset``: the reconstruction's frame of kept frame
     0); ``plane`` None: no road plane was found (``why``)."""
@@ -34,5 +30,5 @@ def measure(plane: RoadPlane | None, frames: tuple[int, int], height_m: float, *
         return ScaleCue(NAME, frames, None,
                         why=f"fewer than {min_points} road points lie under the cameras there")
     height, error, count = found
-    return ScaleCue(NAME, frames, height_m / height, math.hypot(error, SYSTEMATIC),
-                    figures={"points": count, "standard_error": error, "systematic": SYSTEMATIC})
+    return ScaleCue(NAME, frames, height_m / height, math.hypot(error, bias),
+                    figures={"points": count, "standard_error": error, "systematic": bias})

@@ -59,7 +59,7 @@ from paradrive.errors import ConfigError, ParaDriveError, SceneError
 from paradrive.ingest.common import fps_from, image_written, save_points
 from paradrive.ingest.frameclock import Clock, frames_at, read_clock
 from paradrive.ingest import scale_roadmotion, scale_roadpoints
-from paradrive.ingest.focal import (FOV_RANGE_DEG, MIN_RISE, FocalEstimate, estimate_focal,
+from paradrive.ingest.focal import (FOV_RANGE_DEG, FocalEstimate, estimate_focal,
                                    focal_of_fov)
 from paradrive.ingest.roadmotion import RoadMotion, road_motion_height
 from paradrive.ingest.scalecue import (CombinedScale, ScaleError, combine, format_range, profile,
@@ -86,15 +86,9 @@ FRAME_SUFFIXES = (".jpg", ".jpeg", ".png")
 INTRINSICS = ("fx", "fy", "cx", "cy")
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")
 # the scale is measured per range of the kept frames, by each cue on its own: the halves of the
-# run, each at least this many frames (the road's motion pairs 40 frames over the run, so a
-# half of a short clip still holds the 5 pairs it needs); a half's scale against the other's
+# run, each at least ingest.video_scale_range_frames long; a half's scale against the other's
 # shows SfM's drift along the video
 SCALE_RANGES = 2
-SCALE_RANGE_FRAMES = 16
-# without intrinsics the focal length is searched on at most this many of the SfM frames,
-# evenly spaced (about 17 mappings of them: 70 s for 26 frames of a real KITTI bend on one
-# core), before the whole clip is mapped with it held fixed
-FOCAL_FRAMES = 40
 # a speed or GPS track is taken at its word: a speedometer or a phone's GPS is good to about 1 %
 TRACK_UNCERTAINTY = 0.01
 
@@ -369,7 +363,8 @@ def sample(path: Path, opts: VideoOptions, params: IngestParams, *, scene_id: st
         return _folder(path, opts, params, scene_id=scene_id)
     header = _probe(path, scene_id=scene_id)
     _, _, width, height = header
-    clock = read_clock(path, header, scene_id=scene_id, detect=repeats)
+    clock = read_clock(path, header, scene_id=scene_id, detect=repeats,
+                       repeat_ratio=params.video_repeat_ratio)
     rate = clock.fps   # of the frames that remain
     fps = opts.fps if opts.fps is not None else min(rate, params.video_max_fps)
     uniform = not clock.repeated and not clock.variable_rate
@@ -381,6 +376,13 @@ def sample(path: Path, opts: VideoOptions, params: IngestParams, *, scene_id: st
                          fix="give start/end within the video")
     return Footage(path, wanted, clock.times[wanted], width, height, min(fps, rate), rate,
                    clock=clock)
+
+
+def needs_focal_search(uri: SceneURI) -> bool:
+    """Whether ingesting ``uri`` searches the focal length: no calibration, intrinsics or
+    ``fov_deg`` give the camera."""
+    opts = options_of(uri)
+    return opts.calibration is None and opts.fov_deg is None
 
 
 def planned_frames(uri: SceneURI, params: IngestParams) -> tuple[int, int, int] | None:
@@ -664,7 +666,7 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
             focal = _focal(sfm_in, work / "focal", params, scene_id=scene_id, path=path)
             if (not focal.observable and not track_path(path).is_file()
                     and _focal_uncertainty(focal) > params.video_max_scale_uncertainty):
-                raise SceneError(_unmeasured_focal(focal), scene_id=scene_id, path=path,
+                raise SceneError(_unmeasured_focal(focal, params.video_focal_min_rise), scene_id=scene_id, path=path,
                                  fix="give fov_deg= (the horizontal field of view) or "
                                      "fx=&fy=&cx=&cy=, or a speed or GPS track as <stem>.csv")
             sfm_in.intrinsics = focal.intrinsics(*sfm_in.size)
@@ -681,7 +683,8 @@ def _focal(sfm_in: SfmInput, work: Path, params: IngestParams, *, scene_id: str,
     """The focal length of an uncalibrated camera from its SfM frames (:mod:`paradrive.ingest.focal`)."""
     try:
         return estimate_focal(sfm_in.folder, sfm_in.names, work, sfm_in.size,
-                              max_frames=FOCAL_FRAMES)
+                              max_frames=params.video_focal_frames,
+                              min_rise=params.video_focal_min_rise)
     except MemoryError as exc:
         raise _out_of_memory(path, scene_id, "searching the focal length") from exc
     except SfmError as exc:
@@ -691,13 +694,13 @@ def _focal(sfm_in: SfmInput, work: Path, params: IngestParams, *, scene_id: str,
                          ) from exc
 
 
-def _unmeasured_focal(focal: FocalEstimate) -> str:
+def _unmeasured_focal(focal: FocalEstimate, min_rise: float) -> str:
     """Why the frames gave no focal length, in one line, with the search's figures."""
     errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
                        if math.isfinite(t.error))
     return (f"the focal length could not be measured from the frames: the drive turns too "
             f"little to show it (mean reprojection error over {focal.frames} frames: {errors}; "
-            f"no single minimum that a focal one step away raises by {MIN_RISE:.0%}), so the "
+            f"no single minimum that a focal one step away raises by {min_rise:.0%}), so the "
             f"metric scale would be uncertain by {_focal_uncertainty(focal):.0%}")
 
 
@@ -741,10 +744,11 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
     start = time.perf_counter()
     motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height, ego=ego)
     seconds = time.perf_counter() - start
-    ranges = split_ranges(run.stop - run.start, SCALE_RANGE_FRAMES, SCALE_RANGES)
+    ranges = split_ranges(run.stop - run.start, params.video_scale_range_frames, SCALE_RANGES)
     cues = [cue for frames in ranges for cue in (
         scale_roadmotion.measure(motion, frames, opts.height_m),
-        scale_roadpoints.measure(plane, frames, opts.height_m, offset=run.start))]
+        scale_roadpoints.measure(plane, frames, opts.height_m, offset=run.start,
+                                 bias=params.video_road_points_bias))]
     common = {} if focal is None else {"focal": _focal_uncertainty(focal)}
     steps = np.r_[0.0, np.linalg.norm(np.diff(rec.c2w[run][:, :3, 3], axis=0), axis=1)]
     lengths = [float(steps[a + 1:b + 1].sum()) + 1e-12 for a, b in ranges]

@@ -212,6 +212,13 @@ def sfm_work(frames: int, pixels: float, model: dict) -> float:
     return frames * (pixels / model["reference_pixels"]) ** model["exponent"] if frames else 0.0
 
 
+def focal_work(frames: int, pixels: float, model: dict) -> float:
+    """The focal search of a video nobody calibrated, on ``frames`` frames of ``pixels`` pixels,
+    in SfM frames of the reference size (``rates.yaml``: ``compute.sfm.focal_search_frames`` a
+    frame searched)."""
+    return model["focal_search_frames"] * sfm_work(frames, pixels, model)
+
+
 def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, rates_doc: dict) -> Shape:
     """The scene's frames and cameras: from its scene.json when ingested, else its URI (a video
     from its file's header where it can be read)."""
@@ -249,15 +256,16 @@ def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, rates_doc:
 def _video_shape(parsed, params, typical: dict, sfm_model: dict) -> Shape:
     """A video not yet ingested: its frames and size from its header (a typical dashcam's where
     the file is not there to read); SfM runs on them downscaled to ``ingest.video_sfm_width``."""
-    from paradrive.ingest.video import planned_frames, sfm_size
+    from paradrive.ingest.video import needs_focal_search, planned_frames, sfm_size
 
     found = planned_frames(parsed, params)
     frames, width, height = found or (min(typical["frames"], params.max_frames or typical["frames"]),
                                       typical["width"], typical["height"])
     w, h = sfm_size(width, height, params.video_sfm_width)
+    searched = min(frames, params.video_focal_frames) if needs_focal_search(parsed) else 0
     return Shape(frames, {name: (width, height) for name in typical["cameras"]},
                  "video header" if found else "typical video log", sfm_frames=frames,
-                 sfm_work=sfm_work(frames, w * h, sfm_model))
+                 sfm_work=sfm_work(frames, w * h, sfm_model) + focal_work(searched, w * h, sfm_model))
 
 
 def _longitudinal(config: ResolvedConfig) -> bool:
@@ -277,7 +285,9 @@ def _ingested_shape(layout: SceneLayout, fit_params: dict | None, sfm_model: dic
         size = video.get("sfm") or {}
         pixels = size.get("width", 0) * size.get("height", 0) or sum(w * h for w, h in cams.values())
         shape.sfm_frames = int(video.get("sampled", len(doc["frames"])))
-        shape.sfm_work = sfm_work(shape.sfm_frames, pixels, sfm_model)
+        searched = int(((video.get("intrinsics") or {}).get("focal_search") or {}).get("frames", 0))
+        # its seconds hold the focal search's too (sfm.focal_seconds): so does its work
+        shape.sfm_work = sfm_work(shape.sfm_frames, pixels, sfm_model) + focal_work(searched, pixels, sfm_model)
         shape.sfm_seconds = float(size.get("seconds", video.get("sfm_seconds", 0.0)))
     marker = read_marker(layout.root, "fit")
     if marker and layout.fit_json.is_file() and fit_params in (None, marker.params):

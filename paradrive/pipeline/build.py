@@ -22,6 +22,7 @@ from collections.abc import Callable, Iterator
 from paradrive import splits
 from paradrive.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE,
                               ConfigError, ParaDriveError, StageNotImplemented)
+from paradrive.io import stop_point
 from paradrive.pipeline.executors import Executor, LocalExecutor, RunOptions, SceneTask
 from paradrive.pipeline.locks import DEFAULT_LOCK_TIMEOUT_S, HeldLock, LockOptions, scene_lock
 from paradrive.pipeline.progress import ProgressSink
@@ -385,9 +386,15 @@ def run_build(config: ResolvedConfig, scene_uris: list[str], data_dir: str | Pat
     executor = executor or LocalExecutor()
     report = BuildReport(excluded=list(selection.excluded))
     if scene_stages:
+        def landed(result: StageResult) -> None:
+            if on_result:
+                on_result(result)
+            # a test stops the build here, a stage's result in and the next not yet dispatched
+            stop_point(f"landed:{result.stage}:{result.scene_id}")
+
         tasks = [SceneTask(uri, tuple(scene_stages)) for uri in uris]
         report.results.extend(executor.run(config, tasks, data_dir, RunOptions(
-            force=force, on_start=on_start, on_result=on_result, locks=LockOptions(build, lock_timeout),
+            force=force, on_start=on_start, on_result=landed, locks=LockOptions(build, lock_timeout),
             on_progress=on_progress, verify_outputs=verify_outputs)))
     for stage in build_stages:
         if on_start:
