@@ -26,10 +26,10 @@ SMOKE_SCENES = ("synthetic:demo?seed=7", "synthetic:demo?seed=11")
 T = TypeVar("T")
 
 
-def _build(root: Path, uris, stages=None, profile="smoke", build="smoke"):
+def _build(root: Path, uris, stages=None, profile="smoke", build="smoke", overrides=None):
     from paradrive.pipeline import StageRegistry, run_build
 
-    config = StageRegistry().resolve(profile)
+    config = StageRegistry().resolve(profile, overrides)
     report = run_build(config, list(uris), root / "data", stages=stages,
                        manifests_dir=root / "manifests", build=build)
     failures = [f"{r.scene_id}/{r.stage}: {r.error}" for r in report.failures()]
@@ -110,10 +110,12 @@ FREEWAY_URI = f"video:{FREEWAY_VIDEO}?calib=calibration.json&height_m={FREEWAY_H
 def freeway_build(tmp_path_factory):
     """The real freeway clip (160 frames of 1280x720, its calibration beside it) through every
     stage with the smoke profile, once per session (the slowest fixture: every xdist worker
-    shares it): its ingest is the default one."""
+    shares it): its ingest is the default one; the fit sees the frames at the smoke renders'
+    160 pixels across (fit.downscale 8, not the smoke profile's 2: 46 s of fit less)."""
     if not FREEWAY_VIDEO.is_file():
         pytest.skip(f"the real freeway clip is not here ({FREEWAY}): a clone without ../shared/realdata")
-    built = built_once(tmp_path_factory, "freeway", lambda root: _build(root, [FREEWAY_URI]))
+    built = built_once(tmp_path_factory, "freeway", lambda root: _build(root, [FREEWAY_URI],
+                                                                   overrides={"fit": {"downscale": 8}}))
     yield from read_only(built["root"], built)
 
 
