@@ -1,7 +1,9 @@
 """Masks: the ego mask (what moves with the camera: a hood, still overlays anywhere) is found,
 the moving masks of a real clip cover its cars and not its road, the pairs carry the share of
 their target masked as moving, and manifest.max_dynamic_fraction filters on it at publish. (The
-fit and the render's use of the masks are tested in test_gs_fit.py and test_render.py.)"""
+fit and the render's use of the masks are tested in test_gs_fit.py and test_render.py; the real
+freeway clip's masks in test_video_real.py, beside the clip's other tests: one worker builds
+the clip once for them all.)"""
 
 from __future__ import annotations
 
@@ -18,9 +20,7 @@ from paradrive.pairs import read_pairs
 from paradrive.scene import read_image
 from paradrive.stages.manifest import build_manifest
 from paradrive.synthetic import SyntheticStreet
-from conftest import FREEWAY, stage_params
-
-LABELS = Path(__file__).resolve().parent / "udacity_freeway_cars.json"
+from conftest import stage_params
 
 
 @pytest.fixture(scope="module")
@@ -123,35 +123,3 @@ def test_max_dynamic_fraction_leaves_out_pairs_and_index_json_says_which(smoke_b
         (r["scene_id"], r["clip"]) for r in everything if r["dynamic_fraction"] > 0.05}
     doc = json.loads((tmp_path / "b" / "index.json").read_text())
     assert doc["params"]["max_dynamic_fraction"] == 0.05
-
-
-@pytest.fixture(scope="module")
-def freeway_scene(freeway_build) -> Path:
-    """The real freeway clip's scene in the session's build of it (its default ingest: every
-    frame at 1280x720, undistorted by its calibration)."""
-    (scene_dir,) = (freeway_build["data_dir"] / "scenes").iterdir()
-    return scene_dir
-
-
-@pytest.mark.slow
-def test_the_real_clip_s_cars_are_masked_and_its_road_is_not(freeway_scene):
-    """Hand-labelled boxes of the two cars ahead on eleven frames (tests/udacity_freeway_cars.json)
-    against the moving masks of the real freeway clip; docs/scene-layout.md ("Masks") has the
-    figures."""
-    from paradrive.ingest.videomasks import labelled_scores
-
-    scores = labelled_scores(freeway_scene, LABELS, FREEWAY / "calibration.json")
-    assert len(scores.frames) == 11
-    assert scores.coverage >= 0.9 and min(scores.named.values()) >= 0.9, scores.named
-    assert scores.road_masked <= 0.05 and scores.worst_road_masked <= 0.05, scores.frames
-
-
-@pytest.mark.slow
-def test_the_real_clip_s_hood_is_its_ego_mask_and_nothing_above_it(freeway_scene):
-    scene = json.loads((freeway_scene / "scene.json").read_text())
-    ego = read_image(SceneLayout(freeway_scene).ego_mask("front"))[..., 0] > 127
-    h = ego.shape[0]
-    assert ego[int(0.97 * h):].all()   # the hood, across the whole width
-    assert not ego[:int(0.85 * h)].any()   # no overlay found in the scenery or on the cars
-    masks = scene["video"]["masks"]
-    assert masks["ego_share"] == pytest.approx(ego.mean(), abs=1e-4) and masks["ego_share"] < 0.1

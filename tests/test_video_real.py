@@ -2,7 +2,8 @@
 California freeway at 1280x720, a lens with k1 = -0.26, the hood, cars ahead, tree shadows):
 every frame registers, the distance driven agrees with the clip's own dash ruler within 3 %
 and within two of the scale's reported uncertainties, the frames are stored undistorted, and
-a smoke build publishes pairs. Skipped where the clip is not there."""
+a smoke build publishes pairs; its moving masks cover its cars and not its road, its ego mask
+is its hood. Skipped where the clip is not there."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ import numpy as np
 import pytest
 
 from conftest import FREEWAY, FREEWAY_VIDEO
+from paradrive.contracts.layout import SceneLayout
+from paradrive.scene import read_image
 
 pytestmark = pytest.mark.slow
 
@@ -20,6 +23,7 @@ pytestmark = pytest.mark.slow
 # when the lane dashes' near ends pass fixed image rows (frame times), in runs of whole
 # Caltrans periods (14.63 m); docs/scene-layout.md, "A real freeway clip"
 RULER = json.loads((Path(__file__).parent / "udacity_freeway_ruler.json").read_text())
+LABELS = Path(__file__).resolve().parent / "udacity_freeway_cars.json"
 
 
 def scene_of(build) -> tuple[dict, Path]:
@@ -109,3 +113,35 @@ def test_a_smoke_build_of_the_clip_publishes_pairs(freeway_build):
     assert index["totals"]["scenes"] == 1 and index["totals"]["rows"] > 0
     (scene,) = index["scenes"]
     assert scene["dataset"] == "video" and scene["rows"] == index["totals"]["rows"]
+
+
+# -- the masks ---------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def freeway_scene(freeway_build) -> Path:
+    """The real freeway clip's scene in the session's build of it (its default ingest: every
+    frame at 1280x720, undistorted by its calibration)."""
+    (scene_dir,) = (freeway_build["data_dir"] / "scenes").iterdir()
+    return scene_dir
+
+
+def test_the_real_clip_s_cars_are_masked_and_its_road_is_not(freeway_scene):
+    """Hand-labelled boxes of the two cars ahead on eleven frames (tests/udacity_freeway_cars.json)
+    against the moving masks of the real freeway clip; docs/scene-layout.md ("Masks") has the
+    figures."""
+    from paradrive.ingest.videomasks import labelled_scores
+
+    scores = labelled_scores(freeway_scene, LABELS, FREEWAY / "calibration.json")
+    assert len(scores.frames) == 11
+    assert scores.coverage >= 0.9 and min(scores.named.values()) >= 0.9, scores.named
+    assert scores.road_masked <= 0.05 and scores.worst_road_masked <= 0.05, scores.frames
+
+
+def test_the_real_clip_s_hood_is_its_ego_mask_and_nothing_above_it(freeway_scene):
+    scene = json.loads((freeway_scene / "scene.json").read_text())
+    ego = read_image(SceneLayout(freeway_scene).ego_mask("front"))[..., 0] > 127
+    h = ego.shape[0]
+    assert ego[int(0.97 * h):].all()   # the hood, across the whole width
+    assert not ego[:int(0.85 * h)].any()   # no overlay found in the scenery or on the cars
+    masks = scene["video"]["masks"]
+    assert masks["ego_share"] == pytest.approx(ego.mean(), abs=1e-4) and masks["ego_share"] < 0.1
