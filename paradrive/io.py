@@ -324,11 +324,16 @@ def remove_stale_temporaries(directory: str | os.PathLike) -> int:
     found = [*directory.parent.glob(f".{glob.escape(directory.name)}{TEMPORARY_MARK}*"),
              *directory.rglob(pattern)]
     for p in found:
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
+        remove_entry(p)
     return len(found)
+
+
+def remove_entry(path: Path) -> None:
+    """Delete ``path``: a folder with what it holds, a file or a link (never what a link leads to)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def load_tensors(path: str | os.PathLike, map_location: Any = "cpu") -> Any:

@@ -41,11 +41,11 @@ import pyarrow.parquet as pq
 import paradrive
 from paradrive import geometry
 from paradrive.errors import ParaDriveError, SceneError
-from paradrive.io import (PathEscapeError, is_temporary, path_inside, sha256_file, stop_point,
+from paradrive.io import (PathEscapeError, is_temporary, path_inside, remove_entry, sha256_file, stop_point,
                           temporary_name, write_json)
 from paradrive.pairs import (COLUMNS, INDEX_FORMAT, SCHEMA, SCHEMA_VERSION, make_pair_id, media_uri,
                              read_index)
-from paradrive.contracts.layout import (BUILD_MARKER, INDEX_JSON, MARKER_DIR, SHARD_PATTERN, VERSION_PREFIX,
+from paradrive.contracts.layout import (BUILD_MARKER, INDEX_JSON, SHARD_PATTERN, VERSION_PREFIX,
                                         BuildLayout, SceneLayout, is_runner_file, is_version,
                                         version_name, version_number)
 from paradrive.contracts.records import ClipRecord, ClipsRecord, IndexRecord
@@ -53,9 +53,6 @@ from paradrive.streams import stream_transform
 
 if TYPE_CHECKING:
     from paradrive.contracts.params import ManifestParams
-
-# held by the one run publishing a build (``<build>/.paradrive/publish.lock``, :func:`publishing`)
-PUBLISH_LOCK = "publish.lock"
 
 # --------------------------------------------------------------------------- clips.json
 
@@ -415,9 +412,8 @@ def publishing(build_dir: str | Path, build: str, log=None) -> Iterator[BuildLay
     The temporaries in the folder are then a killed publisher's, never a live one's, and are
     removed."""
     layout = claim_build_folder(build_dir, build)
-    root = layout.root
-    (root / MARKER_DIR).mkdir(parents=True, exist_ok=True)
-    fd = os.open(root / MARKER_DIR / PUBLISH_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    layout.publish_lock.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(layout.publish_lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -425,12 +421,9 @@ def publishing(build_dir: str | Path, build: str, log=None) -> Iterator[BuildLay
             if log is not None:
                 log.warning("manifest: build %s is being published by another run; waiting for it", build)
             fcntl.flock(fd, fcntl.LOCK_EX)
-        for stale in root.iterdir():
+        for stale in layout.root.iterdir():
             if is_temporary(stale.name):
-                if stale.is_dir() and not stale.is_symlink():
-                    shutil.rmtree(stale, ignore_errors=True)
-                else:
-                    stale.unlink(missing_ok=True)
+                remove_entry(stale)
         yield layout
     finally:
         os.close(fd)   # drops the lock

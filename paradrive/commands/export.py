@@ -49,14 +49,13 @@ def _remove_new(out: Path, before: set[Path] | None) -> None:
     (``before`` None), else the entries not in ``before``, so no part of a log is left."""
     import shutil
 
+    from paradrive.io import remove_entry
+
     if before is None:
         shutil.rmtree(out, ignore_errors=True)
         return
     for path in sorted(set(out.rglob("*")) - before, key=lambda p: len(p.parts), reverse=True):
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            path.unlink(missing_ok=True)
+        remove_entry(path)
 
 
 def register(app: typer.Typer) -> None:

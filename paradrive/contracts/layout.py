@@ -250,6 +250,11 @@ class BuildLayout:
         """Written when the builder creates the folder; without it nothing here is replaced."""
         return self.root / BUILD_MARKER
 
+    @property
+    def publish_lock(self) -> Path:
+        """Held (``flock``) by the one run publishing the build (:func:`paradrive.manifest.publishing`)."""
+        return self.root / MARKER_DIR / "publish.lock"
+
     def version(self, name: str) -> Path:
         """A version folder; ``name`` must be one :func:`version_name` makes."""
         if not is_version(name):
