@@ -67,12 +67,14 @@ def test_every_frame_registers_in_metres_against_the_truth(video_scene):
     # the goals on the synthetic street: the scale's error within two of its stated
     # uncertainties, which pass the ingest's gate; and with only the first frame aligned every
     # position within the scale's error plus 1 % of the path (the path's shape holds, its length
-    # is the scale's). Over 17 encodes of this clip (x264 threads and crf, a pixel in a thousand
-    # moved by one level, as another CPU's rendering might) the error ranged -3.3 to +2.7 %, at
-    # most 1.95 of its uncertainties (this encode: -2.3 %, 1.2 %); the 3 % goal is the real
-    # clip's, against its ruler (test_video_real.py). The road points alone give 4-5 % here.
+    # is the scale's). The road's motion moves by a few per cent from one encode of this clip
+    # to the next, which its codec part states, and the road points (4-5 % long here) then
+    # weigh about as much: four encodes (CRF 16, 18, 20 and a 20 fps resample) came out +2.1 to
+    # +6.0 %, at most 1.75 of their uncertainties (docs/scene-layout.md); the 3 % goal is the
+    # real clip's, against its ruler (test_video_real.py).
     scale = summary["video"]["scale"]
-    assert scale["height_from"] == "road motion" and scale["road_motion"]["pairs"] >= 5
+    assert scale["road_motion"]["pairs"] >= 5 and scale["road_motion"]["codec"] > 0
+    assert scale["weights"]["road motion"] > 0.2 and scale["weights"]["road points"] > 0.2
     c2w = scene.c2w("front")
     error = path_length(c2w) / path_length(truth) - 1
     assert scale["uncertainty"] <= params_of().video_max_scale_uncertainty
@@ -415,15 +417,79 @@ def test_running_out_of_memory_is_reported_as_memory_not_a_corrupt_file(tmp_path
         assert "address-space limit" in out and "resources.memory_gb" in out and "corrupt" not in out
 
 
-def test_a_straight_drive_without_intrinsics_asks_for_the_field_of_view(tmp_path):
+def test_a_straight_drive_without_intrinsics_builds_with_lengths_along_the_road_uncertain(tmp_path, caplog):
     """The straight street exported without intrinsics: every focal tried maps it about as well
-    (a straight drive leaves the focal free), so the scene is refused before the clip is mapped,
-    in one line that names the focal length and what would fix it."""
+    (a straight drive leaves the focal free), so the clip is mapped with the focal at the middle
+    of the range searched. Every frame registers; the lengths along the road state the focal's
+    93 % (half the range searched) and hold the truth within it; what the lateral shifts rest
+    on stays within the gate; a warning names the focal and what would fix it."""
     bare = export_scene(STREET, "video", tmp_path / "bare", params_of(), with_intrinsics=False)
+    with caplog.at_level("WARNING", logger="paradrive.ingest.video"):
+        ingest(bare, tmp_path / "scene", params_of())
+    video = json.loads((tmp_path / "scene" / "scene.json").read_text())["video"]
+    search, scale = video["intrinsics"]["focal_search"], video["scale"]
+    assert not search["observable"] and video["intrinsics"]["given_by"].startswith("focal search: not measured")
+    low, high = (0.5 * video["sfm"]["width"] / np.tan(np.radians(fov) / 2) for fov in (120.0, 30.0))
+    assert search["held_px"] == pytest.approx(np.sqrt(low * high))
+    assert video["sampled"] == 24 and video["registered"] == "0-23" and video["kept"] == [0, 23]
+    assert search["scale_uncertainty"] == pytest.approx(np.log(high / low) / 2)
+    assert scale["parts"]["focal"] == search["scale_uncertainty"]
+    assert scale["uncertainty"] >= scale["parts"]["focal"] > 0.9
+    assert scale["across_uncertainty"] <= params_of().video_max_scale_uncertainty
+    error = path_length(load_scene(tmp_path / "scene").c2w("front")) / path_length(truth_c2w()) - 1
+    assert abs(error) <= 2 * scale["uncertainty"], error
+    warned = " ".join(r.getMessage() for r in caplog.records)
+    assert "the focal length could not be measured from the frames" in warned, warned
+    assert "lengths along the road are uncertain by 93%" in warned and "fov_deg=" in warned
+
+
+def test_a_wrong_focal_stretches_only_the_lengths_along_the_road(tmp_path):
+    """The straight street mapped with its focal held 1.32 times the truth (fov_deg=56 for
+    70): every triangulated depth comes out 1.32 times the true depth at its pixel, so every
+    lateral and vertical offset (depth times the ray's slope, 1 / focal) keeps its true size
+    within 3 %, and the path is 1.32 times as long. This is why the scale's uncertainty across
+    the road leaves the focal's out."""
+    bare = export_scene(STREET, "video", tmp_path / "bare", params_of(), with_intrinsics=False)
+    parsed = parse_uri(bare)
+    ingest(f"video:{parsed.path}?fov_deg=56&height_m={parsed.query['height_m']}", tmp_path / "scene",
+           params_of({"lidar": True}))
+    scene = load_scene(tmp_path / "scene")
+    street = SyntheticStreet(name="demo", seed=7, frames=24, width=320, height=192)
+    camera = scene.cameras["front"]
+    stretch = camera.fx / street.cameras["front"].fx
+    assert stretch == pytest.approx(1 / np.tan(np.radians(28)) * np.tan(np.radians(35)), rel=1e-6)
+    K, c2w = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]]), scene.c2w("front")
+    depth_ratios = []
+    for k in (0, 8, 16):
+        points = np.load(tmp_path / "scene" / "lidar" / f"{k:06d}.npy")
+        local = (geometry.invert(c2w[k]) @ np.c_[points, np.ones(len(points))].T).T[:, :3]
+        local = local[local[:, 2] > 0.5]
+        uv = (K @ local.T).T
+        u, v = (uv[:, :2] / uv[:, 2:]).T
+        inside = (u >= 0) & (u < 320) & (v >= 0) & (v < 192)
+        true_depth = street.render_frame("front", k)["depth"][v[inside].astype(int), u[inside].astype(int)]
+        seen = np.isfinite(true_depth)
+        assert seen.sum() > 50
+        depth_ratios.append(float(np.median(local[inside][seen, 2] / true_depth[seen])))
+    assert np.allclose(depth_ratios, stretch, rtol=0.03), (depth_ratios, stretch)
+    lateral = np.array(depth_ratios) / stretch
+    assert np.all(np.abs(lateral - 1) < 0.03), lateral
+    assert path_length(c2w) / path_length(truth_c2w()) == pytest.approx(stretch, rel=0.04)
+
+
+def test_a_bend_whose_focal_the_frames_do_not_show_is_refused(tmp_path):
+    """The street's 100 m-radius bend without intrinsics: its focal search is flat too, but a
+    guessed focal does not only stretch a turning drive (mapped 2.8 % off, its lateral offsets
+    came out 0.4 times the truth), so the scene fails once its turn is seen, naming the turn,
+    the limit and the fixes."""
+    bend = "synthetic:demo?seed=7&frames=60&width=320&height=192&curvature=0.01"
+    bare = export_scene(bend, "video", tmp_path / "bare", params_of(), with_intrinsics=False)
     with pytest.raises(SceneError) as info:
         ingest(bare, tmp_path / "scene", params_of())
     err = info.value
     assert "the focal length could not be measured from the frames" in str(err), str(err)
-    assert "the metric scale would be uncertain by 93%" in str(err)
-    assert "fov_deg=" in err.fix and "fx=&fy=&cx=&cy=" in err.fix
+    assert "ingest.video_unmeasured_focal_max_turn_deg = 5" in str(err)
+    turn = float(str(err).split("the camera turns ")[1].split(" deg")[0])
+    assert turn > 5
+    assert "fov_deg=" in err.fix and "calib=" in err.fix
     assert not (tmp_path / "scene").exists()

@@ -43,7 +43,9 @@ class IngestParams(StageParams):
     video_road_points_bias: float
     video_focal_frames: int
     video_focal_min_rise: float
+    video_unmeasured_focal_max_turn_deg: float
     video_repeat_ratio: float
+    video_codec_crf: int | None
 
 
 

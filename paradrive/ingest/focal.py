@@ -20,7 +20,16 @@ basin (falling to a minimum inside the range searched, rising after it) and a fo
 step from the best costs at least ``min_rise`` of the error: a gentle curve, like a straight
 drive, gives a curve that is flat or jumps between reconstructions, and the estimate is then
 only a guess (:attr:`FocalEstimate.observable` False: the caller counts the whole range
-searched as the focal's uncertainty and asks for ``fov_deg=``).
+searched as the focal's uncertainty, and the clip is mapped with the focal held at the range's
+middle in ``log f``, :attr:`FocalEstimate.held`).
+
+What a wrong focal does (measured on the synthetic street, whose depth is known): mapped with
+the focal held ``k`` times the truth, every depth comes out ``k`` times the truth while the
+pixels' rays are ``1/k`` as wide, so every lateral and vertical offset keeps its true size and
+only the lengths along the line of sight are stretched. The camera's height therefore scales
+the reconstruction correctly across the road whatever the focal, and an error in the focal is
+the same error in the lengths along it (the path, the speed): the scale's uncertainty along the
+road includes the focal's, the one across the road does not (:mod:`paradrive.ingest.video`).
 
 Its uncertainty (relative, one sigma) is the largest of three figures: the standard error of
 the parabola's vertex given the scatter of the trials about it; half the difference between
@@ -74,8 +83,9 @@ class FocalTrial:
 
 @dataclass(frozen=True)
 class FocalEstimate:
-    """The focal length found (pixels at the size searched at), its relative uncertainty (one
-    sigma), whether the frames constrain it at all, the halves' own estimates, every trial."""
+    """The focal length found (pixels at the size searched at, ``width`` pixels wide), its
+    relative uncertainty (one sigma), whether the frames constrain it at all, the halves' own
+    estimates, every trial."""
 
     focal: float
     uncertainty: float
@@ -85,15 +95,43 @@ class FocalEstimate:
     trials: tuple[FocalTrial, ...]
     frames: int
     seconds: float
+    width: int
+
+    @property
+    def held(self) -> float:
+        """The focal the clip is mapped with: the estimate where the frames constrain it, else
+        the middle of the range searched (in ``log f``: any focal searched is as likely)."""
+        return self.focal if self.observable else self.prior
+
+    @property
+    def prior(self) -> float:
+        """The middle of the range searched, in ``log f``, at the size searched at."""
+        return math.sqrt(self.prior_range[0] * self.prior_range[1])
+
+    @property
+    def prior_range(self) -> tuple[float, float]:
+        """The smallest and the largest focal searched (pixels at the size searched at)."""
+        low, high = (focal_of_fov(self.width, fov) for fov in FOV_RANGE_DEG[::-1])
+        return low, high
+
+    @property
+    def scale_uncertainty(self) -> float:
+        """The focal's relative uncertainty as that of lengths along the road: its own where
+        the frames constrain it, else half the searched range in ``log f``."""
+        if self.observable:
+            return self.uncertainty
+        low, high = self.prior_range
+        return math.log(high / low) / 2
 
     def intrinsics(self, width: int, height: int) -> Intrinsics:
-        """The pinhole at ``width`` x ``height`` (the size searched at), principal point at the
-        centre (pixel centres at +0.5)."""
-        return Intrinsics(self.focal, self.focal, 0.5 * width, 0.5 * height)
+        """The pinhole at ``width`` x ``height`` (the size searched at) with the :attr:`held`
+        focal, principal point at the centre (pixel centres at +0.5)."""
+        return Intrinsics(self.held, self.held, 0.5 * width, 0.5 * height)
 
     def doc(self) -> dict:
         """What ``scene.json`` records under ``video.intrinsics.focal_search``."""
-        return {"focal_px": self.focal, "uncertainty": self.uncertainty,
+        return {"focal_px": self.focal, "held_px": self.held, "uncertainty": self.uncertainty,
+                "scale_uncertainty": self.scale_uncertainty,
                 "observable": self.observable, "rise": self.rise,
                 "halves_px": list(self.halves), "frames": self.frames, "seconds": self.seconds,
                 "trials": [[t.focal, t.registered, t.error, t.points] for t in self.trials]}
@@ -143,7 +181,7 @@ def estimate_focal(image_dir: Path, names: list[str], work_dir: Path, size: tupl
     return FocalEstimate(focal=focal, uncertainty=float(max(spread, disagreement, floor)),
                          observable=bool(rise >= min_rise and basin), rise=rise,
                          halves=(halves[0], halves[1]), trials=tuple(trials), frames=len(used),
-                         seconds=time.perf_counter() - start)
+                         seconds=time.perf_counter() - start, width=size[0])
 
 
 def _matched(image_dir: Path, names: list[str], work_dir: Path, size: tuple[int, int],

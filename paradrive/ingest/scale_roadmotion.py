@@ -2,9 +2,10 @@
 (:mod:`paradrive.ingest.roadmotion`), against the camera's known height above the road.
 
 Per frame range, the pairs that start there give the height (their median) and its relative
-uncertainty: the median's scatter, the drift along the range and the band between the near
-and the far road (:attr:`~paradrive.ingest.roadmotion.RoadMotion.uncertainty`). A range with too
-few pairs that align is not measured by this cue.
+uncertainty: the median's scatter, the drift along the range, the band between the near and
+the far road, and the codec (how far one more encode of the frames moves it)
+(:attr:`~paradrive.ingest.roadmotion.RoadMotion.uncertainty`). A range with too few pairs that
+align is not measured by this cue.
 """
 
 from __future__ import annotations
@@ -27,4 +28,4 @@ def measure(motion: RoadMotion | None, frames: tuple[int, int], height_m: float,
                         why=f"fewer than {min_pairs} frame pairs aligned on the road there")
     return ScaleCue(NAME, frames, height_m / part.height, part.uncertainty,
                     figures={"pairs": len(part.pairs), "scatter": part.scatter,
-                             "drift": part.drift, "band": part.band})
+                             "drift": part.drift, "band": part.band, "codec": part.codec})

@@ -109,6 +109,10 @@ class CombinedScale:
                     mine += w if c.name == cue else 0.0
         return mine / total if total else 0.0
 
+    def without(self, *names: str) -> float:
+        """The uncertainty without the common parts ``names`` (in quadrature, as combined)."""
+        return _total({k: v for k, v in self.parts.items() if k not in names})
+
     def doc(self) -> dict[str, Any]:
         return {"parts": dict(self.parts), "ranges": [r.doc() for r in self.ranges]}
 
@@ -191,8 +195,12 @@ def combine(cues: list[ScaleCue], ranges: list[tuple[int, int]], *,
     parts = {"ranges": float(sum(w * r.uncertainty for w, r in zip(weights, filled))),
              "between_ranges": spread}
     parts.update(common or {})
-    total = math.sqrt(sum(v ** 2 for k, v in parts.items() if k != "between_ranges"))
-    return CombinedScale(scale, total, parts, tuple(filled))
+    return CombinedScale(scale, _total(parts), parts, tuple(filled))
+
+
+def _total(parts: dict[str, float]) -> float:
+    """The parts in quadrature, ``between_ranges`` left out (a scale per range takes it out)."""
+    return math.sqrt(sum(v ** 2 for k, v in parts.items() if k != "between_ranges"))
 
 
 def profile(combined: CombinedScale, frames: int) -> np.ndarray:

@@ -21,8 +21,10 @@ range is a usage error, raised before any work):
   principal point): known intrinsics are held fixed and the frames are undistorted with
   :mod:`paradrive.ingest.undistort` (the code the Waymo reader uses); without them the focal
   length is found from the frames (:mod:`paradrive.ingest.focal`: a pinhole held fixed at
-  candidate focals, the reprojection error's minimum on a bend) and reported, and a drive that
-  turns too little to show it is refused, asking for ``fov_deg=``;
+  candidate focals, the reprojection error's minimum on a bend) and reported; a drive that
+  turns too little to show it is mapped with the focal at the middle of the range searched,
+  which keeps lateral offsets at their size and leaves the lengths along the road as uncertain
+  as the focal (``video.scale.uncertainty`` against ``across_uncertainty``, a warning);
 - ``height_m``: the camera's height above the road (default 1.5 m, a car's dashcam);
 - ``start``, ``end``: the time range in seconds;
 - ``truth``: the ``synthetic:`` URI the video was rendered from (``paradrive export video``), so
@@ -44,6 +46,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import json
+import logging
 import math
 import resource
 import shutil
@@ -59,8 +62,7 @@ from paradrive.errors import ConfigError, ParaDriveError, SceneError
 from paradrive.ingest.common import fps_from, image_written, save_points
 from paradrive.ingest.frameclock import Clock, frames_at, read_clock
 from paradrive.ingest import scale_roadmotion, scale_roadpoints
-from paradrive.ingest.focal import (FOV_RANGE_DEG, FocalEstimate, estimate_focal,
-                                   focal_of_fov)
+from paradrive.ingest.focal import FOV_RANGE_DEG, FocalEstimate, estimate_focal
 from paradrive.ingest.roadmotion import RoadMotion, road_motion_height
 from paradrive.ingest.scalecue import (CombinedScale, ScaleError, combine, format_range, profile,
                                        split_ranges)
@@ -74,6 +76,8 @@ from paradrive.uri import SceneURI
 
 if TYPE_CHECKING:
     from paradrive.contracts.params import IngestParams
+
+log = logging.getLogger("paradrive.ingest.video")
 
 CAMERA = "front"
 # nuScenes' CAM_FRONT sits 1.51 m above the road; a car's dashcam behind the windscreen is near it
@@ -91,6 +95,11 @@ DISTORTION = ("k1", "k2", "p1", "p2", "k3")
 SCALE_RANGES = 2
 # a speed or GPS track is taken at its word: a speedometer or a phone's GPS is good to about 1 %
 TRACK_UNCERTAINTY = 0.01
+UNCERTAIN_FIX = ("give a speed or GPS track as <stem>.csv (t,speed_mps or t,lat,lon), a longer "
+                 "clip, or more frames (a higher fps=)")
+# where nobody gave the camera: a wide lens left distorted bends the road out of its plane
+UNCALIBRATED_FIX = ("; the camera's calibration with its lens distortion (calib=FILE.json or "
+                    "fx=…&k1=…) lets the road be measured where a wide lens bends it")
 
 
 @dataclass(frozen=True)
@@ -664,14 +673,20 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
         focal = None
         if sfm_in.intrinsics is None:  # nobody calibrated it: the focal from the frames
             focal = _focal(sfm_in, work / "focal", params, scene_id=scene_id, path=path)
-            if (not focal.observable and not track_path(path).is_file()
-                    and _focal_uncertainty(focal) > params.video_max_scale_uncertainty):
-                raise SceneError(_unmeasured_focal(focal, params.video_focal_min_rise), scene_id=scene_id, path=path,
-                                 fix="give fov_deg= (the horizontal field of view) or "
-                                     "fx=&fy=&cx=&cy=, or a speed or GPS track as <stem>.csv")
+            if not focal.observable:   # mapped at the range's middle: only lengths along suffer
+                log.warning("scene %s (%s): %s", scene_id, path,
+                            _unmeasured_focal(focal, params.video_focal_min_rise))
             sfm_in.intrinsics = focal.intrinsics(*sfm_in.size)
         rec = _reconstruct(sfm_in, work, scene_id=scene_id, path=path)
         first, last = _kept_run(rec, footage.times, scene_id=scene_id, path=path)
+        if focal is not None and not focal.observable:
+            turn = _turn_deg(rec.c2w[first:last + 1])
+            if turn > params.video_unmeasured_focal_max_turn_deg:
+                raise SceneError(_unmeasured_focal_on_a_bend(focal, turn, params),
+                                 scene_id=scene_id, path=path,
+                                 fix="give fov_deg= (the horizontal field of view) or "
+                                     "fx=&fy=&cx=&cy=, or trim start=/end= to a straight stretch"
+                                     + UNCALIBRATED_FIX)
         return _scene(uri, rec, sfm_in, footage, opts, (first, last), out_dir, params, scene_id,
                       focal=focal)
     finally:
@@ -698,10 +713,33 @@ def _unmeasured_focal(focal: FocalEstimate, min_rise: float) -> str:
     """Why the frames gave no focal length, in one line, with the search's figures."""
     errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
                        if math.isfinite(t.error))
+    fov = 2 * math.degrees(math.atan(0.5 * focal.width / focal.held))
     return (f"the focal length could not be measured from the frames: the drive turns too "
             f"little to show it (mean reprojection error over {focal.frames} frames: {errors}; "
-            f"no single minimum that a focal one step away raises by {min_rise:.0%}), so the "
-            f"metric scale would be uncertain by {_focal_uncertainty(focal):.0%}")
+            f"no single minimum that a focal one step away raises by {min_rise:.0%}); mapped "
+            f"with it held at {focal.held:.0f} px (a {fov:.0f} deg field of view, the middle of "
+            f"the {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg searched): lateral shifts keep "
+            f"their size (the camera's height sets it), lengths along the road are uncertain by "
+            f"{focal.scale_uncertainty:.0%}; fov_deg= or fx=&fy=&cx=&cy= would fix that")
+
+
+def _turn_deg(c2w: np.ndarray) -> float:
+    """How far the camera's line of sight turns from the first frame's (degrees, the most)."""
+    ahead = c2w[:, :3, 2]
+    return float(np.degrees(np.arccos(np.clip(ahead @ ahead[0], -1.0, 1.0))).max())
+
+
+def _unmeasured_focal_on_a_bend(focal: FocalEstimate, turn: float, params: IngestParams) -> str:
+    """Why a clip whose focal was not measured cannot be taken as a straight drive."""
+    errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
+                       if math.isfinite(t.error))
+    return (f"the focal length could not be measured from the frames (mean reprojection error "
+            f"over {focal.frames} frames: {errors}; no single minimum that a focal one step away "
+            f"raises by {params.video_focal_min_rise:.0%}), and the camera turns {turn:.1f} deg "
+            f"over the kept frames (more than ingest.video_unmeasured_focal_max_turn_deg = "
+            f"{params.video_unmeasured_focal_max_turn_deg:g}): a focal guessed wrong stretches a "
+            f"straight drive along the road only, but bends a turning one (a wide lens left "
+            f"distorted bends any), so neither its lateral shifts nor its lengths could be trusted")
 
 
 def _reconstruct(sfm_in: SfmInput, work: Path, *, scene_id: str, path: Path) -> Reconstruction:
@@ -742,14 +780,15 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
     scale, where cues contradict each other, or where the uncertainty is above
     ``ingest.video_max_scale_uncertainty``."""
     start = time.perf_counter()
-    motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height, ego=ego)
+    motion = road_motion_height(image, rec.c2w[run], K_image, up, plane.height, ego=ego,
+                                codec_crf=params.video_codec_crf)
     seconds = time.perf_counter() - start
     ranges = split_ranges(run.stop - run.start, params.video_scale_range_frames, SCALE_RANGES)
     cues = [cue for frames in ranges for cue in (
         scale_roadmotion.measure(motion, frames, opts.height_m),
         scale_roadpoints.measure(plane, frames, opts.height_m, offset=run.start,
                                  bias=params.video_road_points_bias))]
-    common = {} if focal is None else {"focal": _focal_uncertainty(focal)}
+    common = {} if focal is None else {"focal": focal.scale_uncertainty}
     steps = np.r_[0.0, np.linalg.norm(np.diff(rec.c2w[run][:, :3, 3], axis=0), axis=1)]
     lengths = [float(steps[a + 1:b + 1].sum()) + 1e-12 for a, b in ranges]
     track = track_path(footage.path)
@@ -760,7 +799,7 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
             raise SceneError(str(exc), scene_id=scene_id, path=footage.path,
                              fix="give a speed or GPS track as <stem>.csv (t,speed_mps or "
                                  "t,lat,lon), or trim start=/end= to where the camera sees the "
-                                 "road") from exc
+                                 "road" + (UNCALIBRATED_FIX if focal is not None else "")) from exc
         combined, failed = None, str(exc)   # the track sets the scale; the cues are recorded
     doc: dict[str, Any] = {"source": "height", "height_m": opts.height_m,
                            "by_road_points": opts.height_m / plane.height}
@@ -785,27 +824,30 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
         doc.update(source=kind, track=str(track), by_track=by_track,
                    height_vs_track=by_height / by_track - 1.0,
                    camera_height_by_track_m=camera_height * by_track,
-                   uncertainty=TRACK_UNCERTAINTY)
+                   uncertainty=TRACK_UNCERTAINTY,
+                   # the track sets lengths along the road: a focal's error is then across it
+                   across_uncertainty=math.hypot(TRACK_UNCERTAINTY, common.get("focal", 0.0)))
         return by_track, camera_height, np.ones(run.stop - run.start), doc
     assert combined is not None   # no track: a failed combination raised above
-    if doc["uncertainty"] > params.video_max_scale_uncertainty:
+    # the focal's error stretches lengths along the road only (paradrive.ingest.focal): what
+    # the lateral shifts rest on is the cues' figure without it
+    doc["across_uncertainty"] = combined.without("focal")
+    if doc["across_uncertainty"] > params.video_max_scale_uncertainty:
         raise SceneError(_uncertain(doc, combined, params), scene_id=scene_id, path=footage.path,
-                         fix=_uncertain_fix(combined))
+                         fix=UNCERTAIN_FIX + (UNCALIBRATED_FIX if focal is not None else ""))
+    if doc["uncertainty"] > params.video_max_scale_uncertainty:
+        log.warning("scene %s (%s): lengths along the road (the path, the speed, longitudinal "
+                    "shifts) are uncertain by %.1f%%, above ingest.video_max_scale_uncertainty = "
+                    "%g, for the focal length's %.1f%%; lateral shifts are uncertain by %.1f%%",
+                    scene_id, footage.path, 100 * doc["uncertainty"],
+                    params.video_max_scale_uncertainty, 100 * combined.parts.get("focal", 0.0),
+                    100 * doc["across_uncertainty"])
     return by_height, camera_height, profile(combined, run.stop - run.start), doc
-
-
-def _focal_uncertainty(focal: FocalEstimate) -> float:
-    """The estimated focal length's relative uncertainty as the scale's: its own where the frames
-    constrain it, else half the searched range in log focal (any focal searched is as likely)."""
-    if focal.observable:
-        return focal.uncertainty
-    low, high = (focal_of_fov(100, fov) for fov in FOV_RANGE_DEG[::-1])
-    return math.log(high / low) / 2
 
 
 def _motion_doc(motion: RoadMotion, seconds: float) -> dict[str, Any]:
     return {"pairs": len(motion.pairs), "spread": motion.spread, "scatter": motion.scatter,
-            "drift": motion.drift, "band": motion.band,
+            "drift": motion.drift, "band": motion.band, "codec": motion.codec,
             "heights_q10_q90": [float(q) / motion.height for q in np.percentile(motion.heights, [10, 90])],
             "seconds": seconds}
 
@@ -814,23 +856,14 @@ def _uncertain(doc: dict[str, Any], combined: CombinedScale, params: IngestParam
     """Why the scale cannot be trusted, in one line: the figure, its parts, each range's cues."""
     parts = ", ".join(f"{name} {value:.1%}" for name, value in
                       sorted(combined.parts.items(), key=lambda kv: -kv[1])
-                      if value > 0 and name != "between_ranges")   # taken out, not added
+                      if value > 0 and name not in ("between_ranges", "focal"))
     ranges = "; ".join(
         f"{format_range(r.frames)}: " + ", ".join(
             f"{c.name} {c.uncertainty:.1%}" if c.scale is not None else f"{c.name} not measured ({c.why})"
             for c in r.cues) for r in combined.ranges)
-    return (f"the metric scale is uncertain by {doc['uncertainty']:.1%} (above "
+    return (f"the metric scale is uncertain by {doc['across_uncertainty']:.1%} (above "
             f"ingest.video_max_scale_uncertainty = {params.video_max_scale_uncertainty:g}): "
             f"{parts}; {ranges}")
-
-
-def _uncertain_fix(combined: CombinedScale) -> str:
-    fix = ("give a speed or GPS track as <stem>.csv (t,speed_mps or t,lat,lon), a longer clip, "
-           "or more frames (a higher fps=)")
-    if combined.parts.get("focal", 0.0) >= combined.parts["ranges"]:
-        fix = (f"the focal length could not be measured from these frames (the drive turns "
-               f"too little to show it): give fov_deg= or fx=&fy=&cx=&cy=; or {fix}")
-    return fix
 
 
 def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footage,
@@ -881,8 +914,10 @@ def _scene(uri: SceneURI, rec: Reconstruction, sfm_in: SfmInput, footage: Footag
     video = _video_doc(uri, rec, sfm_in, footage, opts, kept, (K, dist), scale, scale_doc, travelled,
                        plane)
     if focal is not None:
-        video["intrinsics"].update(estimated=True, given_by="focal search",
-                                   focal_search=focal.doc())
+        video["intrinsics"].update(
+            estimated=True, focal_search=focal.doc(),
+            given_by="focal search" if focal.observable else "focal search: not measured, "
+                                                              "the middle of the range searched")
         # the search is SfM work too: the plan counts it at the rate this scene measured
         video["sfm"].update(seconds=video["sfm"]["seconds"] + focal.seconds,
                             focal_seconds=focal.seconds)
