@@ -26,6 +26,19 @@ SMOKE_SCENES = ("synthetic:demo?seed=7", "synthetic:demo?seed=11")
 T = TypeVar("T")
 
 
+# The files that take minutes, longest first (`--durations` on a fresh clone: the freeway
+# clip's build 180 s, a Ray build killed and resumed 65 s, the KITTI ingests, the video
+# ingests, the encode on Ray): collected first, so that `--dist loadfile` hands them out
+# before the short ones and the two workers finish together instead of one waiting on the
+# other's last long file.
+SLOW_FILES = ("test_video_real.py", "test_ray_executor.py", "test_ingest_video.py",
+              "test_video_kitti.py", "test_wan_latents.py", "test_wan_distributed.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: k for k, name in enumerate(SLOW_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))   # stable: file order kept
+
 def _build(root: Path, uris, stages=None, profile="smoke", build="smoke", overrides=None):
     from paradrive.pipeline import StageRegistry, run_build
 

@@ -131,18 +131,23 @@ def test_sfm_points_are_the_fit_s_initial_points(video_scene):
     assert np.median(ahead) > 0 and np.percentile(points[:, 2], 5) > -1.0
 
 
-def test_a_folder_of_frames_with_a_speed_track_beside_it(tmp_path, exported):
-    """Frames as files, and ``<folder>.csv`` with the speed: the track sets the scale."""
+def test_a_folder_of_frames_with_a_speed_track_beside_it(tmp_path, exported, caplog):
+    """Frames as files, no intrinsics, and ``<folder>.csv`` with the speed: the track sets the
+    lengths along the road (within 1 % of the truth whatever the focal); the focal, not
+    measured on the straight street, is then the uncertainty across the road, and said so."""
     uri, _ = exported
     parsed = parse_uri(uri)
     folder = tmp_path / "drive"
     for i, pixels in enumerate(decode_frames(parsed.path)):
         write_image(folder / f"{i:04d}.png", pixels)
     (tmp_path / "drive.csv").write_text("t,speed_mps\n0,8.0\n10,8.0\n")
-    query = "&".join(f"{k}={parsed.query[k]}" for k in ("fx", "fy", "cx", "cy"))
-    summary = ingest(f"video:{folder}?{query}", tmp_path / "scene", params_of())
+    with caplog.at_level("WARNING", logger="paradrive.ingest.video"):
+        summary = ingest(f"video:{folder}", tmp_path / "scene", params_of())
     scale = summary["video"]["scale"]
     assert scale["source"] == "speed" and "height_vs_track" in scale
+    assert not summary["video"]["intrinsics"]["focal_search"]["observable"]
+    assert scale["uncertainty"] == 0.01 and scale["across_uncertainty"] > 0.9
+    assert "across it (the lateral shifts) they are uncertain by 93" in caplog.text
     scene = load_scene(tmp_path / "scene")
     assert len(scene.frames) == 24 and scene.timestamps_us()[1] == 100_000
     assert path_length(scene.c2w("front")) == pytest.approx(path_length(truth_c2w()), rel=0.01)

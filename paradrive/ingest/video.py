@@ -818,15 +818,8 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
     if motion is not None:
         doc["road_motion"] = _motion_doc(motion, seconds)
     if track.is_file():
-        times = footage.times[run]
-        metres, kind = track_distance(track, float(times[0]), float(times[-1]), scene_id=scene_id)
-        by_track = metres / path_length(rec.c2w[run])
-        doc.update(source=kind, track=str(track), by_track=by_track,
-                   height_vs_track=by_height / by_track - 1.0,
-                   camera_height_by_track_m=camera_height * by_track,
-                   uncertainty=TRACK_UNCERTAINTY,
-                   # the track sets lengths along the road: a focal's error is then across it
-                   across_uncertainty=math.hypot(TRACK_UNCERTAINTY, common.get("focal", 0.0)))
+        by_track = _by_track(track, footage.times[run], rec.c2w[run], doc, common.get("focal", 0.0),
+                             params, scene_id)
         return by_track, camera_height, np.ones(run.stop - run.start), doc
     assert combined is not None   # no track: a failed combination raised above
     # the focal's error stretches lengths along the road only (paradrive.ingest.focal): what
@@ -843,6 +836,25 @@ def _scale(rec: Reconstruction, run: slice, plane: RoadPlane, up: np.ndarray,
                     params.video_max_scale_uncertainty, 100 * combined.parts.get("focal", 0.0),
                     100 * doc["across_uncertainty"])
     return by_height, camera_height, profile(combined, run.stop - run.start), doc
+
+
+def _by_track(track: Path, times: np.ndarray, c2w: np.ndarray, doc: dict[str, Any], focal: float,
+              params: IngestParams, scene_id: str) -> float:
+    """Metres per model unit by the track over the kept frames (``times``, ``c2w``), recorded
+    in the scale's ``doc`` beside the height's; ``focal``: the estimated focal's uncertainty."""
+    metres, kind = track_distance(track, float(times[0]), float(times[-1]), scene_id=scene_id)
+    by_track = metres / path_length(c2w)
+    doc.update(source=kind, track=str(track), by_track=by_track,
+               height_vs_track=doc["by_height"] / by_track - 1.0,
+               camera_height_by_track_m=doc["height_m"] / doc["by_height"] * by_track,
+               uncertainty=TRACK_UNCERTAINTY,
+               # the track sets lengths along the road: a focal's error is then across it
+               across_uncertainty=math.hypot(TRACK_UNCERTAINTY, focal))
+    if doc["across_uncertainty"] > params.video_max_scale_uncertainty:
+        log.warning("scene %s (%s): the track sets the lengths along the road; across it (the "
+                    "lateral shifts) they are uncertain by %.1f%%, the focal length's: give "
+                    "fov_deg= or fx=&fy=&cx=&cy=", scene_id, track, 100 * doc["across_uncertainty"])
+    return by_track
 
 
 def _motion_doc(motion: RoadMotion, seconds: float) -> dict[str, Any]:
