@@ -673,9 +673,6 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
         focal = None
         if sfm_in.intrinsics is None:  # nobody calibrated it: the focal from the frames
             focal = _focal(sfm_in, work / "focal", params, scene_id=scene_id, path=path)
-            if not focal.observable:   # mapped at the range's middle: only lengths along suffer
-                log.warning("scene %s (%s): %s", scene_id, path,
-                            _unmeasured_focal(focal, params.video_focal_min_rise))
             sfm_in.intrinsics = focal.intrinsics(*sfm_in.size)
         rec = _reconstruct(sfm_in, work, scene_id=scene_id, path=path)
         first, last = _kept_run(rec, footage.times, scene_id=scene_id, path=path)
@@ -687,6 +684,9 @@ def read(uri: SceneURI, out_dir: Path, params: IngestParams, scene_id: str) -> S
                                  fix="give fov_deg= (the horizontal field of view) or "
                                      "fx=&fy=&cx=&cy=, or trim start=/end= to a straight stretch"
                                      + UNCALIBRATED_FIX)
+            # a straight drive, mapped at the range's middle: only lengths along the road suffer
+            log.warning("scene %s (%s): %s", scene_id, path,
+                        _unmeasured_focal(focal, params.video_focal_min_rise))
         return _scene(uri, rec, sfm_in, footage, opts, (first, last), out_dir, params, scene_id,
                       focal=focal)
     finally:
@@ -711,16 +711,21 @@ def _focal(sfm_in: SfmInput, work: Path, params: IngestParams, *, scene_id: str,
 
 def _unmeasured_focal(focal: FocalEstimate, min_rise: float) -> str:
     """Why the frames gave no focal length, in one line, with the search's figures."""
-    errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
-                       if math.isfinite(t.error))
     fov = 2 * math.degrees(math.atan(0.5 * focal.width / focal.held))
     return (f"the focal length could not be measured from the frames: the drive turns too "
-            f"little to show it (mean reprojection error over {focal.frames} frames: {errors}; "
-            f"no single minimum that a focal one step away raises by {min_rise:.0%}); mapped "
+            f"little to show it ({_search_figures(focal, min_rise)}); mapped "
             f"with it held at {focal.held:.0f} px (a {fov:.0f} deg field of view, the middle of "
             f"the {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg searched): lateral shifts keep "
             f"their size (the camera's height sets it), lengths along the road are uncertain by "
             f"{focal.scale_uncertainty:.0%}; fov_deg= or fx=&fy=&cx=&cy= would fix that")
+
+
+def _search_figures(focal: FocalEstimate, min_rise: float) -> str:
+    """The focal search's trials and the rise it asked for, as a message says them."""
+    errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
+                       if math.isfinite(t.error))
+    return (f"mean reprojection error over {focal.frames} frames: {errors}; no single minimum "
+            f"that a focal one step away raises by {min_rise:.0%}")
 
 
 def _turn_deg(c2w: np.ndarray) -> float:
@@ -731,11 +736,8 @@ def _turn_deg(c2w: np.ndarray) -> float:
 
 def _unmeasured_focal_on_a_bend(focal: FocalEstimate, turn: float, params: IngestParams) -> str:
     """Why a clip whose focal was not measured cannot be taken as a straight drive."""
-    errors = ", ".join(f"{t.error:.2f} px at {t.focal:.0f}" for t in focal.trials
-                       if math.isfinite(t.error))
-    return (f"the focal length could not be measured from the frames (mean reprojection error "
-            f"over {focal.frames} frames: {errors}; no single minimum that a focal one step away "
-            f"raises by {params.video_focal_min_rise:.0%}), and the camera turns {turn:.1f} deg "
+    return (f"the focal length could not be measured from the frames "
+            f"({_search_figures(focal, params.video_focal_min_rise)}), and the camera turns {turn:.1f} deg "
             f"over the kept frames (more than ingest.video_unmeasured_focal_max_turn_deg = "
             f"{params.video_unmeasured_focal_max_turn_deg:g}): a focal guessed wrong stretches a "
             f"straight drive along the road only, but bends a turning one (a wide lens left "

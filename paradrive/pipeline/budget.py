@@ -219,6 +219,13 @@ def focal_work(frames: int, pixels: float, model: dict) -> float:
     return model["focal_search_frames"] * sfm_work(frames, pixels, model)
 
 
+def road_motion_work(pixels: float, model: dict) -> float:
+    """The road's motion of one video (the scale's cue, a fixed number of frame pairs whatever
+    the clip's length) on frames of ``pixels`` pixels, in SfM frames of the reference size
+    (``rates.yaml``: ``compute.sfm.road_motion_frames``)."""
+    return sfm_work(model["road_motion_frames"], pixels, model)
+
+
 def shape_of(config: ResolvedConfig, uri: str, data_dir: Path | None, rates_doc: dict) -> Shape:
     """The scene's frames and cameras: from its scene.json when ingested, else its URI (a video
     from its file's header where it can be read)."""
@@ -265,7 +272,8 @@ def _video_shape(parsed, params, typical: dict, sfm_model: dict) -> Shape:
     searched = min(frames, params.video_focal_frames) if needs_focal_search(parsed) else 0
     return Shape(frames, {name: (width, height) for name in typical["cameras"]},
                  "video header" if found else "typical video log", sfm_frames=frames,
-                 sfm_work=sfm_work(frames, w * h, sfm_model) + focal_work(searched, w * h, sfm_model))
+                 sfm_work=sfm_work(frames, w * h, sfm_model) + focal_work(searched, w * h, sfm_model)
+                 + road_motion_work(w * h, sfm_model))
 
 
 def _longitudinal(config: ResolvedConfig) -> bool:
@@ -286,9 +294,12 @@ def _ingested_shape(layout: SceneLayout, fit_params: dict | None, sfm_model: dic
         pixels = size.get("width", 0) * size.get("height", 0) or sum(w * h for w, h in cams.values())
         shape.sfm_frames = int(video.get("sampled", len(doc["frames"])))
         searched = int(((video.get("intrinsics") or {}).get("focal_search") or {}).get("frames", 0))
-        # its seconds hold the focal search's too (sfm.focal_seconds): so does its work
-        shape.sfm_work = sfm_work(shape.sfm_frames, pixels, sfm_model) + focal_work(searched, pixels, sfm_model)
-        shape.sfm_seconds = float(size.get("seconds", video.get("sfm_seconds", 0.0)))
+        # its seconds hold the focal search's too (sfm.focal_seconds), and the road's motion's
+        # are beside them: so does its work
+        motion = ((video.get("scale") or {}).get("road_motion") or {}).get("seconds")
+        shape.sfm_work = (sfm_work(shape.sfm_frames, pixels, sfm_model) + focal_work(searched, pixels, sfm_model)
+                          + (road_motion_work(pixels, sfm_model) if motion is not None else 0.0))
+        shape.sfm_seconds = float(size.get("seconds", video.get("sfm_seconds", 0.0))) + float(motion or 0.0)
     marker = read_marker(layout.root, "fit")
     if marker and layout.fit_json.is_file() and fit_params in (None, marker.params):
         shape.gaussians = float(sum(c.num_gaussians for c in FitRecord.load(layout.fit_json).checkpoints))
