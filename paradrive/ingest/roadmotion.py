@@ -142,7 +142,7 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
                        iterations: int = 8, min_pairs: int = 5,
                        static_std: float = 1.0 / 255.0, still_share: float = 0.5,
                        ego: np.ndarray | None = None,
-                       codec_crf: int | None = None) -> RoadMotion | None:
+                       codec_crf: int | None = None, bands: bool = True) -> RoadMotion | None:
     """The camera's height above the road by the road's motion, or None where fewer than
     ``min_pairs`` frame pairs align (no road texture, a camera that barely moves).
 
@@ -158,7 +158,8 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     lower half of the image (standard deviations over the frames used, in [0, 1]). codec_crf:
     the frames used are encoded once more (H.264 at this CRF) and every pair fitted again on
     them; how far that moves the median is the ``codec`` part of the uncertainty (None: not
-    measured).
+    measured). bands: fit the near and the far half of the road pixels too (the ``band``
+    part; the codec's second measurement needs only the whole road's heights).
     """
     centres = c2w[:, :3, 3]
     along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))]
@@ -172,7 +173,8 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
         again = _recoded_motion(image, chosen, codec_crf, functools.partial(
             road_motion_height, c2w=c2w, K=K, up=up, height=height, pairs=pairs, baseline=baseline,
             near=near, far=far, lane=lane, max_width=max_width, blurs=blurs, iterations=iterations,
-            min_pairs=min_pairs, static_std=static_std, still_share=still_share, ego=ego))
+            min_pairs=min_pairs, static_std=static_std, still_share=still_share, ego=ego,
+            bands=False))
     gray, Kp, shape = {}, np.array(K, dtype=np.float64), (0, 0)
     for k in sorted({k for pair in chosen for k in pair}):
         frame = _gray(image(k))
@@ -202,7 +204,7 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
         # the two finest blurs only)
         mid = _median_distance(moving, np.linalg.inv(Kp), down, near, far, lane)
         halves = [_fit_step(later, earlier, moving, Kp, rel[:3, :3], u, down, height, near=a, far=b,
-                            lane=lane, blurs=blurs[-2:], iterations=iterations)
+                            lane=lane, blurs=blurs[-2:], iterations=iterations) if bands else None
                   for a, b in ((near, mid), (mid, far))]
         size = np.linalg.norm(rel[:3, 3])
         heights.append([size / np.linalg.norm(v) if v is not None else np.nan for v in (u, *halves)])
