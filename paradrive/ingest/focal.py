@@ -69,6 +69,12 @@ def focal_of_fov(width: int, fov_deg: float) -> float:
     return 0.5 * width / math.tan(math.radians(fov_deg) / 2)
 
 
+def searched_range(width: int) -> tuple[float, float]:
+    """The smallest and the largest focal searched (pixels) for ``width``-pixel images: those
+    of the widest and the narrowest field of view in :data:`FOV_RANGE_DEG`."""
+    return focal_of_fov(width, FOV_RANGE_DEG[1]), focal_of_fov(width, FOV_RANGE_DEG[0])
+
+
 @dataclass(frozen=True)
 class FocalTrial:
     """One mapping with the focal held fixed: the focal (pixels at the SfM size), the frames
@@ -111,8 +117,7 @@ class FocalEstimate:
     @property
     def prior_range(self) -> tuple[float, float]:
         """The smallest and the largest focal searched (pixels at the size searched at)."""
-        low, high = (focal_of_fov(self.width, fov) for fov in FOV_RANGE_DEG[::-1])
-        return low, high
+        return searched_range(self.width)
 
     @property
     def scale_uncertainty(self) -> float:
@@ -170,8 +175,8 @@ def estimate_focal(image_dir: Path, names: list[str], work_dir: Path, size: tupl
         shutil.rmtree(work_dir, ignore_errors=True)
     focal, spread = _vertex(trials)
     best = min(trials, key=lambda t: t.error)
-    ratio = (focal_of_fov(size[0], FOV_RANGE_DEG[0]) / focal_of_fov(size[0], FOV_RANGE_DEG[1])) \
-        ** (1.0 / (coarse - 1))
+    low, high = searched_range(size[0])
+    ratio = (high / low) ** (1.0 / (coarse - 1))
     rise = _rise(trials, best, ratio)
     found = [h for h in halves if h is not None]
     disagreement = abs(math.log(found[0] / found[1])) / 2 if len(found) == 2 else 0.0
@@ -252,7 +257,7 @@ def _search(database: Path, image_dir: Path, names: list[str], work_dir: Path,
             seed: int) -> tuple[list[FocalTrial], list[FocalTrial]]:
     """Trials over the coarse grid, then at ``best * r`` and ``best / r`` for each ratio, within
     the grid; all of them in focal order, and the coarse ones."""
-    low, high = (focal_of_fov(size[0], fov) for fov in FOV_RANGE_DEG[::-1])
+    low, high = searched_range(size[0])
     grid = [_trial(database, image_dir, names, work_dir, size, float(f), min_registered, seed)
             for f in np.geomspace(low, high, coarse)]
     grid = _plausible(grid)

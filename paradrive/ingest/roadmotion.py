@@ -168,18 +168,19 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     chosen = [(int(i), int(j)) for i, j in zip(starts, ends) if j < len(c2w)]
     if len(chosen) < min_pairs:
         return None
-    again = None
-    if codec_crf is not None:   # the same frames through one more H.264 encode, measured alike
-        again = _recoded_motion(image, chosen, codec_crf, functools.partial(
-            road_motion_height, c2w=c2w, K=K, up=up, height=height, pairs=pairs, baseline=baseline,
-            near=near, far=far, lane=lane, max_width=max_width, blurs=blurs, iterations=iterations,
-            min_pairs=min_pairs, static_std=static_std, still_share=still_share, ego=ego,
-            bands=False))
     gray, Kp, shape = {}, np.array(K, dtype=np.float64), (0, 0)
+    rgb: dict[int, np.ndarray] = {}   # each frame read once, kept for the codec's encode
     for k in sorted({k for pair in chosen for k in pair}):
-        frame = _gray(image(k))
+        rgb[k] = image(k)
+        frame = _gray(rgb[k])
         shape = frame.shape
         gray[k], Kp = _reduce(K, frame, max_width)
+    # the same frames through one more H.264 encode, measured alike
+    again = None if codec_crf is None else _recoded_motion(rgb, codec_crf, functools.partial(
+        road_motion_height, c2w=c2w, K=K, up=up, height=height, pairs=pairs, baseline=baseline,
+        near=near, far=far, lane=lane, max_width=max_width, blurs=blurs, iterations=iterations,
+        min_pairs=min_pairs, static_std=static_std, still_share=still_share, ego=ego, bands=False))
+    del rgb
     stack = np.stack(list(gray.values()))
     still = (still_pixels(stack, static_std, still_share) if ego is None
              else _reduce(K, _resized(np.asarray(ego, dtype=np.float32), shape), max_width)[0] > 0.0)
@@ -216,12 +217,11 @@ def road_motion_height(image: Callable[[int], np.ndarray], c2w: np.ndarray, K: n
     return summarise(values, near_h, far_h, used, min_pairs, recoded_h)
 
 
-def _recoded_motion(image: Callable[[int], np.ndarray], chosen: list[tuple[int, int]], crf: int,
+def _recoded_motion(rgb: dict[int, np.ndarray], crf: int,
                     measure: Callable[..., RoadMotion | None]) -> RoadMotion | None:
-    """``measure`` (the road's motion without a codec part) on the frames of the ``chosen``
-    pairs after one more encode at ``crf``."""
-    recoded = _recoded({k: image(k) for k in sorted({k for pair in chosen for k in pair})}, crf)
-    return measure(recoded.__getitem__)
+    """``measure`` (the road's motion without a codec part) on the frames ``rgb`` (by frame
+    number) after one more encode at ``crf``."""
+    return measure(_recoded(rgb, crf).__getitem__)
 
 
 def _by_pair(motion: RoadMotion | None, used: list[tuple[int, int]]) -> np.ndarray:
