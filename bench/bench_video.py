@@ -18,6 +18,9 @@ Parts (all by default; ``memory`` and ``heldout`` take longest):
   ``--height-m`` in a fresh process: seconds, CPU seconds, peak resident MB, SfM seconds a frame,
   the scale's error against the ruler (the scene's path between the passage times over the
   periods' length) and its reported uncertainty.
+* ``threads``: the ``ingest`` part twice more, each in a fresh process: the features found on
+  one thread (the baseline) and on every CPU (the default); both wall and CPU seconds, their
+  ratio, and whether the two scenes' poses are the same bytes.
 * ``sizes``: structure from motion alone (:func:`paradrive.ingest.sfm.reconstruct`, the ingest's
   options) on the clip's frames at 640x360 and 1280x720, each in a fresh process, against what
   ``paradrive plan`` estimates for them; the baseline of the speed figure is SfM at the video's
@@ -69,7 +72,7 @@ KITTI = REPO.parent / "shared" / "realdata" / "kitti-odometry-snippet"
 # the snippet's rectified camera (calib.txt, P0) and KITTI's mount height
 KITTI_INTRINSICS = "fx=718.856&fy=718.856&cx=607.1928&cy=185.2157"
 KITTI_HEIGHT_M = 1.65
-PARTS = ("ruler", "ingest", "sizes", "synthetic", "kitti", "heldout", "masks", "memory")
+PARTS = ("ruler", "ingest", "threads", "sizes", "synthetic", "kitti", "heldout", "masks", "memory")
 
 
 # --------------------------------------------------------------------------- the clip's ruler
@@ -262,6 +265,11 @@ def child_ingest(args: dict) -> dict:
     from paradrive.scene import load_scene
     from paradrive.stages.ingest import ingest, params_of
 
+    if args.get("feature_threads"):
+        from paradrive.ingest import sfm
+
+        sfm.feature_threads = lambda: int(args["feature_threads"])
+
     def work() -> dict:
         params = params_of(args.get("params"))
         summary = ingest(args["uri"], Path(args["out"]), params)
@@ -329,6 +337,21 @@ def part_ingest(clip: Path, height: float, ruler: dict, workdir: Path) -> dict:
             "sfm_size": [video["sfm"]["width"], video["sfm"]["height"]],
             "registered": video["registered"], "uncertainty": scale["uncertainty"],
             "road_motion": scale.get("road_motion"), "scale_vs_ruler": scale_error(c2w, ruler)}
+
+
+def part_threads(clip: Path, height: float, workdir: Path) -> dict:
+    """The clip's ingest with the features on one thread, then on every CPU."""
+    uri = clip_uri(clip, height)
+    runs = {name: _child("ingest", {"uri": uri, "out": str(workdir / f"threads-{name}"),
+                                     "feature_threads": threads})
+            for name, threads in (("one", 1), ("all", None))}
+    if any("error" in r for r in runs.values()):
+        return runs
+    same = runs["one"].pop("c2w") == runs["all"].pop("c2w")
+    figures = {name: {"seconds": r["seconds"], "cpu_s": r["cpu_s"], "peak_mb": r["peak_mb"],
+                      "sfm_seconds": r["video"]["sfm"]["seconds"]} for name, r in runs.items()}
+    return {**figures, "same_poses": same, "speedup": figures["one"]["seconds"] / figures["all"]["seconds"],
+            "sfm_speedup": figures["one"]["sfm_seconds"] / figures["all"]["sfm_seconds"]}
 
 
 def part_sizes(clip: Path, workdir: Path) -> dict:
@@ -502,6 +525,8 @@ def main() -> None:
         if "ingest" in parts:
             result["ingest"] = part_ingest(args.clip, args.height_m, ruler, workdir)
             result["masks"] = mask_coverage(workdir / "clip", args.clip)
+        if "threads" in parts:
+            result["threads"] = part_threads(args.clip, args.height_m, workdir)
         if "sizes" in parts:
             result["sizes"] = part_sizes(args.clip, workdir)
         if "synthetic" in parts:

@@ -3,6 +3,9 @@ plane and the metric rig against known geometry."""
 
 from __future__ import annotations
 
+import contextlib
+import sqlite3
+
 import numpy as np
 import pytest
 
@@ -130,13 +133,28 @@ def frames(tmp_path_factory):
     return folder, names, street, spec
 
 
-def test_reconstruct_registers_every_frame_the_same_way_twice(tmp_path, frames):
+def database_rows(path) -> dict[str, list]:
+    with contextlib.closing(sqlite3.connect(path)) as db:
+        tables = [t for (t,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+        return {t: db.execute(f"SELECT * FROM {t} ORDER BY rowid").fetchall() for t in tables}
+
+
+def test_reconstruct_registers_every_frame_the_same_way_on_one_thread_and_on_three(tmp_path, frames,
+                                                                                   monkeypatch):
+    """The features are found on several threads, which store the images in the order they
+    finish: renumbered, the database and the poses are one thread's, byte for byte."""
     folder, names, street, spec = frames
     K = sfm.Intrinsics(spec.fx, spec.fy, spec.cx, spec.cy)
+    monkeypatch.setattr(sfm, "feature_threads", lambda: 1)
     a = sfm.reconstruct(folder, names, tmp_path / "a", intrinsics=K)
+    monkeypatch.setattr(sfm, "feature_threads", lambda: 3)
     b = sfm.reconstruct(folder, names, tmp_path / "b", intrinsics=K)
     assert a.registered.all() and a.models == 1 and not a.estimated
     assert a.intrinsics == K  # held fixed
+    one, three = database_rows(tmp_path / "a" / "database.db"), database_rows(tmp_path / "b" / "database.db")
+    assert one.keys() == three.keys() and len(one["images"]) == len(names)
+    for table in one:
+        assert one[table] == three[table], table
     np.testing.assert_array_equal(a.c2w, b.c2w)
     np.testing.assert_array_equal(a.points, b.points)
     truth = street.c2w("front")

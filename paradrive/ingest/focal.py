@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from paradrive.ingest.sfm import Intrinsics, SfmError, mapping_options
+from paradrive.ingest.sfm import Intrinsics, SfmError, extract_features, mapping_options
 
 __all__ = ["FocalTrial", "FocalEstimate", "estimate_focal", "focal_of_fov", "FOV_RANGE_DEG"]
 
@@ -203,9 +203,7 @@ def _matched(image_dir: Path, names: list[str], work_dir: Path, size: tuple[int,
     f = focal_of_fov(size[0], 60.0)
     reader.camera_params = ",".join(repr(float(v)) for v in (f, f, 0.5 * size[0], 0.5 * size[1]))
     extraction, matching, pairing, _ = mapping_options(True, seed)
-    pycolmap.extract_features(database, image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    extract_features(database, image_dir, names, reader, extraction)
     _set_camera(database, None, size)
     pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
                               device=pycolmap.Device.cpu)

@@ -6,7 +6,10 @@ A video has no calibration and no LiDAR, so its poses come from the images alone
 1. :func:`reconstruct`: SIFT features, *sequential* matching (a drive is a sequence, so each
    frame is matched with the next 5 and those 8 and 16 frames on only, which is both faster and
    freer of repeated-texture false matches than exhaustive matching) and incremental mapping,
-   single-threaded with fixed seeds so that one video always gives the same poses. Known
+   single-threaded with fixed seeds so that one video always gives the same poses. Only the
+   features are found on every CPU the process may use (:func:`extract_features`): each
+   image's are the same on any thread count, and the images are numbered by name afterwards,
+   as one thread numbers them (matching is not: its RANSAC draws depend on the thread). Known
    intrinsics are held fixed: with focal refinement on, forward motion leaves the focal length
    poorly constrained and bundle adjustment drifts it far from the truth. Unknown ones are
    estimated as one shared SIMPLE_RADIAL camera (the video reader finds the focal length first
@@ -33,6 +36,8 @@ Nothing here knows a scene folder; errors are :class:`SfmError` and the reader n
 from __future__ import annotations
 
 import dataclasses
+import os
+import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +47,7 @@ import numpy as np
 from paradrive import geometry
 
 __all__ = ["SfmError", "Intrinsics", "Reconstruction", "RoadPlane", "MetricRig", "reconstruct",
-           "mapping_options", "registered_runs", "steady_runs", "fit_road_plane", "level_with_path",
+           "mapping_options", "extract_features", "registered_runs", "steady_runs", "fit_road_plane", "level_with_path",
            "metric_rig", "path_length", "without_drift", "format_runs"]
 
 
@@ -139,6 +144,50 @@ def mapping_options(known: bool, seed: int):
     return extraction, matching, pairing, mapping
 
 
+def feature_threads() -> int:
+    """The CPUs this process may run on: the threads feature extraction uses."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def extract_features(database: Path, image_dir: Path, names: list[str], reader, extraction,
+                     threads: int | None = None) -> None:
+    """SIFT features of ``names`` into ``database`` (one shared camera), on ``threads`` threads
+    (None: :func:`feature_threads`), numbered as one thread numbers them."""
+    import pycolmap
+
+    extraction.num_threads = threads or feature_threads()
+    pycolmap.extract_features(database, image_dir, image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    if extraction.num_threads > 1:
+        _number_by_name(database)
+
+
+def _number_by_name(database: Path) -> None:
+    """Image ids in name order, each image's frame numbered as its image (one camera a frame).
+
+    Several extraction threads store the images in the order they finish; the matcher's and the
+    mapper's choices follow the ids, so a video must get the same ids on any thread count."""
+    db = sqlite3.connect(database)
+    try:
+        rows = db.execute("SELECT image_id, name FROM images").fetchall()
+        new_id = {old: new for new, (old, _) in enumerate(sorted(rows, key=lambda r: r[1]), start=1)}
+        shift = 1 << 30  # out of the way of every id while they move
+        with db:
+            for old, new in new_id.items():
+                for table in ("images", "keypoints", "descriptors"):
+                    db.execute(f"UPDATE {table} SET image_id = ? WHERE image_id = ?", (new + shift, old))
+            for table in ("images", "keypoints", "descriptors"):
+                db.execute(f"UPDATE {table} SET image_id = image_id - ? WHERE image_id > ?", (shift, shift))
+            # frame_data has no key of its own: written again in frame order, as one thread writes it
+            links = db.execute("SELECT data_id, sensor_id, sensor_type FROM frame_data").fetchall()
+            db.execute("DELETE FROM frame_data")
+            db.executemany("INSERT INTO frame_data VALUES (?, ?, ?, ?)",
+                           sorted((new_id[d], new_id[d], sensor, kind) for d, sensor, kind in links))
+    finally:
+        db.close()
+
+
 def reconstruct(image_dir: Path, names: list[str], work_dir: Path, *,
                 intrinsics: Intrinsics | None = None, seed: int = 0) -> Reconstruction:
     """Poses of the images ``names`` (in time order) under ``image_dir``; scratch files in
@@ -161,9 +210,7 @@ def reconstruct(image_dir: Path, names: list[str], work_dir: Path, *,
     else:
         reader.camera_model = "SIMPLE_RADIAL"
     extraction, matching, pairing, mapping = mapping_options(intrinsics is not None, seed)
-    pycolmap.extract_features(database, image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    extract_features(database, image_dir, names, reader, extraction)
     pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
                               device=pycolmap.Device.cpu)
     models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", mapping)
