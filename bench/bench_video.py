@@ -31,6 +31,12 @@ Parts (all by default; ``memory`` and ``heldout`` take longest):
   without and with their intrinsics: the focal found, the path's length and its trajectory error
   after a rigid and a similarity alignment against the GPS/INS poses, the stated uncertainty and
   the error's ratio to it.
+* ``kitti_heldout``: the KITTI snippet fitted twice at the demo profile with every 8th frame held
+  out (``fit.holdout_every=8``; ``fit.downscale=4``, 310x94, where the demo fits its 320x192
+  street at 2; clips of 49 frames, as 51 frames allow): once on the poses SfM finds from its
+  frames (``video:``, without intrinsics), once on the GPS/INS poses written as a one-camera
+  DriveStudio folder (Waymo flavour, its rectified intrinsics, no LiDAR;
+  :func:`kitti_drivestudio`): the held-out PSNR of each.
 * ``heldout``: the clip and the street ingested and fitted with the smoke profile and every 8th
   frame held out (``fit.holdout_every=8``): PSNR on the held-out frames.
 * ``masks``: the moving masks against the clip's two cars boxed by hand, and the masks' shares
@@ -72,7 +78,7 @@ KITTI = REPO.parent / "shared" / "realdata" / "kitti-odometry-snippet"
 # the snippet's rectified camera (calib.txt, P0) and KITTI's mount height
 KITTI_INTRINSICS = "fx=718.856&fy=718.856&cx=607.1928&cy=185.2157"
 KITTI_HEIGHT_M = 1.65
-PARTS = ("ruler", "ingest", "threads", "sizes", "synthetic", "kitti", "heldout", "masks", "memory")
+PARTS = ("ruler", "ingest", "threads", "sizes", "synthetic", "kitti", "kitti_heldout", "heldout", "masks", "memory")
 
 
 # --------------------------------------------------------------------------- the clip's ruler
@@ -434,14 +440,53 @@ def part_kitti(folder: Path, workdir: Path) -> dict:
     return out
 
 
-def part_heldout(uris: dict[str, str], workdir: Path) -> dict:
-    """Ingest and fit each scene with the smoke profile and every 8th frame held out."""
+def kitti_drivestudio(folder: Path, out: Path) -> str:
+    """The KITTI snippet on its GPS/INS poses as a one-camera DriveStudio folder (Waymo
+    flavour: camera 0, its rectified intrinsics from ``calib.txt``, the camera
+    ``KITTI_HEIGHT_M`` above the vehicle's origin, no LiDAR, no sky masks): its URI."""
+    from PIL import Image
+
+    from paradrive import geometry
+    from paradrive.ingest.common import OPENCV_TO_FLU
+
+    first = (folder / "calib.txt").read_text().split("\n", 1)[0].removeprefix("P0:")  # P0, then P1
+    P0 = np.array(first.split(), dtype=np.float64).reshape(3, 4)
+    for sub in ("images", "ego_pose", "extrinsics", "intrinsics"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    mount = np.eye(4)
+    mount[2, 3] = KITTI_HEIGHT_M                      # camera (x forward, y left, z up) -> vehicle
+    np.savetxt(out / "extrinsics" / "0.txt", mount)
+    np.savetxt(out / "intrinsics" / "0.txt", [P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2], 0, 0, 0, 0, 0])
+    # the reader's camera pose is ego @ mount @ OPENCV_TO_FLU: the vehicle pose that gives KITTI's
+    back = geometry.invert(OPENCV_TO_FLU) @ geometry.invert(mount)
+    for t, pose in enumerate(np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)):
+        np.savetxt(out / "ego_pose" / f"{t:03d}.txt", geometry.make_pose(pose[:, :3], pose[:, 3]) @ back)
+        Image.open(folder / "image_l" / f"{t:06d}.png").convert("RGB").save(
+            out / "images" / f"{t:03d}_0.jpg", quality=95)
+    return f"drivestudio:{out}"
+
+
+def part_kitti_heldout(folder: Path, workdir: Path) -> dict:
+    """The KITTI snippet fitted on the poses from its frames and on its GPS/INS poses."""
+    uris = {"sfm_poses": f"video:{folder / 'image_l'}?height_m={KITTI_HEIGHT_M}",
+            "gps_ins_poses": kitti_drivestudio(folder, workdir / "kitti-drivestudio")}
+    # 51 frames: clips of 49 (4k + 1), which the build checks before it fits
+    return part_heldout(uris, workdir, profile="demo",
+                        overrides={"fit": {"downscale": 4}, "render": {"clip_frames": 49}})
+
+
+def part_heldout(uris: dict[str, str], workdir: Path, *, profile: str = "smoke",
+                 overrides: dict | None = None) -> dict:
+    """Ingest and fit each scene with ``profile`` (``overrides`` over it, per stage) and every
+    8th frame held out."""
     from paradrive.contracts.layout import SceneLayout
     from paradrive.contracts.records import FitRecord
     from paradrive.pipeline import StageRegistry, run_build
     from paradrive.uri import parse_uri
 
-    config = StageRegistry().resolve("smoke", {"fit": {"holdout_every": 8}})
+    stages = {stage: dict(values) for stage, values in (overrides or {}).items()}
+    stages.setdefault("fit", {})["holdout_every"] = 8
+    config = StageRegistry().resolve(profile, stages)
     out = {}
     for name, uri in uris.items():
         start = time.perf_counter()
@@ -453,7 +498,7 @@ def part_heldout(uris: dict[str, str], workdir: Path) -> dict:
             out[name] = {"error": failures}
             continue
         record = FitRecord.load(layout.fit_json)
-        out[name] = {"heldout_psnr": record.heldout.psnr if record.heldout else None,
+        out[name] = {"uri": uri, "heldout_psnr": record.heldout.psnr if record.heldout else None,
                      "seconds": time.perf_counter() - start}
     return out
 
@@ -516,9 +561,9 @@ def main() -> None:
                     "height_m": args.height_m}
     if not (args.clip / VIDEO).is_file():   # a clone without the real recordings: the street only
         result["clip"] = f"not found: {args.clip / VIDEO}; its parts are skipped"
-        parts = [p for p in parts if p in ("synthetic", "kitti")]
+        parts = [p for p in parts if p in ("synthetic", "kitti", "kitti_heldout")]
     with every_core(args.busy):
-        ruler = measure_ruler(args.clip) if set(parts) - {"synthetic", "kitti"} else {}
+        ruler = measure_ruler(args.clip) if set(parts) - {"synthetic", "kitti", "kitti_heldout"} else {}
         result["ruler"] = ruler
         if args.write_ruler and ruler:
             args.write_ruler.write_text(json.dumps(ruler, indent=1) + "\n")
@@ -534,6 +579,9 @@ def main() -> None:
         if "kitti" in parts:
             result["kitti"] = (part_kitti(KITTI, workdir) if (KITTI / "image_l").is_dir()
                                else f"not found: {KITTI}")
+        if "kitti_heldout" in parts:
+            result["kitti_heldout"] = (part_kitti_heldout(KITTI, workdir) if (KITTI / "image_l").is_dir()
+                                       else f"not found: {KITTI}")
         if "heldout" in parts:
             result["heldout"] = part_heldout({"clip": clip_uri(args.clip, args.height_m),
                                               "street": street_video(workdir)}, workdir)

@@ -61,14 +61,28 @@ def test_null_cameras_ingest_every_camera_of_the_log(tmp_path):
     assert summary["cameras"] == sorted(FRONT3)
 
 
-def test_fit_set_missing_from_the_log_names_scene_file_and_fix(tmp_path):
+@pytest.mark.parametrize("fmt, dataset, fit_set", [("waymo", "waymo", FRONT3), ("nuscenes", "nuscenes", SIX),
+                                                    ("drivestudio", "waymo", FRONT3)])
+def test_a_one_camera_log_fits_its_camera_under_auto_and_says_so(tmp_path, caplog, fmt, dataset, fit_set):
+    """A log holding only part of the dataset's fit set (a one-camera DriveStudio folder):
+    ``auto`` takes the cameras of the set it has and names the ones it left out."""
+    uri = export_scene(SCENE, fmt, tmp_path / "log", ingest_params("ingest.cameras=[front]"))
+    with caplog.at_level("WARNING", logger="paradrive.ingest"):
+        summary = ingest(uri, tmp_path / "scene", ingest_params())
+    assert summary["cameras"] == ["front"] and sorted(load_scene(tmp_path / "scene").cameras) == ["front"]
+    (message,) = [r.getMessage() for r in caplog.records if "ingest.cameras is auto" in r.getMessage()]
+    assert f"the {dataset} fit set ({', '.join(fit_set)})" in message
+    assert f"the log has no {', '.join(c for c in fit_set if c != 'front')}, so the fit sees front" in message
+
+
+def test_a_log_with_none_of_the_fit_set_names_scene_file_and_fix(tmp_path):
     front_only = ingest_params("ingest.cameras=[front]")
     uri = export_scene(SCENE, "nuscenes", tmp_path / "log", front_only)
     with pytest.raises(SceneError) as err:
-        ingest(uri, tmp_path / "nuscenes-demo", ingest_params())
+        ingest(uri, tmp_path / "nuscenes-demo", ingest_params("ingest.camera_sets={nuscenes: [back, back_left]}"))
     text = str(err.value)
     assert text.startswith("scene nuscenes-demo: ")
-    assert "calibration missing for camera(s) front_left, front_right, back_left, back_right, back" in text
+    assert "calibration missing for camera(s) back, back_left" in text
     assert "ingest.cameras is auto, the nuscenes fit set" in text
     assert str(tmp_path / "log" / "v1.0-mini") in text
     assert text.endswith("--set ingest.cameras=[front]")
@@ -94,6 +108,7 @@ def test_export_command_writes_the_cameras_ingest_will_keep(tmp_path):
     result = CliRunner().invoke(app, args + sets + ["--set", "ingest.cameras=[front]"])
     assert result.exit_code == 0, result.output
     uri = result.output.strip().splitlines()[-1]
-    with pytest.raises(SceneError, match=r"calibration missing for camera\(s\) front_left, front_right"):
-        ingest(uri, tmp_path / "scene", ingest_params())
-    assert ingest(uri, tmp_path / "scene", ingest_params("ingest.cameras=[front]"))["cameras"] == ["front"]
+    # a camera asked for by name must be there; auto takes the one the log has
+    with pytest.raises(SceneError, match=r"calibration missing for camera\(s\) front_left "):
+        ingest(uri, tmp_path / "scene", ingest_params("ingest.cameras=[front, front_left]"))
+    assert ingest(uri, tmp_path / "scene", ingest_params())["cameras"] == ["front"]

@@ -4,6 +4,7 @@ plane and the metric rig against known geometry."""
 from __future__ import annotations
 
 import contextlib
+import os
 import sqlite3
 
 import numpy as np
@@ -137,6 +138,13 @@ def database_rows(path) -> dict[str, list]:
     with contextlib.closing(sqlite3.connect(path)) as db:
         tables = [t for (t,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
         return {t: db.execute(f"SELECT * FROM {t} ORDER BY rowid").fetchall() for t in tables}
+
+
+def test_features_take_the_threads_omp_num_threads_gives_else_every_cpu(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")   # as Ray sets it to a task's CPUs
+    assert sfm.feature_threads() == 3
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert sfm.feature_threads() == len(os.sched_getaffinity(0))
 
 
 def test_reconstruct_registers_every_frame_the_same_way_on_one_thread_and_on_three(tmp_path, frames,

@@ -4,7 +4,8 @@ above the road), from its frames alone, without its intrinsics: the focal length
 5 % of the calibrated 718.856 px, every frame registered, the path within 3 % of the GPS/INS
 path and within two of the scale's stated uncertainties, and the trajectory within 1 % of the
 path after a rigid alignment. One ingest for the module (about two minutes on two cores).
-Skipped where the snippet is not there."""
+And its GPS/INS poses written as a one-camera DriveStudio folder (what the held-out comparison
+fits on) read back as they are. Skipped where the snippet is not there."""
 
 from __future__ import annotations
 
@@ -94,3 +95,39 @@ def test_the_trajectory_keeps_its_shape(kitti_scene):
     found, truth = scene.c2w("front")[:, :3, 3], truth_centres()
     assert rigid_ate(found, truth) < 0.01 * path(truth)
     assert summary["video"]["scale"]["parts"]["between_ranges"] > 0.03
+
+
+def test_the_gps_ins_poses_as_a_one_camera_drivestudio_folder_ingest_as_they_are(tmp_path, caplog, monkeypatch):
+    """The folder the held-out comparison fits on (``bench_video.py --parts kitti_heldout``):
+    one camera, no LiDAR, read under ``ingest.cameras: auto`` (the Waymo set's other cameras are
+    named as left out), its camera poses KITTI's GPS/INS poses and its camera the rectified one."""
+    if not (KITTI / "image_l").is_dir():
+        pytest.skip(f"the KITTI snippet is not here ({KITTI}): a clone without ../shared/realdata")
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    from paradrive.scene import load_scene
+    from paradrive.stages.ingest import ingest, params_of
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "bench_video.py"
+    monkeypatch.syspath_prepend(str(path.parent))       # its helpers beside it
+    spec = importlib.util.spec_from_file_location("bench_video", path)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_video", bench)
+    spec.loader.exec_module(bench)
+    uri = bench.kitti_drivestudio(KITTI, tmp_path / "folder")
+    with caplog.at_level("WARNING", logger="paradrive.ingest"):
+        summary = ingest(uri, tmp_path / "scene", params_of())
+    assert summary["cameras"] == ["front"]
+    assert "the log has no front_left, front_right, so the fit sees front" in caplog.text
+    scene = load_scene(tmp_path / "scene")
+    camera = scene.cameras["front"]
+    assert (camera.width, camera.height, camera.fx, camera.fy) == (1241, 376, FX, FX)
+    c2w = scene.c2w("front")
+    relative = np.linalg.inv(c2w[0]) @ c2w          # in the first camera's frame, as poses.txt
+    np.testing.assert_allclose(relative[:, :3, 3], truth_centres(), atol=1e-5)
+    # the world is level with the first camera, the ego frame on the road under it
+    assert scene.frames[0].ego2world[2, 3] == pytest.approx(0.0) and c2w[0, 2, 3] == pytest.approx(HEIGHT_M)
+    assert not (tmp_path / "scene" / "lidar").exists() or not any((tmp_path / "scene" / "lidar").iterdir())

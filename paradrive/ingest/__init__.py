@@ -5,12 +5,15 @@ The ingest stage itself is :mod:`paradrive.stages.ingest`.
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
 from paradrive.errors import SceneError
 
 if TYPE_CHECKING:
     from paradrive.contracts.params import IngestParams
+
+log = logging.getLogger("paradrive.ingest")
 
 
 def requested_cameras(params: IngestParams, dataset: str, *, scene_id: str) -> list[str] | None:
@@ -34,11 +37,20 @@ def requested_cameras(params: IngestParams, dataset: str, *, scene_id: str) -> l
 
 
 def select_cameras(available, params: IngestParams, dataset: str, *, scene_id: str, where) -> list[str]:
-    """The cameras to ingest (``requested_cameras``), each of which must be in ``available``."""
+    """The cameras to ingest (``requested_cameras``) among ``available``, the log's. A camera
+    listed in ``ingest.cameras`` must be there; ``auto`` takes the cameras of the fit set that
+    the log has (a one-camera folder fits its one camera), says which it left out, and fails
+    only where the log has none of them."""
     wanted = requested_cameras(params, dataset, scene_id=scene_id)
     if wanted is None:
         return list(available)
     missing = [c for c in wanted if c not in available]
+    if missing and params.cameras == "auto" and len(missing) < len(wanted):
+        kept = [c for c in wanted if c in available]
+        log.warning("scene %s (%s): ingest.cameras is auto, the %s fit set (%s); the log has no "
+                    "%s, so the fit sees %s", scene_id, where, dataset, ", ".join(wanted),
+                    ", ".join(missing), ", ".join(kept))
+        return kept
     if missing:
         asked = (f"ingest.cameras is auto, the {dataset} fit set (ingest.camera_sets.{dataset})"
                  if params.cameras == "auto" else "ingest.cameras asks for them")

@@ -7,7 +7,8 @@ A video has no calibration and no LiDAR, so its poses come from the images alone
    frame is matched with the next 5 and those 8 and 16 frames on only, which is both faster and
    freer of repeated-texture false matches than exhaustive matching) and incremental mapping,
    single-threaded with fixed seeds so that one video always gives the same poses. Only the
-   features are found on every CPU the process may use (:func:`extract_features`): each
+   features are found on several threads (:func:`feature_threads`: ``OMP_NUM_THREADS``, else
+   every CPU the process may use; :func:`extract_features`): each
    image's are the same on any thread count, and the images are numbered by name afterwards,
    as one thread numbers them (matching is not: its RANSAC draws depend on the thread). Known
    intrinsics are held fixed: with focal refinement on, forward motion leaves the focal length
@@ -145,7 +146,12 @@ def mapping_options(known: bool, seed: int):
 
 
 def feature_threads() -> int:
-    """The CPUs this process may run on: the threads feature extraction uses."""
+    """The threads feature extraction uses: ``OMP_NUM_THREADS`` where it is set (Ray sets it to
+    a task's CPUs, so an ingest task asking for one CPU extracts on one), else every CPU this
+    process may run on."""
+    given = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if given.isdigit() and int(given) > 0:
+        return int(given)
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
