@@ -16,7 +16,6 @@ try:
 except ImportError:  # a build without its requirements (--no-build-isolation, no pybind11)
     Pybind11Extension = None
 
-SOURCES = ["paradrive/kernels/_bindings.cpp"]  # includes _composite.cpp
 # -ffp-contract=off: no fused multiply-adds the source does not write, so the arithmetic is the
 # source's at any optimisation level; -std=c++17 is an ISO mode, which also implies it.
 FLAGS = ["-O3", "-fno-math-errno", "-ffp-contract=off", "-pthread"]
@@ -32,9 +31,13 @@ def extensions() -> list:
     if Pybind11Extension is None:
         print("paradrive: pybind11 is not installed; the CPU kernels are not built")
         return []
-    return [Pybind11Extension(f"paradrive.kernels._kernels_{name}", SOURCES, cxx_std=17,
+    # a source file of its own per variant (each includes _bindings.cpp, which includes
+    # _composite.cpp): setuptools names an object file after its source, and the variants
+    # compile side by side, so one shared source let a variant link another's object
+    return [Pybind11Extension(f"paradrive.kernels._kernels_{name}",
+                              [f"paradrive/kernels/_kernels_{name}.cpp"], cxx_std=17,
                               define_macros=[("PD_MODULE", f"_kernels_{name}")],
-                              depends=["paradrive/kernels/_composite.cpp"],
+                              depends=["paradrive/kernels/_bindings.cpp", "paradrive/kernels/_composite.cpp"],
                               extra_compile_args=FLAGS + flags, extra_link_args=["-pthread"],
                               optional=True)
             for name, flags in VARIANTS.items()]

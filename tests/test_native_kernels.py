@@ -74,6 +74,41 @@ def test_each_instruction_set_this_cpu_runs_was_built_into_the_package():
         loader.variant("sse9")
 
 
+def test_each_variant_compiles_from_a_source_file_of_its_own(monkeypatch):
+    """setup.py's extensions, as the build sees them: the variants compile side by side, and
+    setuptools names an object file after its source, so a source shared between two variants
+    lets one link the other's object (a base module that defined PyInit__kernels_avx2, once)."""
+    import types
+
+    import setuptools
+
+    made: dict = {}
+
+    class Extension:                       # pybind11's helper, recorded
+        def __init__(self, name, sources, **kwargs):
+            self.name, self.sources, self.kwargs = name, sources, kwargs
+
+    helpers = types.ModuleType("pybind11.setup_helpers")
+    helpers.Pybind11Extension = Extension  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "pybind11", types.ModuleType("pybind11"))
+    monkeypatch.setitem(sys.modules, "pybind11.setup_helpers", helpers)
+    monkeypatch.setattr(setuptools, "setup", lambda **kwargs: made.update(kwargs))
+    monkeypatch.chdir(REPO)
+    import runpy
+
+    runpy.run_path(str(REPO / "setup.py"))
+    extensions = made["ext_modules"]
+    assert made["options"]["build_ext"]["parallel"] >= 1
+    assert {e.name for e in extensions} >= {"paradrive.kernels._kernels_base"}
+    sources = [src for e in extensions for src in e.sources]
+    assert len(sources) == len(set(sources)) == len(extensions), sources
+    for e in extensions:
+        (source,) = e.sources
+        assert Path(source).stem == e.name.rsplit(".", 1)[1]
+        assert '#include "_bindings.cpp"' in (REPO / source).read_text()
+        assert e.kwargs["define_macros"] == [("PD_MODULE", Path(source).stem)]
+
+
 def test_a_cpu_of_a_lower_capability_gets_the_narrower_kernels():
     """The variant follows torch's CPU capability, which ATEN_CPU_CAPABILITY lowers (as on a
     machine without AVX-512 or AVX2): a fresh process then loads the narrower kernels."""
