@@ -26,16 +26,14 @@ SMOKE_SCENES = ("synthetic:demo?seed=7", "synthetic:demo?seed=11")
 T = TypeVar("T")
 
 
-# The files that take the longest, longest first (their tests' seconds on a fresh clone under
-# `--durations=0`: 183, 123, 119, 75, 70, 66, 61, 59, 57, 51, 49, 45 and 40 of 1,744 in all):
-# collected first, so that `--dist loadfile` hands them out before the short ones and the two
-# workers finish together instead of one waiting on the other's last long file (884.7 s before
-# the first nine were listed, 859.3 s after).
-SLOW_FILES = ("test_video_real.py", "test_ray_executor.py", "test_ingest_video.py",
-              "test_faults.py", "test_wan_convert.py", "test_wan_distributed.py",
-              "test_video_kitti.py", "test_faults_disk.py", "test_exit_codes.py",
-              "test_inference_sets.py", "test_wan_latents.py", "test_scene_locks.py",
-              "test_wan_encode_faults.py")
+# The files that take minutes, longest first (their tests' seconds on a fresh clone under
+# `--durations=0`: 191, 136, 122, 74, 73, 69, 55, 54 and 53 of 1,655 in all): collected first,
+# so that `--dist loadfile` hands them out before the short ones and the two workers finish
+# together instead of one waiting on the other's last long file (884.7 s before, 859.3 s after).
+# Thirteen files by a later run's seconds were no better (957 s against 910 s the run before).
+SLOW_FILES = ("test_video_real.py", "test_ingest_video.py", "test_ray_executor.py",
+              "test_wan_convert.py", "test_faults.py", "test_wan_distributed.py",
+              "test_video_kitti.py", "test_faults_disk.py", "test_wan_latents.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
