@@ -78,7 +78,9 @@ KITTI = REPO.parent / "shared" / "realdata" / "kitti-odometry-snippet"
 # the snippet's rectified camera (calib.txt, P0) and KITTI's mount height
 KITTI_INTRINSICS = "fx=718.856&fy=718.856&cx=607.1928&cy=185.2157"
 KITTI_HEIGHT_M = 1.65
-PARTS = ("ruler", "ingest", "threads", "sizes", "synthetic", "kitti", "kitti_heldout", "heldout", "masks", "memory")
+PARTS = ("ruler", "ingest", "threads", "sizes", "synthetic", "kitti", "kitti_heldout", "heldout", "masks",
+         "memory")
+WITHOUT_CLIP = ("synthetic", "kitti", "kitti_heldout")   # the parts that do not read the freeway clip
 
 
 # --------------------------------------------------------------------------- the clip's ruler
@@ -561,9 +563,9 @@ def main() -> None:
                     "height_m": args.height_m}
     if not (args.clip / VIDEO).is_file():   # a clone without the real recordings: the street only
         result["clip"] = f"not found: {args.clip / VIDEO}; its parts are skipped"
-        parts = [p for p in parts if p in ("synthetic", "kitti", "kitti_heldout")]
+        parts = [p for p in parts if p in WITHOUT_CLIP]
     with every_core(args.busy):
-        ruler = measure_ruler(args.clip) if set(parts) - {"synthetic", "kitti", "kitti_heldout"} else {}
+        ruler = measure_ruler(args.clip) if set(parts) - set(WITHOUT_CLIP) else {}
         result["ruler"] = ruler
         if args.write_ruler and ruler:
             args.write_ruler.write_text(json.dumps(ruler, indent=1) + "\n")

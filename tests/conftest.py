@@ -10,9 +10,11 @@ file in its folder was added, removed or rewritten, and fails naming the files o
 from __future__ import annotations
 
 import fcntl
+import importlib.util
 import os
 import pickle
 import shutil
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TypeVar
@@ -113,6 +115,22 @@ def smoke_build(tmp_path_factory, smoke_scene):
 
 # Real recordings, read in place from ../shared/realdata beside the repository (a user's clone
 # lacks it: the tests that need it skip, naming the folder)
+def load_bench(name: str):
+    """``bench/<name>.py`` as a module, loaded once per process; the bench folder goes at the end
+    of ``sys.path`` so that the helpers beside it import (and shadow nothing)."""
+    if name in sys.modules:
+        return sys.modules[name]
+    folder = Path(__file__).resolve().parents[1] / "bench"
+    if str(folder) not in sys.path:
+        sys.path.append(str(folder))
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 FREEWAY = REALDATA / "udacity-freeway"
 FREEWAY_VIDEO = FREEWAY / "freeway-shadows-1280x720.mp4"

@@ -7,7 +7,6 @@ the manifest's pose columns are built from arrays exactly as from Python values.
 
 from __future__ import annotations
 
-import importlib.util
 import sqlite3
 import subprocess
 import sys
@@ -17,6 +16,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+from conftest import load_bench
 from paradrive.inspection import _ordered, verify_build
 from paradrive.pairs import read_index
 from paradrive.pipeline import run_build
@@ -25,23 +25,13 @@ from paradrive.pipeline.ledger import Ledger
 from paradrive.pipeline.runner import read_marker
 from paradrive.uri import parse_uri
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "bench_scale.py"
 SCENES = 6
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_scale", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_scale"] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def scaled(tmp_path_factory):
     """``SCENES`` copies of one built scene, as the scale bench makes them, published."""
-    bench = _bench()
+    bench = load_bench("bench_scale")
     work = tmp_path_factory.mktemp("scale")
     setup = bench.make_scenes(work, SCENES)
     uris = [bench.scene_uri(i) for i in range(SCENES)]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import REALDATA, read_only
+from conftest import REALDATA, load_bench, read_only
 
 pytestmark = pytest.mark.slow
 
@@ -97,26 +97,16 @@ def test_the_trajectory_keeps_its_shape(kitti_scene):
     assert summary["video"]["scale"]["parts"]["between_ranges"] > 0.03
 
 
-def test_the_gps_ins_poses_as_a_one_camera_drivestudio_folder_ingest_as_they_are(tmp_path, caplog, monkeypatch):
+def test_the_gps_ins_poses_as_a_one_camera_drivestudio_folder_ingest_as_they_are(tmp_path, caplog):
     """The folder the held-out comparison fits on (``bench_video.py --parts kitti_heldout``):
     one camera, no LiDAR, read under ``ingest.cameras: auto`` (the Waymo set's other cameras are
     named as left out), its camera poses KITTI's GPS/INS poses and its camera the rectified one."""
     if not (KITTI / "image_l").is_dir():
         pytest.skip(f"the KITTI snippet is not here ({KITTI}): a clone without ../shared/realdata")
-    import importlib.util
-    import sys
-    from pathlib import Path
-
     from paradrive.scene import load_scene
     from paradrive.stages.ingest import ingest, params_of
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "bench_video.py"
-    monkeypatch.syspath_prepend(str(path.parent))       # its helpers beside it
-    spec = importlib.util.spec_from_file_location("bench_video", path)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "bench_video", bench)
-    spec.loader.exec_module(bench)
+    bench = load_bench("bench_video")
     uri = bench.kitti_drivestudio(KITTI, tmp_path / "folder")
     with caplog.at_level("WARNING", logger="paradrive.ingest"):
         summary = ingest(uri, tmp_path / "scene", params_of())

@@ -48,8 +48,8 @@ import numpy as np
 from paradrive import geometry
 
 __all__ = ["SfmError", "Intrinsics", "Reconstruction", "RoadPlane", "MetricRig", "reconstruct",
-           "mapping_options", "extract_features", "registered_runs", "steady_runs", "fit_road_plane", "level_with_path",
-           "metric_rig", "path_length", "without_drift", "format_runs"]
+           "mapping_options", "extract_features", "registered_runs", "steady_runs", "fit_road_plane",
+           "level_with_path", "metric_rig", "path_length", "without_drift", "format_runs"]
 
 
 class SfmError(ValueError):
@@ -155,13 +155,12 @@ def feature_threads() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def extract_features(database: Path, image_dir: Path, names: list[str], reader, extraction,
-                     threads: int | None = None) -> None:
-    """SIFT features of ``names`` into ``database`` (one shared camera), on ``threads`` threads
-    (None: :func:`feature_threads`), numbered as one thread numbers them."""
+def extract_features(database: Path, image_dir: Path, names: list[str], reader, extraction) -> None:
+    """SIFT features of ``names`` into ``database`` (one shared camera), on
+    :func:`feature_threads` threads, numbered as one thread numbers them."""
     import pycolmap
 
-    extraction.num_threads = threads or feature_threads()
+    extraction.num_threads = feature_threads()
     pycolmap.extract_features(database, image_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
